@@ -1,0 +1,571 @@
+"""Scan archive format v1: one HDF5 file per pass along the rail. The contract is docs/archive-format.md.
+
+``write_pass`` writes atomically (a hidden ``.<name>.partial`` next to the target, fsync, rename), so a
+reader never sees a half-written file. ``read_pass`` validates everything and reports each problem as an
+``ArchiveError`` naming the file and the HDF5 field ("scan.h5: /radar@sample_rate_hz: missing").
+``read_pass_header`` reads metadata only, for cheap directory discovery.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import errno
+import math
+import os
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from uwbcl.model import PassGeometry, RadarParameters, ScanPass
+
+FORMAT_NAME = "uwbcl-scan"
+FORMAT_VERSION = 1  # major version: bumped only by changes an existing reader would misread
+BANDWIDTH_DEFINITION = "-10 dB"
+PULSE_SHAPE = "gaussian"
+ECHO_DTYPES = ("complex64", "complex128", "int16")
+INT16_FULL_SCALE = 32767  # symmetric: -32768 is never written, so +-peak maps to +-32767
+FILE_SUFFIX = ".h5"
+PARTIAL_SUFFIX = ".partial"
+
+_LIBVER = ("v110", "v110")  # the h5py wheel bundles HDF5 2.0; "latest" would lock out older readers
+_GZIP_LEVEL = 4
+_CHUNK_TARGET_BYTES = 1 << 20
+_UNITS = {"/pulses/time_s": "s", "/pulses/position_m": "m", "/echo": "arb"}
+
+_ROOT_STR = ("format", "rig_id", "pass_id", "pass_start_time", "created_by")
+_RADAR_FLOAT = (
+    "carrier_frequency_hz",
+    "bandwidth_hz",
+    "sample_rate_hz",
+    "pulse_repetition_frequency_hz",
+    "antenna_aperture_m",
+    "range_window_start_s",
+)
+_RADAR_POSITIVE = _RADAR_FLOAT[:5]
+
+
+class ArchiveError(ValueError):
+    """A scan file that cannot be trusted; names the file and the HDF5 field ("/group@attr" or "/dataset")."""
+
+    def __init__(self, path: str | os.PathLike[str], field: str, reason: str) -> None:
+        # args hold all three so the exception pickles (multiprocessing workers re-raise it).
+        super().__init__(str(path), field, reason)
+        self.path, self.field, self.reason = str(path), field, reason
+
+    def __str__(self) -> str:
+        return f"{self.path}: {self.field}: {self.reason}"
+
+
+# ----------------------------------------------------------------------------------------------- naming
+
+
+def height_mm(height_m: float) -> int:
+    return round(float(height_m) * 1000.0)
+
+
+def default_pass_id(scan: ScanPass) -> str:
+    return f"{scan.rig_id}-c{scan.cycle:06d}-h{height_mm(scan.geometry.height_m):04d}"
+
+
+def default_relative_path(scan: ScanPass) -> Path:
+    """``<rig_id>/<YYYY-MM-DD>/<rig_id>_c<cycle:06d>_h<height_mm:04d>.h5``, the date being the UTC pass start."""
+    day = _parse_utc(scan.pass_start_time).date().isoformat()
+    name = f"{scan.rig_id}_c{scan.cycle:06d}_h{height_mm(scan.geometry.height_m):04d}{FILE_SUFFIX}"
+    return Path(scan.rig_id, day, name)
+
+
+def find_pass_files(root: str | os.PathLike[str]) -> list[Path]:
+    """Finished scan files under ``root``, sorted; hidden files (in-progress ``.partial`` writes) are skipped."""
+    return sorted(p for p in Path(root).rglob(f"*{FILE_SUFFIX}") if not p.name.startswith("."))
+
+
+# ----------------------------------------------------------------------------------------------- writing
+
+
+def write_pass(
+    path: str | os.PathLike[str],
+    scan: ScanPass,
+    *,
+    echo_dtype: str = "complex64",
+    overwrite: bool = False,
+    pass_id: str | None = None,
+    created_by: str | None = None,
+) -> Path:
+    """Write ``scan`` to ``path`` atomically; return the final path.
+
+    echo_dtype: "complex64" (default), "complex128", or "int16" (I/Q counts scaled so the peak component is
+    +-32767: error <= scale/2 per component, about 96 dB below the peak). Raises ``FileExistsError`` if
+    ``path`` exists and not ``overwrite``, and ``ArchiveError`` if ``scan`` would not read back as valid.
+    """
+    path = Path(path)
+    if echo_dtype not in ECHO_DTYPES:
+        raise ValueError(f"echo_dtype must be one of {ECHO_DTYPES}, got {echo_dtype!r}")
+    if not overwrite and path.exists():
+        raise FileExistsError(errno.EEXIST, "scan file exists (pass overwrite=True to replace it)", str(path))
+
+    echo = np.asarray(scan.echo)
+    if echo.ndim != 2 or not np.iscomplexobj(echo):
+        raise ArchiveError(path, "/echo", f"expected a 2-D complex array, got {echo.dtype} {echo.shape}")
+    header = _header_from_scan(scan, pass_id, created_by)
+    _check_header(path, header)
+    time_s = np.asarray(scan.pulse_time_s, dtype=np.float64)
+    position_m = np.asarray(scan.pulse_position_m, dtype=np.float64)
+    _check_pulses(path, time_s, position_m, echo.shape[0])
+    _check_echo_finite(path, echo)
+    stored, layout, scale = _encode_echo(path, echo, echo_dtype)
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.name}{PARTIAL_SUFFIX}")
+    try:
+        with h5py.File(partial, "w", libver=_LIBVER) as f:
+            _write_header(f, header)
+            _write_dataset(f, "/pulses/time_s", time_s)
+            _write_dataset(f, "/pulses/position_m", position_m)
+            ds = _write_dataset(f, "/echo", stored)
+            ds.attrs["layout"] = layout
+            ds.attrs["scale"] = np.float64(scale)
+        _fsync_file(partial)
+        _publish(partial, path, overwrite)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            partial.unlink()
+        raise
+    _fsync_dir(path.parent)
+    return path
+
+
+def _header_from_scan(scan: ScanPass, pass_id: str | None, created_by: str | None) -> dict[str, Any]:
+    r, g = scan.radar, scan.geometry
+    n_pulses, samples_per_pulse = np.shape(scan.echo)
+    return {
+        "format": FORMAT_NAME,
+        "format_version": FORMAT_VERSION,
+        "rig_id": scan.rig_id,
+        "cycle": int(scan.cycle),
+        "pass_id": default_pass_id(scan) if pass_id is None else pass_id,
+        "pass_start_time": scan.pass_start_time,
+        "created_by": created_by
+        or f"uwbcl.archive (h5py {h5py.__version__}, HDF5 {h5py.version.hdf5_version})",
+        "carrier_frequency_hz": float(r.carrier_frequency_hz),
+        "bandwidth_hz": float(r.bandwidth_hz),
+        "bandwidth_definition": BANDWIDTH_DEFINITION,
+        "pulse_shape": PULSE_SHAPE,
+        "sample_rate_hz": float(r.sample_rate_hz),
+        "pulse_repetition_frequency_hz": float(r.pulse_repetition_frequency_hz),
+        "antenna_aperture_m": float(r.antenna_aperture_m),
+        "range_window_start_s": float(scan.range_window_start_s),
+        "samples_per_pulse": int(samples_per_pulse),
+        "height_m": float(g.height_m),
+        "rotation_table_angle_deg": float(g.rotation_table_angle_deg),
+        "reference_point_m": tuple(float(v) for v in g.reference_point_m),
+        "boresight_y_sign": int(g.boresight_y_sign),
+        "n_pulses": int(n_pulses),
+    }
+
+
+def _encode_echo(path: Path, echo: np.ndarray, echo_dtype: str) -> tuple[np.ndarray, str, float]:
+    if echo_dtype != "int16":
+        stored = echo.astype(echo_dtype)
+        if not np.isfinite(stored).all():  # e.g. |value| > 3.4e38 overflows complex64
+            raise ArchiveError(path, "/echo", f"values overflow {echo_dtype}")
+        return stored, "complex", 1.0
+    peak = float(max(np.abs(echo.real).max(), np.abs(echo.imag).max()))
+    scale = peak / INT16_FULL_SCALE if peak > 0 else 1.0
+    iq = np.stack([echo.real, echo.imag], axis=-1) / scale
+    counts = np.clip(np.rint(iq), -INT16_FULL_SCALE, INT16_FULL_SCALE).astype(np.int16)
+    return counts, "int16_iq", scale
+
+
+def _write_header(f: h5py.File, h: dict[str, Any]) -> None:
+    for name in _ROOT_STR:
+        f.attrs[name] = h[name]
+    f.attrs["format_version"] = np.int64(h["format_version"])
+    f.attrs["cycle"] = np.int64(h["cycle"])
+    radar = f.create_group("radar")
+    for name in _RADAR_FLOAT:
+        radar.attrs[name] = np.float64(h[name])
+    radar.attrs["bandwidth_definition"] = h["bandwidth_definition"]
+    radar.attrs["pulse_shape"] = h["pulse_shape"]
+    radar.attrs["samples_per_pulse"] = np.int64(h["samples_per_pulse"])
+    geometry = f.create_group("geometry")
+    geometry.attrs["height_m"] = np.float64(h["height_m"])
+    geometry.attrs["rotation_table_angle_deg"] = np.float64(h["rotation_table_angle_deg"])
+    geometry.attrs["reference_point_m"] = np.asarray(h["reference_point_m"], dtype=np.float64)
+    geometry.attrs["boresight_y_sign"] = np.int64(h["boresight_y_sign"])
+
+
+def _write_dataset(f: h5py.File, name: str, data: np.ndarray) -> h5py.Dataset:
+    # Chunks of whole rows (~1 MiB) so a reader can pull a pulse range; the Fletcher-32 checksum turns
+    # silent corruption of the data into a read error.
+    row_bytes = max(1, data[:1].nbytes)
+    rows = int(min(data.shape[0], max(1, _CHUNK_TARGET_BYTES // row_bytes)))
+    ds = f.create_dataset(
+        name,
+        data=data,
+        chunks=(rows, *data.shape[1:]),
+        compression="gzip",
+        compression_opts=_GZIP_LEVEL,
+        shuffle=True,
+        fletcher32=True,
+    )
+    ds.attrs["units"] = _UNITS[name]
+    return ds
+
+
+def _fsync_file(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_dir(directory: Path) -> None:
+    # Makes the rename itself durable; some platforms/filesystems cannot open or fsync a directory.
+    with contextlib.suppress(OSError):
+        fd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _publish(partial: Path, path: Path, overwrite: bool) -> None:
+    if overwrite:
+        os.replace(partial, path)
+        return
+    # link() fails if the target exists, so a file that appeared while we wrote is never clobbered.
+    try:
+        os.link(partial, path)
+    except FileExistsError:
+        raise FileExistsError(errno.EEXIST, "scan file appeared while writing", str(path)) from None
+    except OSError:  # filesystem without hard links: best-effort check, then rename
+        if path.exists():
+            raise FileExistsError(errno.EEXIST, "scan file appeared while writing", str(path)) from None
+        os.replace(partial, path)
+        return
+    partial.unlink()
+
+
+# ----------------------------------------------------------------------------------------------- reading
+
+
+def read_pass_header(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Validated metadata of a scan file without reading any dataset's values.
+
+    Keys: the root, /radar and /geometry attributes under their own names (``format`` excepted), plus
+    ``n_pulses``, ``echo_layout``, ``echo_scale`` and ``path``. Values are plain Python types.
+    """
+    with _open(path) as f:
+        return _read_header(f, path)
+
+
+def read_pass(path: str | os.PathLike[str]) -> ScanPass:
+    """Read and fully validate one scan file; the echo comes back as complex128, ``source`` = str(path)."""
+    with _open(path) as f:
+        h = _read_header(f, path)
+        time_s = _read_values(f, path, "/pulses/time_s").astype(np.float64)
+        position_m = _read_values(f, path, "/pulses/position_m").astype(np.float64)
+        raw = _read_values(f, path, "/echo")
+        scale = h.pop("echo_scale")
+    _check_pulses(path, time_s, position_m, h["n_pulses"])
+    if h["echo_layout"] == "int16_iq":
+        echo = scale * (raw[..., 0].astype(np.float64) + 1j * raw[..., 1].astype(np.float64))
+    else:
+        echo = scale * raw.astype(np.complex128)
+        _check_echo_finite(path, echo)
+    radar = RadarParameters(**{k: h[k] for k in _RADAR_POSITIVE})
+    geometry = PassGeometry(
+        height_m=h["height_m"],
+        rotation_table_angle_deg=h["rotation_table_angle_deg"],
+        reference_point_m=h["reference_point_m"],
+        boresight_y_sign=h["boresight_y_sign"],
+    )
+    return ScanPass(
+        radar=radar,
+        geometry=geometry,
+        range_window_start_s=h["range_window_start_s"],
+        pulse_time_s=time_s,
+        pulse_position_m=position_m,
+        echo=echo,
+        rig_id=h["rig_id"],
+        cycle=h["cycle"],
+        pass_start_time=h["pass_start_time"],
+        source=str(path),
+    )
+
+
+@contextlib.contextmanager
+def _open(path: str | os.PathLike[str]) -> Iterator[h5py.File]:
+    # A missing or unreadable file is the caller's problem, not the file's: those OSErrors pass through.
+    # Everything else h5py raises means "not an HDF5 file" or a damaged one.
+    try:
+        f = h5py.File(path, "r")
+    except (FileNotFoundError, PermissionError, IsADirectoryError):
+        raise
+    except OSError as e:
+        # HDF5's messages are the only signal; fall back to a generic reason when they change.
+        text = str(e)
+        if "signature not found" in text:
+            reason = "not an HDF5 file"
+        elif "truncated" in text:
+            reason = "truncated HDF5 file"
+        else:
+            reason = "unreadable HDF5 file (corrupt?)"
+        raise ArchiveError(path, "/", f"{reason}: {text}") from e
+    try:
+        with f:
+            yield f
+    except ArchiveError:
+        raise
+    except (OSError, RuntimeError, KeyError) as e:
+        raise ArchiveError(path, "/", f"corrupt HDF5 structure: {e}") from e
+
+
+def _read_header(f: h5py.File, path: Any) -> dict[str, Any]:
+    # Identify the file before anything else, so a foreign or newer file gets one clear message.
+    fmt = _str_attr(f, "format", path)
+    if fmt != FORMAT_NAME:
+        raise ArchiveError(path, "/@format", f"expected {FORMAT_NAME!r}, got {fmt!r}")
+    version = _int_attr(f, "format_version", path)
+    if version > FORMAT_VERSION:
+        raise ArchiveError(
+            path,
+            "/@format_version",
+            f"version {version} is newer than this reader supports ({FORMAT_VERSION}); upgrade uwbcl",
+        )
+    if version != FORMAT_VERSION:
+        raise ArchiveError(path, "/@format_version", f"unknown version {version} (expected {FORMAT_VERSION})")
+
+    h: dict[str, Any] = {"format": fmt, "format_version": version}
+    for name in _ROOT_STR[1:]:
+        h[name] = _str_attr(f, name, path)
+    h["cycle"] = _int_attr(f, "cycle", path)
+    radar = _group(f, "radar", path)
+    for name in _RADAR_FLOAT:
+        h[name] = _float_attr(radar, name, path)
+    h["bandwidth_definition"] = _str_attr(radar, "bandwidth_definition", path)
+    h["pulse_shape"] = _str_attr(radar, "pulse_shape", path)
+    h["samples_per_pulse"] = _int_attr(radar, "samples_per_pulse", path)
+    geometry = _group(f, "geometry", path)
+    h["height_m"] = _float_attr(geometry, "height_m", path)
+    h["rotation_table_angle_deg"] = _float_attr(geometry, "rotation_table_angle_deg", path)
+    h["reference_point_m"] = _vector_attr(geometry, "reference_point_m", path, 3)
+    h["boresight_y_sign"] = _int_attr(geometry, "boresight_y_sign", path)
+
+    time_ds = _dataset(f, "/pulses/time_s", path)
+    position_ds = _dataset(f, "/pulses/position_m", path)
+    echo_ds = _dataset(f, "/echo", path)
+    layout = _str_attr(echo_ds, "layout", path)
+    h["echo_layout"] = layout
+    h["echo_scale"] = _float_attr(echo_ds, "scale", path)
+    if not (math.isfinite(h["echo_scale"]) and h["echo_scale"] > 0):
+        raise ArchiveError(path, "/echo@scale", f"must be finite and > 0, got {h['echo_scale']}")
+    _check_echo_storage(path, echo_ds, layout)
+    h["n_pulses"] = int(echo_ds.shape[0])
+    if echo_ds.shape[1] != h["samples_per_pulse"]:
+        raise ArchiveError(
+            path,
+            "/radar@samples_per_pulse",
+            f"{h['samples_per_pulse']} disagrees with /echo, which has {echo_ds.shape[1]} samples per pulse",
+        )
+    for ds in (time_ds, position_ds):
+        if ds.shape != (h["n_pulses"],):
+            raise ArchiveError(
+                path, ds.name, f"shape {ds.shape}, expected ({h['n_pulses']},) (one per echo row)"
+            )
+        if ds.dtype.kind not in "fiu":
+            raise ArchiveError(path, ds.name, f"expected a real numeric dtype, got {ds.dtype}")
+    _check_header(path, h)
+    h.pop("format")
+    h["path"] = str(path)
+    return h
+
+
+def _check_echo_storage(path: Any, ds: h5py.Dataset, layout: str) -> None:
+    if layout == "complex":
+        if ds.dtype.kind != "c" or ds.ndim != 2:
+            raise ArchiveError(
+                path,
+                "/echo",
+                f"layout 'complex' needs a 2-D complex (compound r,i) dataset, got {ds.dtype} {ds.shape}",
+            )
+    elif layout == "int16_iq":
+        if ds.dtype.kind != "i" or ds.dtype.itemsize != 2 or ds.ndim != 3 or ds.shape[2] != 2:
+            raise ArchiveError(
+                path, "/echo", f"layout 'int16_iq' needs int16 of shape (N, M, 2), got {ds.dtype} {ds.shape}"
+            )
+    else:
+        raise ArchiveError(path, "/echo@layout", f"expected 'complex' or 'int16_iq', got {layout!r}")
+
+
+def _read_values(f: h5py.File, path: Any, name: str) -> np.ndarray:
+    try:
+        return f[name][()]
+    except (OSError, RuntimeError, ValueError, TypeError) as e:  # checksum, filter or I/O failure
+        raise ArchiveError(path, name, f"cannot read data (corrupt or truncated?): {e}") from e
+
+
+# ----------------------------------------------------------------------------------------------- checks
+# Shared by writer and reader, so a file write_pass accepts is exactly a file read_pass accepts.
+
+
+def _check_header(path: Any, h: dict[str, Any]) -> None:
+    def fail(field: str, reason: str) -> None:
+        raise ArchiveError(path, field, reason)
+
+    for name in _ROOT_STR:
+        if not isinstance(h[name], str):
+            fail(f"/@{name}", f"expected a string, got {type(h[name]).__name__}")
+    for name in ("rig_id", "pass_id"):
+        if not h[name].strip():
+            fail(f"/@{name}", "must not be empty")
+    try:
+        _parse_utc(h["pass_start_time"])
+    except ValueError as e:
+        fail("/@pass_start_time", str(e))
+    if h["cycle"] < 0:
+        fail("/@cycle", f"must be >= 0, got {h['cycle']}")
+    for name in _RADAR_FLOAT:
+        if not math.isfinite(h[name]):
+            fail(f"/radar@{name}", f"must be finite, got {h[name]}")
+    for name in _RADAR_POSITIVE:
+        if not h[name] > 0:
+            fail(f"/radar@{name}", f"must be > 0, got {h[name]}")
+    if h["bandwidth_definition"] != BANDWIDTH_DEFINITION:
+        fail(
+            "/radar@bandwidth_definition",
+            f"expected {BANDWIDTH_DEFINITION!r}, got {h['bandwidth_definition']!r}",
+        )
+    if h["pulse_shape"] != PULSE_SHAPE:
+        fail("/radar@pulse_shape", f"expected {PULSE_SHAPE!r}, got {h['pulse_shape']!r}")
+    if h["samples_per_pulse"] < 1:
+        fail("/radar@samples_per_pulse", f"must be >= 1, got {h['samples_per_pulse']}")
+    if h["n_pulses"] < 2:
+        fail("/echo", f"needs at least 2 pulses, got {h['n_pulses']}")
+    if not math.isfinite(h["height_m"]):
+        fail("/geometry@height_m", f"must be finite, got {h['height_m']}")
+    angle = h["rotation_table_angle_deg"]
+    if not (math.isfinite(angle) and abs(angle) < 90.0):
+        fail("/geometry@rotation_table_angle_deg", f"must be finite and within (-90, 90), got {angle}")
+    if len(h["reference_point_m"]) != 3 or not all(math.isfinite(v) for v in h["reference_point_m"]):
+        fail("/geometry@reference_point_m", f"must be 3 finite values, got {h['reference_point_m']}")
+    if h["boresight_y_sign"] not in (-1, 1):
+        fail("/geometry@boresight_y_sign", f"must be -1 or +1, got {h['boresight_y_sign']}")
+
+
+def _check_pulses(path: Any, time_s: np.ndarray, position_m: np.ndarray, n_pulses: int) -> None:
+    for name, x in (("/pulses/time_s", time_s), ("/pulses/position_m", position_m)):
+        if x.shape != (n_pulses,):
+            raise ArchiveError(path, name, f"shape {x.shape}, expected ({n_pulses},) (one per echo row)")
+        bad = np.flatnonzero(~np.isfinite(x))
+        if bad.size:
+            raise ArchiveError(path, name, f"NaN or inf at pulse {bad[0]}")
+    dt = np.diff(time_s)
+    if not (dt > 0).all():
+        raise ArchiveError(
+            path, "/pulses/time_s", f"not strictly increasing (at pulse {np.argmax(dt <= 0) + 1})"
+        )
+    # The carriage runs both ways along the rail, so decreasing positions are fine; standing still is not.
+    dx = np.diff(position_m)
+    if not ((dx > 0).all() or (dx < 0).all()):
+        step = np.sign(dx[0]) * dx
+        raise ArchiveError(
+            path, "/pulses/position_m", f"not strictly monotonic (at pulse {np.argmax(step <= 0) + 1})"
+        )
+
+
+def _check_echo_finite(path: Any, echo: np.ndarray) -> None:
+    bad = ~np.isfinite(echo)
+    if bad.any():
+        pulse, sample = np.argwhere(bad)[0]
+        raise ArchiveError(path, "/echo", f"NaN or inf (first at pulse {pulse}, sample {sample})")
+
+
+def _parse_utc(text: str) -> _dt.datetime:
+    # Python 3.10's fromisoformat does not take "Z"; spell it as an offset first.
+    s = text[:-1] + "+00:00" if text.endswith(("Z", "z")) else text
+    try:
+        t = _dt.datetime.fromisoformat(s)
+    except ValueError:
+        raise ValueError(f"not an ISO 8601 date-time: {text!r}") from None
+    if t.utcoffset() != _dt.timedelta(0):
+        raise ValueError(f"must be UTC ('Z' or '+00:00'), got {text!r}")
+    return t
+
+
+# ----------------------------------------------------------------------------------------------- attributes
+
+
+def _group(f: h5py.File, name: str, path: Any) -> h5py.Group:
+    g = f.get(name)
+    if not isinstance(g, h5py.Group):
+        raise ArchiveError(path, f"/{name}", "missing" if g is None else "not a group")
+    return g
+
+
+def _dataset(f: h5py.File, name: str, path: Any) -> h5py.Dataset:
+    ds = f.get(name)
+    if not isinstance(ds, h5py.Dataset):
+        raise ArchiveError(path, name, "missing" if ds is None else "not a dataset")
+    units = _str_attr(ds, "units", path)
+    if units != _UNITS[name]:
+        raise ArchiveError(path, f"{name}@units", f"expected {_UNITS[name]!r}, got {units!r}")
+    return ds
+
+
+def _raw_attr(obj: h5py.HLObject, name: str, path: Any) -> Any:
+    field = f"{obj.name}@{name}"
+    if name not in obj.attrs:
+        raise ArchiveError(path, field, "missing")
+    try:
+        return obj.attrs[name]
+    except (OSError, TypeError, ValueError) as e:  # e.g. a datatype h5py cannot map to numpy
+        raise ArchiveError(path, field, f"unreadable: {e}") from e
+
+
+def _scalar(obj: h5py.HLObject, name: str, path: Any) -> np.ndarray:
+    # 1-element arrays are accepted as scalars: several HDF5 front ends (MATLAB, R) write them that way.
+    value = np.asarray(_raw_attr(obj, name, path))
+    if value.size != 1 or value.ndim > 1:
+        raise ArchiveError(path, f"{obj.name}@{name}", f"expected a scalar, got shape {value.shape}")
+    return value.reshape(())
+
+
+def _str_attr(obj: h5py.HLObject, name: str, path: Any) -> str:
+    value = _scalar(obj, name, path).item()
+    if isinstance(value, bytes):
+        try:
+            value = value.decode("utf-8")
+        except UnicodeDecodeError:
+            raise ArchiveError(path, f"{obj.name}@{name}", "not valid UTF-8") from None
+    if not isinstance(value, str):
+        raise ArchiveError(path, f"{obj.name}@{name}", f"expected a string, got {type(value).__name__}")
+    return value
+
+
+def _int_attr(obj: h5py.HLObject, name: str, path: Any) -> int:
+    value = _scalar(obj, name, path)
+    if value.dtype.kind not in "iu":
+        raise ArchiveError(path, f"{obj.name}@{name}", f"expected an integer, got {value.dtype}")
+    return int(value)
+
+
+def _float_attr(obj: h5py.HLObject, name: str, path: Any) -> float:
+    value = _scalar(obj, name, path)
+    if value.dtype.kind not in "fiu":
+        raise ArchiveError(path, f"{obj.name}@{name}", f"expected a real number, got {value.dtype}")
+    return float(value)
+
+
+def _vector_attr(obj: h5py.HLObject, name: str, path: Any, length: int) -> tuple[float, ...]:
+    value = np.asarray(_raw_attr(obj, name, path))
+    if value.shape != (length,) or value.dtype.kind not in "fiu":
+        raise ArchiveError(
+            path, f"{obj.name}@{name}", f"expected {length} real numbers, got {value.dtype} {value.shape}"
+        )
+    return tuple(float(v) for v in value)

@@ -1,0 +1,358 @@
+"""The modified NLCS focusing chain (paper section 2.2) as a float64 numpy reference, one function per stage.
+
+Array layout: (azimuth, range) = (pulses, fast-time samples). Range spectra are in numpy FFT order with
+absolute delay origins (S(f) = sum s(t) exp(-j 2 pi f t), t = t_r0 + k / f_s). Azimuth arrays on the padded
+grid are centred: index N/2 is t_a = 0 (resp. f_a = 0), so transforms are fftshift(fft(ifftshift(.))).
+
+The chain (eq. numbers of the paper; [fix] where the design notes correct it):
+    range_fft -> linear_range_walk_correction (4, with the logged rail positions) -> resample_to_uniform_track
+    -> extended_nlcs (6) -> azimuth_fft -> secondary_range_compression (9 [fix], 10) -> range_ifft (11)
+    -> azimuth_compensation (13) -> nlcs_filter (15: H6) -> azimuth_ifft -> nlcs_scaling (15: H7)
+    -> azimuth_fft -> azimuth_compression (17 [fix]) -> azimuth_ifft
+The geometry correction (eqs. 18-19 [fix]) lives in `FocusedImage.to_track`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from .. import geometry as geo
+from ..model import SPEED_OF_LIGHT_M_S, ScanPass
+from . import coefficients as coef
+
+C = SPEED_OF_LIGHT_M_S
+
+
+# --------------------------------------------------------------------------------------------- transforms
+def az_fft(x: np.ndarray) -> np.ndarray:
+    return np.fft.fftshift(np.fft.fft(np.fft.ifftshift(x, axes=0), axis=0), axes=0)
+
+
+def az_ifft(x: np.ndarray) -> np.ndarray:
+    return np.fft.fftshift(np.fft.ifft(np.fft.ifftshift(x, axes=0), axis=0), axes=0)
+
+
+# --------------------------------------------------------------------------------------------- the grid
+@dataclasses.dataclass(frozen=True)
+class FocusGrid:
+    """The processing frame of one pass: uniform track, padded azimuth grid, range bins, squint."""
+
+    aperture_centre_m: float
+    speed_m_s: float  # mean carriage speed; t_a is along-track distance / speed
+    track_spacing_m: float  # uniform resampled pulse spacing
+    n_track: int  # resampled pulses (odd; the middle one is at the aperture centre)
+    n_azimuth: int  # padded azimuth FFT length (even)
+    sin_squint: float  # theta_q: slant squint of the reference point (notes section 1)
+    reference_range_m: float  # r_ref = |T - O_s|
+    range_window_start_s: float
+    sample_rate_hz: float
+    n_range: int
+    carrier_frequency_hz: float
+    pulse_sigma_s: float
+    doppler_band: tuple[float, float]  # [X_lo, X_hi], support of the sine of the slant squint
+
+    @property
+    def cos_squint(self) -> float:
+        return math.sqrt(1.0 - self.sin_squint**2)
+
+    @property
+    def wavelength_m(self) -> float:
+        return C / self.carrier_frequency_hz
+
+    @property
+    def dt_s(self) -> float:
+        return self.track_spacing_m / self.speed_m_s
+
+    @property
+    def t_track_s(self) -> np.ndarray:
+        return (np.arange(self.n_track) - (self.n_track - 1) // 2) * self.dt_s
+
+    @property
+    def t_azimuth_s(self) -> np.ndarray:
+        return (np.arange(self.n_azimuth) - self.n_azimuth // 2) * self.dt_s
+
+    @property
+    def f_azimuth_hz(self) -> np.ndarray:
+        return (np.arange(self.n_azimuth) - self.n_azimuth // 2) / (self.n_azimuth * self.dt_s)
+
+    @property
+    def f_range_hz(self) -> np.ndarray:
+        return np.fft.fftfreq(self.n_range, 1.0 / self.sample_rate_hz)
+
+    @property
+    def range_bins_m(self) -> np.ndarray:
+        return 0.5 * C * (self.range_window_start_s + np.arange(self.n_range) / self.sample_rate_hz)
+
+
+def focus_grid(scan: ScanPass, azimuth_oversampling: int = 8) -> FocusGrid:
+    x = np.sort(scan.pulse_position_m)
+    n_track = scan.n_pulses | 1
+    length = x[-1] - x[0]
+    speed = abs(scan.mean_speed_m_s)
+    x_c = scan.aperture_centre_m
+    g = scan.geometry
+    theta_q = geo.slant_squint_rad(g.reference_point_m, x_c, g.height_m)
+    tx, ty, tz = g.reference_point_m
+    r_ref = math.sqrt((tx - x_c) ** 2 + ty**2 + (tz - g.height_m) ** 2)
+    n_az = 1 << int(math.ceil(math.log2(azimuth_oversampling * n_track)))
+    return FocusGrid(
+        aperture_centre_m=x_c, speed_m_s=speed, track_spacing_m=length / (n_track - 1), n_track=n_track,
+        n_azimuth=n_az, sin_squint=math.sin(theta_q), reference_range_m=r_ref,
+        range_window_start_s=scan.range_window_start_s, sample_rate_hz=scan.radar.sample_rate_hz,
+        n_range=scan.samples_per_pulse, carrier_frequency_hz=scan.radar.carrier_frequency_hz,
+        pulse_sigma_s=scan.radar.pulse_sigma_s,
+        doppler_band=geo.slant_doppler_band(g, scan.radar.antenna_aperture_m, scan.radar.wavelength_m),
+    )
+
+
+# --------------------------------------------------------------------------------------------- range stages
+def range_fft(echo: np.ndarray, grid: FocusGrid) -> np.ndarray:
+    """S1(f_r, t_a) of eq. (3), with the absolute delay origin of the window."""
+    return np.fft.fft(echo, axis=1) * np.exp(-2j * np.pi * grid.f_range_hz * grid.range_window_start_s)
+
+
+def range_ifft(spectrum: np.ndarray, grid: FocusGrid) -> np.ndarray:
+    return np.fft.ifft(spectrum * np.exp(2j * np.pi * grid.f_range_hz * grid.range_window_start_s), axis=1)
+
+
+def pulse_spectrum(f_r_hz, sigma_s: float) -> np.ndarray:
+    """P(f) of the Gaussian pulse, normalised to P(0) = 1."""
+    return np.exp(-2.0 * (np.pi * sigma_s * np.asarray(f_r_hz)) ** 2)
+
+
+def linear_range_walk_correction(s1: np.ndarray, x_rel_m: np.ndarray, grid: FocusGrid) -> np.ndarray:
+    """H1 = exp(-j 4 pi (f_c + f_r) v sin(theta_q) t_a / c)  (eq. 4), with v t_a the logged rail position."""
+    f = grid.carrier_frequency_hz + grid.f_range_hz
+    return s1 * np.exp(-4j * np.pi * np.outer(x_rel_m, f) * grid.sin_squint / C)
+
+
+def lagrange_weights(x_nodes: np.ndarray, x_out: np.ndarray, order: int = 6):
+    """Start index and weights of the `order`-point Lagrange interpolation from sorted nodes to x_out."""
+    n = x_nodes.size
+    half = order // 2
+    j = np.clip(np.searchsorted(x_nodes, x_out) - half, 0, n - order)
+    idx = j[:, None] + np.arange(order)[None, :]
+    xn = x_nodes[idx]
+    w = np.ones((x_out.size, order))
+    for m in range(order):
+        for k in range(order):
+            if k != m:
+                w[:, m] *= (x_out - xn[:, k]) / (xn[:, m] - xn[:, k])
+    return idx, w
+
+
+def resample_to_uniform_track(s: np.ndarray, x_rel_m: np.ndarray, grid: FocusGrid) -> np.ndarray:
+    """Motion compensation for rail-speed fluctuation: resample pulses from the logged positions onto the uniform
+    track t_a = k dt. After LRWC the signal is slowly varying along the track, so 6-point Lagrange is accurate.
+    """
+    idx, w = lagrange_weights(x_rel_m, grid.t_track_s * grid.speed_m_s)
+    return np.einsum("km,kmr->kr", w, s[idx])
+
+
+def extended_nlcs(s: np.ndarray, p2: np.ndarray | float, grid: FocusGrid) -> np.ndarray:
+    """H2 = exp(+j 4 pi (f_c + f_r) p2 t_a^2 / c)  (eq. 6). p2 = 0 on a straight rail under P1 (notes 3)."""
+    if np.all(np.asarray(p2) == 0):
+        return s
+    f = grid.carrier_frequency_hz + grid.f_range_hz
+    t = grid.t_track_s
+    return s * np.exp(4j * np.pi * np.outer(p2 * t**2, f) / C)
+
+
+def pad_azimuth(s: np.ndarray, grid: FocusGrid) -> np.ndarray:
+    """Zero-pad the uniform track onto the azimuth FFT grid with t_a = 0 at index N/2."""
+    out = np.zeros((grid.n_azimuth, s.shape[1]), dtype=np.complex128)
+    start = grid.n_azimuth // 2 - (grid.n_track - 1) // 2
+    out[start:start + grid.n_track] = s
+    return out
+
+
+def slant_squint_sine(grid: FocusGrid) -> np.ndarray:
+    """X(f_r, f_a) = sin(theta_q) + c f_a / (2 v F): the slant squint of each 2-D frequency (notes 4)."""
+    f = grid.carrier_frequency_hz + grid.f_range_hz
+    return grid.sin_squint + C * grid.f_azimuth_hz[:, None] / (2.0 * grid.speed_m_s * f[None, :])
+
+
+def reference_spectrum_phase(x_sine: np.ndarray, f_hz: np.ndarray, grid: FocusGrid) -> np.ndarray:
+    """Exact phi(f_r, f_a) of the reference target (r0 = r_ref, t_n = 0), eq. (7) under P1 (notes 4)."""
+    g = grid.cos_squint * np.sqrt(np.clip(1.0 - x_sine**2, 0.0, None)) + grid.sin_squint * x_sine
+    return -4.0 * np.pi * grid.reference_range_m * f_hz / C * g
+
+
+def secondary_range_compression(s2: np.ndarray, grid: FocusGrid) -> np.ndarray:
+    """H3 * H4 (eqs. 9-10 [fix]): bulk SRC with the reference's exact phase, matched filter, Doppler band mask."""
+    x = slant_squint_sine(grid)
+    f = grid.carrier_frequency_hz + grid.f_range_hz
+    x0 = grid.sin_squint + C * grid.f_azimuth_hz[:, None] / (2.0 * grid.speed_m_s * grid.carrier_frequency_hz)
+    phi = reference_spectrum_phase(x, f[None, :], grid)
+    phi0 = reference_spectrum_phase(x0, grid.carrier_frequency_hz, grid)
+    h3 = np.exp(-1j * (phi - phi0 + 4.0 * np.pi * grid.f_range_hz[None, :] * grid.reference_range_m / C))
+    lo, hi = grid.doppler_band
+    mask = (x >= lo) & (x <= hi) & (np.abs(x) < 0.98)
+    h4 = pulse_spectrum(grid.f_range_hz, grid.pulse_sigma_s)  # conj(P) of a real, even pulse
+    return s2 * h3 * mask * h4[None, :]
+
+
+# --------------------------------------------------------------------------------------------- azimuth stages
+def azimuth_compensation(s3: np.ndarray, eta1: np.ndarray, grid: FocusGrid) -> np.ndarray:
+    """H5 = exp(-j pi eta1 f_a)  (eq. 13), per range bin. eta1 = 0 under P1."""
+    if np.all(eta1 == 0):
+        return s3
+    return s3 * np.exp(-1j * np.pi * np.outer(grid.f_azimuth_hz, eta1))
+
+
+def nlcs_filter(s: np.ndarray, k: coef.NlcsCoefficients, grid: FocusGrid) -> np.ndarray:
+    """H6 = exp(j pi (Y3 f_a^3 + Y4 f_a^4))  (eq. 15), per range bin."""
+    f = grid.f_azimuth_hz[:, None]
+    return s * np.exp(1j * np.pi * (k.y3 * f**3 + k.y4 * f**4))
+
+
+def nlcs_scaling(s: np.ndarray, k: coef.NlcsCoefficients, grid: FocusGrid) -> np.ndarray:
+    """H7 = exp(j pi (q2 t_a^2 + q3 t_a^3 + q4 t_a^4))  (eq. 15), absolute t_a, per range bin."""
+    t = grid.t_azimuth_s[:, None]
+    return s * np.exp(1j * np.pi * (k.q2 * t**2 + k.q3 * t**3 + k.q4 * t**4))
+
+
+@dataclasses.dataclass(frozen=True)
+class AzimuthCompression:
+    """H8 per range bin: exp(-j sum_k a_k (f_a / f_scale)^k) inside [f_lo, f_hi], zero outside."""
+
+    poly: np.ndarray  # (n_range, degree + 1), ascending powers of f_a / f_scale
+    f_scale_hz: float
+    f_lo_hz: np.ndarray  # (n_range,)
+    f_hi_hz: np.ndarray
+
+    def phase(self, f_hz: np.ndarray) -> np.ndarray:
+        u = np.asarray(f_hz)[:, None] / self.f_scale_hz
+        out = np.zeros((u.shape[0], self.poly.shape[0]))
+        for a in self.poly.T[::-1]:  # Horner
+            out = out * u + a[None, :]
+        return out
+
+    def filter(self, f_hz: np.ndarray) -> np.ndarray:
+        f = np.asarray(f_hz)[:, None]
+        inside = (f >= self.f_lo_hz[None, :]) & (f <= self.f_hi_hz[None, :])
+        return np.where(inside, np.exp(-1j * self.phase(f_hz)), 0.0)
+
+
+def doppler_band_hz(grid: FocusGrid) -> tuple[float, float]:
+    """Azimuth frequencies of the beam's slant-squint support at the carrier."""
+    lo, hi = grid.doppler_band
+    k = 2.0 * grid.speed_m_s / grid.wavelength_m
+    return (max(lo, -0.98) - grid.sin_squint) * k, (min(hi, 0.98) - grid.sin_squint) * k
+
+
+def series_azimuth_compression(k: coef.NlcsCoefficients, grid: FocusGrid) -> AzimuthCompression:
+    """H8 of eq. (17) with the fixed coefficients (notes 7b)."""
+    lo, hi = doppler_band_hz(grid)
+    n = k.r_m.size
+    poly = np.zeros((n, 5))
+    poly[:, 2], poly[:, 3], poly[:, 4] = k.ac_c2, k.ac_c3, k.ac_c4
+    return AzimuthCompression(poly=poly, f_scale_hz=1.0, f_lo_hz=np.full(n, lo), f_hi_hz=np.full(n, hi))
+
+
+def slow_time_point_response(r_bin_m, t_n_s, grid: FocusGrid, aperture_m: float, rail_only: bool = True
+                             ) -> np.ndarray:
+    """Slow-time signal, in range bin r, of a target at azimuth time t_n after LRWC, SRC and RC (notes 7b):
+    w(t_a) exp{-j 4 pi / lambda [R(t_a) + v s_q t_a]} with r0 = r - v s_q t_n.  Shape (n_azimuth, n)."""
+    r = np.atleast_1d(np.asarray(r_bin_m, dtype=float))[None, :]
+    tn = np.atleast_1d(np.asarray(t_n_s, dtype=float))[None, :]
+    t = grid.t_azimuth_s[:, None]
+    v, s, lam = grid.speed_m_s, grid.sin_squint, grid.wavelength_m
+    r0 = r - v * s * tn
+    tau = t - tn
+    rng = np.sqrt(r0**2 + (v * tau) ** 2 - 2 * r0 * v * tau * s)
+    sin_look = (r0 * s - v * tau) / rng
+    beam = geo.two_way_beam_gain(np.arcsin(sin_look), math.asin(s), aperture_m, lam)
+    half_track = 0.5 * (grid.n_track - 1) * grid.dt_s
+    on_rail = (np.abs(t) <= half_track + 1e-12) if rail_only else 1.0
+    return beam * on_rail * np.exp(-4j * np.pi / lam * (rng + v * s * t))
+
+
+def _azimuth_nlcs_chain(rd: np.ndarray, k: coef.NlcsCoefficients, grid: FocusGrid) -> np.ndarray:
+    """H6 -> IFFT -> H7 -> FFT on range-Doppler columns (one column per bin of `k`)."""
+    return az_fft(nlcs_scaling(az_ifft(nlcs_filter(rd, k, grid)), k, grid))
+
+
+def exact_reference_azimuth_compression(k: coef.NlcsCoefficients, grid: FocusGrid, aperture_m: float,
+                                        degree: int = 8) -> AzimuthCompression:
+    """H8 matched to the simulated t_n = 0 reference of each bin after H6/H7 (notes 7b, "exact-reference AC"),
+    carried as a polynomial in f_a so a kernel can evaluate it from a few scalars. The carrier phase
+    arg X_ref(0) is removed (pitfall 7)."""
+    # The reference sees the whole beam (no rail ends): its spectrum is then smooth, and the fit is of the
+    # stationary-phase law rather than of the Gibbs ripple of one particular truncation.
+    ref = az_fft(slow_time_point_response(k.r_m, 0.0, grid, aperture_m, rail_only=False))
+    x_ref = _azimuth_nlcs_chain(ref, k, grid)
+    f = grid.f_azimuth_hz
+    f_scale = 0.5 / grid.dt_s
+    n = k.r_m.size
+    series = series_azimuth_compression(k, grid)
+    poly = np.zeros((n, degree + 1))
+    f_lo, f_hi = series.f_lo_hz.copy(), series.f_hi_hz.copy()
+    mag = np.abs(x_ref)
+    i0 = grid.n_azimuth // 2
+    for j in range(n):
+        strong = (mag[:, j] > 1e-2 * mag[:, j].max()) & (f >= f_lo[j]) & (f <= f_hi[j])
+        sel = np.flatnonzero(strong)
+        lo, hi = sel[0], sel[-1]
+        if not lo <= i0 <= hi:
+            poly[j, :5] = series.poly[j]
+            continue
+        seg = slice(lo, hi + 1)
+        phase = np.unwrap(np.angle(x_ref[seg, j]))
+        phase -= phase[i0 - lo]
+        u = f[seg] / f_scale
+        fit = np.polynomial.polynomial.polyfit(u, phase, degree, w=np.sqrt(mag[seg, j]))
+        poly[j] = fit
+        f_lo[j], f_hi[j] = f[lo], f[hi]
+    return AzimuthCompression(poly=poly, f_scale_hz=f_scale, f_lo_hz=f_lo, f_hi_hz=f_hi)
+
+
+def azimuth_compression(s: np.ndarray, ac: AzimuthCompression, grid: FocusGrid) -> np.ndarray:
+    """H8 (eq. 17 [fix])."""
+    return s * ac.filter(grid.f_azimuth_hz)
+
+
+# --------------------------------------------------------------------------------------------- the chain
+@dataclasses.dataclass
+class NlcsProducts:
+    """The focused image on the (t_a, r_LRCM) grid and what the geometry correction needs."""
+
+    image: np.ndarray  # (n_azimuth, n_range)
+    grid: FocusGrid
+    coefficients: coef.NlcsCoefficients
+    compression: AzimuthCompression
+    aperture_m: float
+
+
+def prepare_track(scan: ScanPass, grid: FocusGrid) -> tuple[np.ndarray, np.ndarray]:
+    """Echo rows in increasing rail position, and positions relative to the aperture centre."""
+    order = np.argsort(scan.pulse_position_m)
+    return scan.echo[order], scan.pulse_position_m[order] - grid.aperture_centre_m
+
+
+def nlcs_focus(scan: ScanPass, *, ac_mode: str = "exact", grid: FocusGrid | None = None) -> NlcsProducts:
+    """Focus one pass with the modified NLCS chain (float64 reference)."""
+    grid = focus_grid(scan) if grid is None else grid
+    echo, x_rel = prepare_track(scan, grid)
+    k = coef.nlcs_coefficients(grid.range_bins_m, grid.speed_m_s, grid.sin_squint, grid.wavelength_m)
+    s = range_fft(echo, grid)
+    s = linear_range_walk_correction(s, x_rel, grid)
+    s = resample_to_uniform_track(s, x_rel, grid)
+    s = extended_nlcs(s, coef.enlcs_coefficient(grid.range_bins_m, grid.speed_m_s, grid.sin_squint), grid)
+    s = az_fft(pad_azimuth(s, grid))
+    s = secondary_range_compression(s, grid)
+    s = range_ifft(s, grid)
+    s = azimuth_compensation(s, k.eta1, grid)
+    s = _azimuth_nlcs_chain(s, k, grid)
+    aperture = scan.radar.antenna_aperture_m
+    if ac_mode == "exact":
+        ac = exact_reference_azimuth_compression(k, grid, aperture)
+    elif ac_mode == "series":
+        ac = series_azimuth_compression(k, grid)
+    else:
+        raise ValueError(f"unknown azimuth compression mode {ac_mode!r} (exact|series)")
+    image = az_ifft(azimuth_compression(s, ac, grid))
+    return NlcsProducts(image=image, grid=grid, coefficients=k, compression=ac, aperture_m=aperture)

@@ -1,0 +1,99 @@
+"""Geometry of a squinted rail pass (paper section 2.1, eq. 1) and the P1 target parameterisation.
+
+A target M = (x, y, z) in the radar frame, seen from a rail at height h with aperture centre O_s = (x_c, 0, h),
+has closest-approach slant range R_c = sqrt(y^2 + (z - h)^2). Fixing a processing squint theta_q (the slant-plane
+squint of the scene reference point), every target is described exactly by (t_n, r0) with
+
+    r0 = R_c / cos(theta_q),    v t_n = (x - x_c) - R_c tan(theta_q)
+
+so that eq. (1) holds exactly with theta_s = theta_q (design notes, "P1").
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .model import PassGeometry
+
+
+def slant_squint_rad(reference_point_m, aperture_centre_m: float, height_m: float) -> float:
+    """Processing squint theta_q: slant-plane squint of the reference T seen from O_s (notes section 1)."""
+    x, y, z = reference_point_m
+    dx = x - aperture_centre_m
+    return math.asin(dx / math.sqrt(dx * dx + y * y + (z - height_m) ** 2))
+
+
+def closest_approach_range_m(target_m, height_m: float) -> np.ndarray:
+    t = np.asarray(target_m, dtype=float)
+    return np.hypot(t[..., 1], t[..., 2] - height_m)
+
+
+def target_to_p1(target_m, aperture_centre_m, height_m, theta_q_rad, speed_m_s):
+    """(t_n, r0) of targets (..., 3) under the P1 parameterisation."""
+    t = np.asarray(target_m, dtype=float)
+    rc = closest_approach_range_m(t, height_m)
+    r0 = rc / math.cos(theta_q_rad)
+    t_n = ((t[..., 0] - aperture_centre_m) - rc * math.tan(theta_q_rad)) / speed_m_s
+    return t_n, r0
+
+
+def p1_to_track(t_n_s, r0_m, aperture_centre_m, theta_q_rad, speed_m_s):
+    """Inverse of P1 (eq. 19 fixed, notes section 8.3): along-track x_M and closest-approach range R_c."""
+    x_m = aperture_centre_m + speed_m_s * np.asarray(t_n_s) + np.asarray(r0_m) * math.sin(theta_q_rad)
+    rc = np.asarray(r0_m) * math.cos(theta_q_rad)
+    return x_m, rc
+
+
+def range_history_m(positions_m, target_m, height_m: float) -> np.ndarray:
+    """Exact antenna-to-target range for antenna positions (x, 0, h) (eq. 1 before its Taylor expansion)."""
+    x, y, z = target_m
+    return np.sqrt((np.asarray(positions_m) - x) ** 2 + y * y + (z - height_m) ** 2)
+
+
+def range_polynomial_coefficients(r0_m, speed_m_s, theta_s_rad):
+    """k1..k4 of eq. (1): R(tau) ~ r0 + sum k_i tau^i (notes section 2)."""
+    s, co2 = math.sin(theta_s_rad), math.cos(theta_s_rad) ** 2
+    v = speed_m_s
+    k1 = -v * s
+    k2 = v**2 * co2 / (2 * r0_m)
+    k3 = v**3 * s * co2 / (2 * r0_m**2)
+    k4 = -(v**4) * co2 * (1 - 5 * s * s) / (8 * r0_m**3)
+    return k1, k2, k3, k4
+
+
+def horizontal_look_angle_rad(positions_m, target_m, boresight_y_sign: int) -> np.ndarray:
+    """Horizontal angle of the line of sight from the wall normal towards +X_r."""
+    x, y, _ = target_m
+    return np.arctan2(x - np.asarray(positions_m), boresight_y_sign * y)
+
+
+def two_way_beam_gain(look_angle_rad, boresight_rad: float, aperture_m: float, wavelength_m: float):
+    """Two-way amplitude pattern of a uniform aperture, main lobe only: sinc^2(D sin(psi - theta_h) / lambda)."""
+    u = aperture_m * np.sin(np.asarray(look_angle_rad) - boresight_rad) / wavelength_m
+    return np.where(np.abs(u) < 1.0, np.sinc(u) ** 2, 0.0)
+
+
+def beam_half_width_rad(aperture_m: float, wavelength_m: float) -> float:
+    """Angle from boresight to the first null of the pattern."""
+    return math.asin(min(1.0, wavelength_m / aperture_m))
+
+
+def rotation_table_angle_for(reference_point_m, aperture_centre_m: float, boresight_y_sign: int = -1) -> float:
+    """Rotation-table angle that puts the reference point on boresight: tan(theta_h) = x_T / W (degrees)."""
+    x, y, _ = reference_point_m
+    return math.degrees(math.atan2(x - aperture_centre_m, boresight_y_sign * y))
+
+
+def slant_doppler_band(geometry: PassGeometry, aperture_m: float, wavelength_m: float,
+                       max_elevation_rad: float = math.radians(45.0)) -> tuple[float, float]:
+    """Support [X_lo, X_hi] of X = sine of the slant squint seen through the beam main lobe (notes section 5).
+
+    X = cos(elevation) * sin(horizontal angle): elevation can only pull X towards zero.
+    """
+    half = beam_half_width_rad(aperture_m, wavelength_m)
+    lo = math.sin(max(-math.pi / 2, geometry.rotation_table_angle_rad - half))
+    hi = math.sin(min(math.pi / 2, geometry.rotation_table_angle_rad + half))
+    shrink = math.cos(max_elevation_rad)
+    return min(lo, lo * shrink), max(hi, hi * shrink)

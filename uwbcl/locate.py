@@ -1,0 +1,96 @@
+"""3-D location of a bolt plate from its passes at N >= 2 heights (paper section 3, eqs. 20-23 generalised).
+
+Each pass i at rail height h_i gives the target's along-track position x_i and closest-approach range R_c,i.
+With the rib at distance W and the target at height z, R_c,i^2 = W^2 + (z - h_i)^2, i.e.
+
+    R_c,i^2 - h_i^2 = c0 - 2 z h_i,   c0 = W^2 + z^2        (linear least squares in c0, z)
+
+which is exact for any target height and any number of heights (eqs. 20-23 are the special case N = 2 with a
+common t_n; design notes section 9). P = (mean x_i, sign * W, z) in the radar frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from .detect import Detection
+
+
+@dataclasses.dataclass(frozen=True)
+class Located:
+    position_m: np.ndarray  # (3,) radar frame
+    residual_m: float  # RMS misfit of the per-pass (x, R_c) to the located point
+    n_passes: int
+    amplitude: float
+
+
+def locate_target(heights_m, x_m, rc_m, weights=None, boresight_y_sign: int = -1) -> Located | None:
+    """Least-squares position from per-height (x, R_c); None when the ranges admit no real solution."""
+    h = np.asarray(heights_m, dtype=float)
+    x = np.asarray(x_m, dtype=float)
+    rc = np.asarray(rc_m, dtype=float)
+    if h.size < 2 or np.ptp(h) <= 0:
+        return None
+    w = np.ones_like(h) if weights is None else np.asarray(weights, dtype=float)
+    a = np.column_stack([np.ones_like(h), -2.0 * h]) * np.sqrt(w)[:, None]
+    (c0, z), *_ = np.linalg.lstsq(a, (rc**2 - h**2) * np.sqrt(w), rcond=None)
+    wall2 = c0 - z * z
+    if wall2 <= 0:
+        return None
+    wall = math.sqrt(wall2)
+    x_hat = float(np.average(x, weights=w))
+    misfit = np.concatenate([np.hypot(wall, z - h) - rc, x - x_hat])
+    return Located(position_m=np.array([x_hat, boresight_y_sign * wall, z]),
+                   residual_m=float(np.sqrt(np.mean(misfit**2))), n_passes=int(h.size), amplitude=0.0)
+
+
+def associate_across_heights(detections_by_height: dict[float, list[Detection]], x_tol_m: float = 0.08,
+                             rc_tol_m: float = 0.15) -> list[dict[float, Detection]]:
+    """Group one pass's detections with the other heights' detections of the same plate.
+
+    The along-track position x of a plate is the same from every height, and R_c changes by at most the height
+    baseline, so plates are matched by x first, then R_c. Seeds come from the pass with the most detections.
+    """
+    heights = sorted(detections_by_height)
+    if not heights:
+        return []
+    seed_h = max(heights, key=lambda h: len(detections_by_height[h]))
+    baseline = max(heights) - min(heights)
+    groups = []
+    used = {h: set() for h in heights}
+    for seed in sorted(detections_by_height[seed_h], key=lambda d: -d.amplitude):
+        group = {seed_h: seed}
+        for h in heights:
+            if h == seed_h:
+                continue
+            best, best_cost = None, math.inf
+            for i, d in enumerate(detections_by_height[h]):
+                if i in used[h]:
+                    continue
+                dx, dr = abs(d.x_m - seed.x_m), abs(d.rc_m - seed.rc_m)
+                if dx <= x_tol_m and dr <= rc_tol_m + abs(h - seed_h):
+                    cost = (dx / x_tol_m) ** 2 + (dr / (rc_tol_m + baseline)) ** 2
+                    if cost < best_cost:
+                        best, best_cost = i, cost
+            if best is not None:
+                used[h].add(best)
+                group[h] = detections_by_height[h][best]
+        if len(group) >= 2:
+            groups.append(group)
+    return groups
+
+
+def locate_plates(detections_by_height: dict[float, list[Detection]], boresight_y_sign: int = -1
+                  ) -> list[Located]:
+    """Every plate seen at two or more heights, located in 3-D."""
+    out = []
+    for group in associate_across_heights(detections_by_height):
+        hs = sorted(group)
+        dets = [group[h] for h in hs]
+        loc = locate_target(hs, [d.x_m for d in dets], [d.rc_m for d in dets], boresight_y_sign=boresight_y_sign)
+        if loc is not None:
+            out.append(dataclasses.replace(loc, amplitude=float(np.mean([d.amplitude for d in dets]))))
+    return sorted(out, key=lambda p: p.position_m[0])
