@@ -23,8 +23,8 @@ from .focus import nlcs
 class DetectionSettings:
     relative_floor_db: float = -20.0  # peaks weaker than the strongest by more than this are ignored
     min_snr_db: float = 12.0  # peak over the median image magnitude (a robust noise/clutter level)
-    separation_m: float = 0.25  # non-maximum suppression radius along track
-    range_separation_m: float = 0.15  # and in range
+    separation_m: float = 0.15  # non-maximum suppression: semi-axis of the ellipse along track
+    range_separation_m: float = 0.12  # and in range (beyond the azimuth side-lobes, inside the plate spacing)
     max_targets: int = 64
 
 
@@ -42,11 +42,14 @@ class Detection:
     snr_db: float
 
 
-def _local_peaks(mag: np.ndarray, valid: np.ndarray, size: tuple[int, int], s: DetectionSettings):
+def _local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float], s: DetectionSettings):
     floor = np.median(mag[valid]) if valid.any() else 0.0
     peak_max = mag[valid].max() if valid.any() else 0.0
     threshold = max(peak_max * 10 ** (s.relative_floor_db / 20), floor * 10 ** (s.min_snr_db / 20))
-    is_max = (mag == ndimage.maximum_filter(mag, size=size, mode="nearest")) & valid & (mag > threshold)
+    na, nr = (int(s.separation_m / pixel_m[0]), int(s.range_separation_m / pixel_m[1]))
+    a, r = np.ogrid[-na:na + 1, -nr:nr + 1]
+    footprint = (a * pixel_m[0] / s.separation_m) ** 2 + (r * pixel_m[1] / s.range_separation_m) ** 2 <= 1.0
+    is_max = (mag == ndimage.maximum_filter(mag, footprint=footprint, mode="nearest")) & valid & (mag > threshold)
     idx = np.argwhere(is_max)
     order = np.argsort(mag[is_max])[::-1][: s.max_targets]
     return idx[order], floor
@@ -120,9 +123,7 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     dr = grid.range_bins_m[1] - grid.range_bins_m[0]
     valid = np.zeros(mag.shape, dtype=bool)
     valid[np.abs(t) <= half, 2:-2] = True
-    az_px = max(3, int(2 * settings.separation_m / (grid.speed_m_s * grid.dt_s)) | 1)
-    rg_px = max(3, int(2 * settings.range_separation_m / dr) | 1)
-    peaks, floor = _local_peaks(mag, valid, (az_px, rg_px), settings)
+    peaks, floor = _local_peaks(mag, valid, (grid.track_spacing_m, dr), settings)
     value = _trig_evaluator(products.image)
     out = []
     for i, j in peaks:
@@ -152,8 +153,7 @@ def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings =
     dr = products.r_axis_m[1] - products.r_axis_m[0]
     valid = np.ones(mag.shape, dtype=bool)
     valid[[0, -1], :] = valid[:, [0, -1]] = False
-    size = (max(3, int(2 * settings.separation_m / du) | 1), max(3, int(2 * settings.range_separation_m / dr) | 1))
-    peaks, floor = _local_peaks(mag, valid, size, settings)
+    peaks, floor = _local_peaks(mag, valid, (du, dr), settings)
 
     def value(a: float, b: float) -> complex:
         return complex(bp.backproject_points(products.compressed, grid, products.u_axis_m[0] + a * du,

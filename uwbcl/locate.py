@@ -15,6 +15,7 @@ import dataclasses
 import math
 
 import numpy as np
+from scipy import optimize
 
 from .detect import Detection
 
@@ -48,39 +49,31 @@ def locate_target(heights_m, x_m, rc_m, weights=None, boresight_y_sign: int = -1
 
 
 def associate_across_heights(detections_by_height: dict[float, list[Detection]], x_tol_m: float = 0.08,
-                             rc_tol_m: float = 0.15) -> list[dict[float, Detection]]:
-    """Group one pass's detections with the other heights' detections of the same plate.
+                             rc_tol_m: float = 0.05) -> list[dict[float, Detection]]:
+    """Group the detections of one plate across the passes of one cycle.
 
-    The along-track position x of a plate is the same from every height, and R_c changes by at most the height
-    baseline, so plates are matched by x first, then R_c. Seeds come from the pass with the most detections.
+    A plate has the same along-track x from every height, and its R_c changes by at most the height difference,
+    so each height is matched to the reference height (the one with most detections) by an optimal assignment
+    on (dx / x_tol)^2 + (dR_c / (|dh| + rc_tol))^2, gated at 1 per term.
     """
     heights = sorted(detections_by_height)
     if not heights:
         return []
-    seed_h = max(heights, key=lambda h: len(detections_by_height[h]))
-    baseline = max(heights) - min(heights)
-    groups = []
-    used = {h: set() for h in heights}
-    for seed in sorted(detections_by_height[seed_h], key=lambda d: -d.amplitude):
-        group = {seed_h: seed}
-        for h in heights:
-            if h == seed_h:
-                continue
-            best, best_cost = None, math.inf
-            for i, d in enumerate(detections_by_height[h]):
-                if i in used[h]:
-                    continue
-                dx, dr = abs(d.x_m - seed.x_m), abs(d.rc_m - seed.rc_m)
-                if dx <= x_tol_m and dr <= rc_tol_m + abs(h - seed_h):
-                    cost = (dx / x_tol_m) ** 2 + (dr / (rc_tol_m + baseline)) ** 2
-                    if cost < best_cost:
-                        best, best_cost = i, cost
-            if best is not None:
-                used[h].add(best)
-                group[h] = detections_by_height[h][best]
-        if len(group) >= 2:
-            groups.append(group)
-    return groups
+    ref_h = max(heights, key=lambda h: len(detections_by_height[h]))
+    ref = detections_by_height[ref_h]
+    groups = [{ref_h: d} for d in ref]
+    for h in heights:
+        other = detections_by_height[h]
+        if h == ref_h or not other or not ref:
+            continue
+        dx = np.array([[abs(a.x_m - b.x_m) for b in other] for a in ref]) / x_tol_m
+        dr = np.array([[abs(a.rc_m - b.rc_m) for b in other] for a in ref]) / (abs(h - ref_h) + rc_tol_m)
+        cost = dx**2 + dr**2
+        gated = np.where((dx <= 1) & (dr <= 1), cost, 1e6)
+        for i, j in zip(*optimize.linear_sum_assignment(gated)):
+            if gated[i, j] < 1e6:
+                groups[i][h] = other[j]
+    return [g for g in groups if len(g) >= 2]
 
 
 def locate_plates(detections_by_height: dict[float, list[Detection]], boresight_y_sign: int = -1

@@ -1,0 +1,161 @@
+"""From passes to displacements: focus -> detect -> locate -> associate between cycles.
+
+Data flows one way: archive I/O -> focusing -> detection -> 3-D location -> displacement -> outputs.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import logging
+import os
+import tempfile
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from . import archive, detect
+from .displacement import AssociationSettings, Displacement, estimate_advance
+from .focus import backprojection, nlcs
+from .locate import Located, locate_plates
+from .model import ScanPass
+
+log = logging.getLogger("uwbcl")
+
+ALGORITHMS = ("nlcs", "bp")
+BACKENDS = ("numpy",)
+
+
+@dataclasses.dataclass(frozen=True)
+class ProcessingSettings:
+    algorithm: str = "nlcs"
+    backend: str = "numpy"
+    ac_mode: str = "exact"  # NLCS azimuth compression: "exact" reference or "series" (eq. 17)
+    detection: detect.DetectionSettings = detect.DetectionSettings()
+    association: AssociationSettings = AssociationSettings()
+
+
+def detect_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSettings()) -> list[detect.Detection]:
+    """Focus one pass and return its point targets in closest-approach coordinates."""
+    if settings.backend not in BACKENDS:
+        raise ValueError(f"unknown backend {settings.backend!r}; available: {', '.join(BACKENDS)}")
+    if settings.algorithm == "nlcs":
+        return detect.detect_nlcs(nlcs.nlcs_focus(scan, ac_mode=settings.ac_mode), settings.detection)
+    if settings.algorithm == "bp":
+        return detect.detect_bp(backprojection.backprojection_focus(scan), settings.detection)
+    raise ValueError(f"unknown algorithm {settings.algorithm!r}; available: {', '.join(ALGORITHMS)}")
+
+
+@dataclasses.dataclass
+class CycleResult:
+    rig_id: str
+    cycle: int
+    start_time: str
+    heights_m: tuple[float, ...]
+    plates: list[Located]
+
+
+def locate_cycle(passes: list[ScanPass], settings: ProcessingSettings = ProcessingSettings()) -> CycleResult:
+    """All passes of one rig and cycle (one per height) -> the 3-D plates of that cycle."""
+    if len({p.geometry.height_m for p in passes}) < 2:
+        raise ValueError("a cycle needs passes at two or more heights")
+    by_height = {p.geometry.height_m: detect_pass(p, settings) for p in passes}
+    plates = locate_plates(by_height, passes[0].geometry.boresight_y_sign)
+    first = min(passes, key=lambda p: p.pass_start_time)
+    return CycleResult(first.rig_id, first.cycle, first.pass_start_time, tuple(sorted(by_height)), plates)
+
+
+def cycle_displacements(cycles: list[CycleResult], settings: ProcessingSettings = ProcessingSettings()
+                        ) -> list[tuple[CycleResult, Displacement]]:
+    """Displacement of each cycle from the previous one of the same rig."""
+    out = []
+    by_rig = defaultdict(list)
+    for c in cycles:
+        by_rig[c.rig_id].append(c)
+    for rig in sorted(by_rig):
+        seq = sorted(by_rig[rig], key=lambda c: c.cycle)
+        for prev, cur in zip(seq, seq[1:]):
+            out.append((cur, estimate_advance(prev.plates, cur.plates, settings.association)))
+    return out
+
+
+DISPLACEMENT_COLUMNS = ("rig_id", "cycle", "start_time", "retreat_m", "creep_m", "vertical_m", "n_targets",
+                        "residual_m", "retreat_spread_m", "creep_spread_m", "vertical_spread_m", "status")
+
+
+def displacement_rows(results: list[tuple[CycleResult, Displacement]]) -> list[dict]:
+    rows = []
+    for c, d in results:
+        rows.append({
+            "rig_id": c.rig_id, "cycle": c.cycle, "start_time": c.start_time,
+            "retreat_m": f"{d.retreat_m:.6f}", "creep_m": f"{d.creep_m:.6f}", "vertical_m": f"{d.vertical_m:.6f}",
+            "n_targets": d.n_targets, "residual_m": f"{d.residual_m:.6f}",
+            "retreat_spread_m": f"{d.spread_m[0]:.6f}", "creep_spread_m": f"{d.spread_m[1]:.6f}",
+            "vertical_spread_m": f"{d.spread_m[2]:.6f}", "status": d.status,
+        })
+    return rows
+
+
+def write_csv_atomic(path: Path, columns, rows) -> None:
+    """Write a CSV next to its final name and rename it into place: never a half-written output."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(columns), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", newline="") as f:
+            f.write(buf.getvalue())
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+@dataclasses.dataclass
+class BatchReport:
+    rows: list[dict]
+    errors: list[tuple[str, str]]  # (file or group, reason)
+    cycles: list[CycleResult]
+
+
+def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings = ProcessingSettings()
+                      ) -> BatchReport:
+    """Every archive under in_dir -> out_dir/displacements.csv (+ errors.csv). Bad files are reported, skipped."""
+    errors: list[tuple[str, str]] = []
+    groups: dict[tuple[str, int], list[ScanPass]] = defaultdict(list)
+    for path in archive.find_pass_files(in_dir):
+        try:
+            scan = archive.read_pass(path)
+        except (archive.ArchiveError, OSError) as exc:
+            log.error("%s", exc)
+            errors.append((str(path), str(exc)))
+            continue
+        groups[(scan.rig_id, scan.cycle)].append(scan)
+    cycles = []
+    for (rig, cycle), passes in sorted(groups.items()):
+        try:
+            result = locate_cycle(passes, settings)
+        except ValueError as exc:
+            files = ", ".join(p.source for p in passes)
+            log.error("rig %s cycle %d (%s): %s", rig, cycle, files, exc)
+            errors.append((files, f"rig {rig} cycle {cycle}: {exc}"))
+            continue
+        log.info("rig %s cycle %d: %d plates located from %d heights", rig, cycle, len(result.plates),
+                 len(result.heights_m))
+        cycles.append(result)
+    rows = displacement_rows(cycle_displacements(cycles, settings))
+    write_csv_atomic(Path(out_dir) / "displacements.csv", DISPLACEMENT_COLUMNS, rows)
+    write_csv_atomic(Path(out_dir) / "errors.csv", ("file", "reason"),
+                     [{"file": f, "reason": r} for f, r in errors])
+    return BatchReport(rows, errors, cycles)
+
+
+def plates_array(plates: list[Located]) -> np.ndarray:
+    return np.array([p.position_m for p in plates]).reshape(-1, 3)
