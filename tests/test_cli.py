@@ -1,0 +1,62 @@
+"""The command-line contract: simulate writes archives + truth, process writes displacements.csv."""
+
+import csv
+import json
+
+import pytest
+
+from uwbcl.cli import main
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim")
+    assert main(["simulate", str(out), "--scenario", "paper-sim1", "--seed", "3"]) == 0
+    return out
+
+
+def test_simulate_writes_one_archive_per_pass_and_the_truth(simulated):
+    truth = json.loads((simulated / "truth.json").read_text())
+    assert len(list(simulated.rglob("*.h5"))) == 4  # 2 cycles x 2 heights
+    assert truth["cycles"][1]["retreat_m"] == pytest.approx(0.80)
+    assert truth["cycles"][1]["creep_m"] == pytest.approx(0.10)
+
+
+def test_process_writes_the_displacement_of_each_cycle_after_the_first(simulated, tmp_path):
+    assert main(["process", str(simulated), "--out", str(tmp_path)]) == 0
+    rows = list(csv.DictReader((tmp_path / "displacements.csv").open()))
+    assert len(rows) == 1
+    row = rows[0]
+    for column in ("rig_id", "cycle", "retreat_m", "creep_m", "vertical_m", "n_targets", "status"):
+        assert column in row
+    # Acceptance of issue 2: NLCS noise-free retreat and creep within 2 mm, vertical within 20 mm.
+    assert float(row["retreat_m"]) == pytest.approx(0.80, abs=0.002)
+    assert float(row["creep_m"]) == pytest.approx(0.10, abs=0.002)
+    assert float(row["vertical_m"]) == pytest.approx(0.0, abs=0.020)
+    assert int(row["n_targets"]) == 3
+    assert row["status"] == "ok"
+
+
+def test_a_bad_file_is_reported_by_name_and_makes_the_exit_code_non_zero(simulated, tmp_path):
+    bad_dir = tmp_path / "in"
+    bad_dir.mkdir()
+    for f in simulated.rglob("*.h5"):
+        (bad_dir / f.name).write_bytes(f.read_bytes())
+    (bad_dir / "garbage.h5").write_bytes(b"this is not HDF5")
+    out = tmp_path / "out"
+    assert main(["process", str(bad_dir), "--out", str(out)]) == 1
+    errors = list(csv.DictReader((out / "errors.csv").open()))
+    assert any("garbage.h5" in e["file"] for e in errors)
+    rows = list(csv.DictReader((out / "displacements.csv").open()))
+    assert len(rows) == 1  # the good cycles are still processed
+
+
+def test_a_cycle_with_a_single_height_is_an_error_not_a_silent_gap(simulated, tmp_path):
+    one = tmp_path / "in"
+    one.mkdir()
+    for f in simulated.rglob("*_h0150.h5"):
+        (one / f.name).write_bytes(f.read_bytes())
+    out = tmp_path / "out"
+    assert main(["process", str(one), "--out", str(out)]) == 1
+    reasons = " ".join(e["reason"] for e in csv.DictReader((out / "errors.csv").open()))
+    assert "two or more heights" in reasons
