@@ -88,9 +88,10 @@ def simulate_pass(radar: RadarParameters, geometry: PassGeometry, targets_m, *, 
                   range_margin_m: float = 1.0) -> ScanPass:
     """One pass of the carriage over the nominal aperture, as the rig would record it."""
     rng = np.random.default_rng() if rng is None else rng
-    n_pulses = int(round(aperture_length_m / speed_m_s * radar.pulse_repetition_frequency_hz)) + 1
-    n_pulses += 1 - n_pulses % 2  # odd, so the nominal aperture centre is a pulse
-    start = aperture_centre_m - direction * 0.5 * aperture_length_m
+    # An even number of intervals (odd pulse count) centred on the nominal aperture centre.
+    n_intervals = 2 * int(round(0.5 * aperture_length_m / speed_m_s * radar.pulse_repetition_frequency_hz))
+    n_pulses = n_intervals + 1
+    start = aperture_centre_m - direction * 0.5 * n_intervals * speed_m_s / radar.pulse_repetition_frequency_hz
     times, positions = rail_motion(n_pulses, radar.pulse_repetition_frequency_hz, speed_m_s, start,
                                    speed_jitter, rng, direction)
     targets_m = np.atleast_2d(np.asarray(targets_m, dtype=float))

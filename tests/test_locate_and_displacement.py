@@ -1,0 +1,148 @@
+"""Specification of multi-height 3-D localisation (notes section 9) and of the advance between cycles."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from uwbcl.detect import Detection
+from uwbcl.displacement import AssociationSettings, estimate_advance, robust_mean
+from uwbcl.locate import Located, associate_across_heights, locate_plates, locate_target
+
+
+def _rc(wall, z, heights):
+    return np.hypot(wall, z - np.asarray(heights, dtype=float))
+
+
+def _detection(x, rc, amplitude=1.0):
+    return Detection(x_m=x, rc_m=rc, t_n_s=0.0, r0_m=rc, image_azimuth_m=0.0, image_range_m=rc,
+                     amplitude=amplitude, snr_db=40.0)
+
+
+def _plate(p):
+    return Located(position_m=np.asarray(p, dtype=float), residual_m=0.0, n_passes=2, amplitude=1.0)
+
+
+# --------------------------------------------------------------------------------------------- locate
+@pytest.mark.parametrize("heights", [(0.15, 0.30), (0.05, 0.25, 0.65)], ids=["2 heights", "3 heights"])
+@pytest.mark.parametrize("wall, z", [(2.4, 0.30), (2.0, 1.6), (1.9, -0.2)])
+def test_least_squares_recovers_height_and_wall_distance_exactly_from_noise_free_ranges(heights, wall, z):
+    loc = locate_target(heights, [1.386] * len(heights), _rc(wall, z, heights))
+    assert loc is not None
+    # the LS model R_c^2 - h^2 = c0 - 2 z h is exact, so only round-off remains
+    np.testing.assert_allclose(loc.position_m, [1.386, -wall, z], rtol=0, atol=1e-9)
+    assert loc.residual_m < 1e-9
+    assert loc.n_passes == len(heights)
+
+
+def test_wall_side_follows_the_boresight_sign():
+    loc = locate_target((0.15, 0.30), (1.0, 1.0), _rc(2.4, 0.3, (0.15, 0.30)), boresight_y_sign=+1)
+    assert loc.position_m[1] == pytest.approx(2.4, abs=1e-9)
+
+
+def test_along_track_position_is_the_mean_of_the_per_height_positions():
+    loc = locate_target((0.15, 0.30), (1.000, 1.004), _rc(2.4, 0.3, (0.15, 0.30)))
+    assert loc.position_m[0] == pytest.approx(1.002, abs=1e-12)
+    assert loc.residual_m > 0  # the x scatter shows in the misfit
+
+
+def test_three_inconsistent_heights_leave_a_positive_residual():
+    heights = (0.05, 0.25, 0.65)
+    rc = _rc(2.0, 1.2, heights) + np.array([0.0, 0.004, 0.0])  # 4 mm range error on the middle pass
+    loc = locate_target(heights, [1.678] * 3, rc)
+    assert loc is not None
+    # three equations, two unknowns: the misfit cannot vanish; it is of the order of the injected error
+    assert 1e-4 < loc.residual_m < 4e-3
+
+
+def test_an_impossible_geometry_or_a_single_height_gives_no_location():
+    # R_c^2 - h^2 = c0 - 2 z h with R_c 1.0 at h = 0 and 3.0 at h = 0.1: z = -40, c0 = 1 < z^2
+    assert locate_target((0.0, 0.1), (1.0, 1.0), (1.0, 3.0)) is None
+    assert locate_target((0.15,), (1.0,), (2.4,)) is None
+    assert locate_target((0.15, 0.15), (1.0, 1.0), (2.4, 2.4)) is None  # no vertical baseline
+
+
+def test_association_pairs_plates_of_one_vertical_column_by_range():
+    """sim2-like: D, E, F at one x, z = 0.4 / 1.2 / 1.6 m, wall 2.0 m, rail at 0.05 and 0.25 m."""
+    heights = (0.05, 0.25)
+    zs = (0.4, 1.2, 1.6)
+    by_height = {h: [_detection(1.678, float(_rc(2.0, z, h)), amplitude=z) for z in zs] for h in heights}
+    by_height[0.25] = by_height[0.25][::-1]  # order of detections carries no information
+    groups = associate_across_heights(by_height)
+    assert len(groups) == 3
+    for g in groups:
+        assert set(g) == set(heights)
+        assert g[0.05].amplitude == g[0.25].amplitude  # the same plate (amplitude tags it here)
+    plates = locate_plates(by_height)
+    np.testing.assert_allclose(sorted(p.position_m[2] for p in plates), zs, rtol=0, atol=1e-9)
+    for p in plates:
+        assert p.position_m[1] == pytest.approx(-2.0, abs=1e-9)
+
+
+def test_association_leaves_a_plate_seen_at_one_height_unlocated():
+    by_height = {0.15: [_detection(0.786, 2.405), _detection(1.386, 2.405)], 0.30: [_detection(0.786, 2.4)]}
+    groups = associate_across_heights(by_height)
+    assert len(groups) == 1
+    assert groups[0][0.30].x_m == 0.786 and groups[0][0.15].x_m == 0.786
+
+
+# --------------------------------------------------------------------------------------------- displacement
+def test_advance_is_recovered_from_shuffled_plates_with_one_extra_and_one_missing():
+    before = np.array([[0.786, -2.4, 0.30], [1.386, -2.4, 0.30], [1.986, -2.4, 0.30], [2.586, -2.4, 0.30],
+                       [3.186, -2.4, 0.90]])
+    advance = np.array([0.8, 0.1, 0.002])
+    after = before - advance
+    after = after[1:]  # plate 0 is not seen after the advance
+    after = np.vstack([after, [[-0.5, -2.1, 1.4]]])  # and a new plate appears
+    perm = np.random.default_rng(0).permutation(len(after))
+    after_shuffled = after[perm]
+    d = estimate_advance([_plate(p) for p in before], [_plate(q) for q in after_shuffled])
+    assert d.status == "ok"
+    np.testing.assert_allclose(d.advance_m, advance, rtol=0, atol=1e-12)  # exact data, exact answer
+    assert d.n_targets == 4
+    # pairs are (index before, index after) into the given lists
+    expected = {(i, int(np.flatnonzero(perm == i - 1)[0])) for i in range(1, 5)}
+    assert set(d.pairs) == expected
+    assert d.residual_m < 1e-12
+    assert (d.retreat_m, d.creep_m, d.vertical_m) == pytest.approx(tuple(advance), abs=1e-12)
+
+
+def _regular_row(xs):
+    return [_plate((x, -2.4, 0.3)) for x in xs]
+
+
+def test_a_regular_row_spaced_by_the_advance_is_flagged_ambiguous_without_a_prior():
+    # plates every 0.8 m along the rib; the rig retreats 0.8 m. Before it sees plates at 0.8 / 1.6 / 2.4 m,
+    # after it sees two of them: both "0" and "0.8 m" explain two plates.
+    before = _regular_row([0.8, 1.6, 2.4])
+    after = _regular_row([0.8, 1.6])  # plates 1.6 / 2.4 moved by 0.8, or plates 0.8 / 1.6 not moved at all
+    d = estimate_advance(before, after)
+    assert d.status == "ambiguous"
+
+
+def test_a_prior_on_the_advance_resolves_the_ambiguity():
+    before = _regular_row([0.8, 1.6, 2.4])
+    after = _regular_row([0.8, 1.6])
+    d = estimate_advance(before, after, AssociationSettings(prior_advance_m=(0.8, 0.0, 0.0)))
+    assert d.status == "ok"
+    np.testing.assert_allclose(d.advance_m, [0.8, 0.0, 0.0], rtol=0, atol=1e-12)
+    assert sorted(d.pairs) == [(1, 0), (2, 1)]
+
+
+def test_no_plates_on_either_side_gives_too_few_targets():
+    d = estimate_advance([], _regular_row([1.0]))
+    assert d.status == "too_few_targets"
+    assert np.all(np.isnan(d.advance_m))
+
+
+def test_robust_mean_rejects_a_gross_outlier():
+    samples = np.array([[0.800, 0.100, 0.000], [0.801, 0.099, 0.002], [0.799, 0.101, -0.002],
+                        [0.802, 0.100, 0.001], [1.600, 0.400, 0.250]])
+    got = robust_mean(samples, floor=np.array([0.05, 0.10, 0.25]) / 4)
+    np.testing.assert_allclose(got, samples[:4].mean(axis=0), rtol=0, atol=1e-15)
+    assert abs(samples.mean(axis=0)[0] - got[0]) > 0.1  # the plain mean would have been pulled far off
+
+
+def test_robust_mean_keeps_ordinary_scatter_above_the_floor():
+    samples = np.array([[0.800], [0.803], [0.797]])
+    assert robust_mean(samples, floor=0.0125)[0] == pytest.approx(0.8, abs=1e-15)

@@ -1,0 +1,258 @@
+"""Specification of the modified NLCS focusing chain on single point targets (paper section 2.2, notes 3-8)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from uwbcl import detect
+from uwbcl import geometry as geo
+from uwbcl import simulate as sim
+from uwbcl.focus import coefficients as coef
+from uwbcl.focus import nlcs
+from uwbcl.model import SPEED_OF_LIGHT_M_S as C
+from uwbcl.model import PassGeometry, RadarParameters
+from uwbcl.scenarios import PAPER_SIM1
+
+RADAR = RadarParameters()
+H = 0.15
+REF = np.array(PAPER_SIM1.reference_point_m(0), dtype=float)  # target B of sim1, the scene centre
+GEOM = PassGeometry(height_m=H, rotation_table_angle_deg=PAPER_SIM1.rotation_table_angle_deg(0),
+                    reference_point_m=tuple(float(c) for c in REF))
+
+
+def _single_target_pass(target, speed_jitter=0.0, seed=0):
+    return sim.simulate_pass(RADAR, GEOM, [target], aperture_length_m=2.0, speed_m_s=0.15,
+                             speed_jitter=speed_jitter, rng=np.random.default_rng(seed))
+
+
+def _half_power_width(cut: np.ndarray, spacing: float, upsample: int = 64) -> float:
+    """3 dB width of a band-limited periodic cut, measured on its trigonometric interpolation."""
+    n = cut.size
+    spec = np.fft.fft(cut)
+    pad = np.zeros(n * upsample, dtype=complex)
+    half = n // 2
+    pad[:half], pad[-(n - half):] = spec[:half], spec[half:]
+    mag = np.abs(np.fft.ifft(pad))
+    mag /= mag.max()
+    k = int(np.argmax(mag))
+    above = mag >= 1 / math.sqrt(2)
+    lo, hi = k, k
+    while above[(lo - 1) % mag.size]:
+        lo -= 1
+    while above[(hi + 1) % mag.size]:
+        hi += 1
+    return (hi - lo + 1) * spacing / upsample
+
+
+@pytest.fixture(scope="module")
+def centre_pass():
+    return _single_target_pass(REF)
+
+
+@pytest.fixture(scope="module")
+def centre_products(centre_pass):
+    return nlcs.nlcs_focus(centre_pass, ac_mode="exact")
+
+
+@pytest.fixture(scope="module")
+def centre_detections(centre_products):
+    return detect.detect_nlcs(centre_products)
+
+
+# --------------------------------------------------------------------------------------------- LRWC
+def _range_peaks(s: np.ndarray) -> np.ndarray:
+    """Per-pulse range peak in bins, refined by a parabola through the three top samples."""
+    a = np.abs(s)
+    i = np.clip(np.argmax(a, axis=1), 1, a.shape[1] - 2)
+    rows = np.arange(a.shape[0])
+    y0, y1, y2 = a[rows, i - 1], a[rows, i], a[rows, i + 1]
+    return i + 0.5 * (y0 - y2) / (y0 - 2 * y1 + y2)
+
+
+def test_linear_range_walk_correction_removes_the_range_walk(centre_pass):
+    grid = nlcs.focus_grid(centre_pass)
+    echo, x_rel = nlcs.prepare_track(centre_pass, grid)
+    s1 = nlcs.range_fft(echo, grid)
+    before = _range_peaks(nlcs.range_ifft(s1, grid))
+    after = _range_peaks(nlcs.range_ifft(nlcs.linear_range_walk_correction(s1, x_rel, grid), grid))
+    # Over the whole 2 m aperture the residual after LRWC is the range curvature k2 tau^2 (~0.13 m = 3.6 bins at
+    # the ends), which LRWC is not meant to remove; over the central 0.8 m the curvature is < 0.6 bin.
+    central = np.abs(x_rel) <= 0.4
+    aperture = np.ptp(x_rel[central])  # = v T
+    expected_walk_bins = aperture * grid.sin_squint / RADAR.range_bin_m  # v sin(theta_q) T: 10.6 bins
+    assert np.ptp(before[central]) == pytest.approx(expected_walk_bins, rel=0.05)  # curvature adds < 5 %
+    assert np.ptp(after[central]) < 1.0
+    # The slope of range vs rail position is -sin(theta_q) before and ~0 after (the curvature is symmetric about
+    # the aperture centre, so it does not bias the slope; 0.01 allows for the asymmetric cubic term).
+    slope_before = np.polyfit(x_rel[central], before[central] * RADAR.range_bin_m, 1)[0]
+    slope_after = np.polyfit(x_rel[central], after[central] * RADAR.range_bin_m, 1)[0]
+    assert slope_before == pytest.approx(-grid.sin_squint, abs=0.01)
+    assert abs(slope_after) < 0.01
+
+
+def test_range_fft_and_range_ifft_are_inverse(centre_pass):
+    grid = nlcs.focus_grid(centre_pass)
+    back = nlcs.range_ifft(nlcs.range_fft(centre_pass.echo, grid), grid)
+    np.testing.assert_allclose(back, centre_pass.echo, rtol=0, atol=1e-12)  # FFT round-off on unit samples
+
+
+# --------------------------------------------------------------------------------------------- resampling
+def test_resampling_to_the_uniform_track_is_the_identity_for_uniform_positions(centre_pass):
+    grid = nlcs.focus_grid(centre_pass)
+    _, x_rel = nlcs.prepare_track(centre_pass, grid)
+    rng = np.random.default_rng(0)
+    s = rng.standard_normal((x_rel.size, 3)) + 1j * rng.standard_normal((x_rel.size, 3))
+    out = nlcs.resample_to_uniform_track(s, x_rel, grid)
+    # nodes and outputs coincide up to round-off (1e-16 m), so the Lagrange weights are a Kronecker delta
+    np.testing.assert_allclose(out, s, rtol=0, atol=1e-10)
+
+
+def test_resampling_reproduces_a_smooth_signal_sampled_at_jittered_positions():
+    scan = _single_target_pass(REF, speed_jitter=0.1, seed=2)
+    grid = nlcs.focus_grid(scan)
+    _, x_rel = nlcs.prepare_track(scan, grid)
+    assert np.ptp(np.diff(x_rel)) > 0.1 * np.mean(np.diff(x_rel))  # the input really is non-uniform
+    # slowly varying in slow time, as after LRWC: periods of 0.5 m and 0.3 m (40-67 pulses per cycle)
+    wavenumbers = np.array([2 * np.pi / 0.5, -2 * np.pi / 0.3])
+
+    def signal(x):
+        return np.exp(1j * np.outer(x, wavenumbers))
+
+    out = nlcs.resample_to_uniform_track(signal(x_rel), x_rel, grid)
+    expected = signal(grid.t_track_s * grid.speed_m_s)
+    # 6-point Lagrange error ~ (k dx)^6 / 6! ~ 1e-9 here; the spec is 1e-4
+    assert np.max(np.abs(out - expected)) < 1e-4
+
+
+# --------------------------------------------------------------------------------------------- coefficients
+def test_azimuth_phase_series_coefficients_are_the_taylor_coefficients_of_the_exact_phase():
+    v, r, lam = 0.15, 2.776, C / 4.3e9
+    s = math.sin(math.radians(29.96))
+    c_q = math.sqrt(1 - s * s)
+    f = np.linspace(-0.3, 0.3, 201)
+    x = s + lam * f / (2 * v)
+    phi0 = -(4 * np.pi * r / lam) * (c_q * np.sqrt(1 - x**2) + s * x)  # notes section 6, exact under P1
+    fit = np.polynomial.polynomial.polyfit(f, (phi0 - phi0[100]) / np.pi, 8)
+    eta = coef.azimuth_phase_series(r, v, s, lam)
+    # a degree-8 fit over +-0.3 Hz recovers the low coefficients to ~1e-6 relative
+    assert float(eta[0]) == 0.0
+    for n in (2, 3, 4):
+        assert float(eta[n - 1]) == pytest.approx(fit[n], rel=1e-4)
+
+
+def test_nlcs_coefficients_at_the_sim1_reference_match_the_design_notes():
+    v, r, lam = 0.15, 2.776, C / 4.3e9
+    s = math.sin(math.radians(29.96))
+    k = coef.nlcs_coefficients(r, v, s, lam)
+    ka0 = float(coef.azimuth_fm_rate(r, v, s, lam))
+    b = v * s / r
+    # notes 7b print 3-4 significant figures; 1 % covers their rounding (K_a0 -0.17452 is printed -0.1746)
+    assert ka0 == pytest.approx(-0.1746, rel=0.01)
+    assert b == pytest.approx(0.0270, rel=0.01)
+    assert float(k.q3) == pytest.approx(1.57e-3, rel=0.01)
+    assert float(k.q4) == pytest.approx(3.18e-5, rel=0.01)
+    assert float(k.y3) == pytest.approx(-0.295, rel=0.01)
+    assert float(k.y4) == pytest.approx(-0.137, rel=0.01)
+    assert float(k.q2) == 0.0 and float(k.eta1) == 0.0  # alpha = 1/2 and P1
+    assert float(k.ac_c2) == pytest.approx(18.0, rel=0.01)
+    # c3 and c4 are printed with 2 figures: half a unit of the last digit
+    assert float(k.ac_c3) == pytest.approx(0.93, abs=0.005)
+    assert float(k.ac_c4) == pytest.approx(0.22, abs=0.005)
+    # the identity K_a0^2 eta30 = b of notes section 6
+    eta30 = float(coef.azimuth_phase_series(r, v, s, lam)[2])
+    assert ka0**2 * eta30 == pytest.approx(b, rel=1e-12)
+
+
+def test_nlcs_coefficients_vary_per_range_bin():
+    r = np.array([2.0, 2.776, 3.5])
+    k = coef.nlcs_coefficients(r, 0.15, 0.5, C / 4.3e9)
+    assert k.y3.shape == (3,) and np.all(np.diff(k.q3) < 0)  # q3 = -K_a0 b / 3 ~ 1/r^2
+    ka0 = coef.azimuth_fm_rate(r, 0.15, 0.5, C / 4.3e9)
+    np.testing.assert_allclose(ka0 * r, ka0[0] * r[0], rtol=1e-12)  # K_a0 ~ 1/r
+
+
+# --------------------------------------------------------------------------------------------- point target
+def test_a_target_at_the_scene_centre_focuses_at_zero_azimuth_time_and_the_reference_range(
+        centre_products, centre_detections):
+    grid = centre_products.grid
+    assert len(centre_detections) == 1
+    d = centre_detections[0]
+    t_f = d.image_azimuth_m / grid.speed_m_s
+    # within a tenth of a cell (0.1 azimuth cell = 0.75 mm, 0.1 range bin = 3.75 mm); measured 0.01 and 0.02
+    assert abs(t_f) < 0.1 * grid.dt_s
+    assert abs(d.image_range_m - grid.reference_range_m) < 0.1 * RADAR.range_bin_m
+    assert d.x_m == pytest.approx(REF[0], abs=1e-3)  # notes table 10: B within 0.5 mm in nlcs-exact
+    assert d.rc_m == pytest.approx(geo.closest_approach_range_m(REF, H), abs=1e-3)
+
+
+def test_the_focused_point_response_has_the_expected_3db_widths(centre_products):
+    image = centre_products.image
+    grid = centre_products.grid
+    ia, ir = np.unravel_index(np.argmax(np.abs(image)), image.shape)
+    range_width = _half_power_width(image[ia, :], RADAR.range_bin_m)
+    azimuth_width = _half_power_width(image[:, ir], grid.track_spacing_m)  # v * t-width, cross-range
+    # Gaussian pulse after its matched filter: sigma sqrt(2 ln 2) c = 0.100 m; 10 % for the sampling/windowing
+    assert RADAR.pulse_sigma_s * math.sqrt(2 * math.log(2)) * C == pytest.approx(0.100, abs=5e-4)
+    assert 0.09 <= range_width <= 0.11
+    # notes table 10: 5.9-9.3 cm for nlcs-exact (paper: 0.07 m)
+    assert 0.05 <= azimuth_width <= 0.10
+
+
+def test_nlcs_focus_distortion_is_inverted_by_the_geometry_correction():
+    target = REF + np.array([0.6, 0.0, 0.0])  # same range cell, v t_n = 0.6 m: t_n = +4 s (target C of sim1)
+    scan = _single_target_pass(target)
+    products = nlcs.nlcs_focus(scan)
+    grid = products.grid
+    t_n, _ = geo.target_to_p1(target, scan.aperture_centre_m, H, math.asin(grid.sin_squint), grid.speed_m_s)
+    assert t_n == pytest.approx(4.0, abs=1e-9)
+    (d,) = detect.detect_nlcs(products)
+    raw_shift = d.image_azimuth_m - grid.speed_m_s * t_n
+    # notes 7b: t_f = t_n + (b/2) t_n^2 + ... puts the raw peak ~30 mm further along track (series: 32 mm)
+    assert 0.020 < raw_shift < 0.040
+    # after inverting t_f(t_n) the target is back to within 3 mm (measured 0.5 mm in x, 1.2 mm in R_c)
+    assert d.x_m == pytest.approx(target[0], abs=3e-3)
+    assert d.rc_m == pytest.approx(geo.closest_approach_range_m(target, H), abs=3e-3)
+    assert d.t_n_s == pytest.approx(t_n, abs=3e-3 / grid.speed_m_s)
+
+
+@pytest.mark.parametrize("ac_mode", ["exact", "series"])
+def test_exact_and_series_azimuth_compression_both_focus_the_centre_target(centre_pass, centre_products,
+                                                                         ac_mode):
+    products = centre_products if ac_mode == "exact" else nlcs.nlcs_focus(centre_pass, ac_mode=ac_mode)
+    detections = detect.detect_nlcs(products)
+    assert len(detections) == 1
+    d = detections[0]
+    # notes table 10 gives <= 3 mm for B in either mode; measured < 1 mm
+    assert d.x_m == pytest.approx(REF[0], abs=3e-3)
+    assert d.rc_m == pytest.approx(geo.closest_approach_range_m(REF, H), abs=3e-3)
+    image = products.image
+    _, ir = np.unravel_index(np.argmax(np.abs(image)), image.shape)
+    assert _half_power_width(image[:, ir], products.grid.track_spacing_m) < 0.10  # a focused, not smeared, peak
+
+
+def test_an_unknown_azimuth_compression_mode_is_rejected(centre_pass):
+    with pytest.raises(ValueError, match="azimuth compression mode"):
+        nlcs.nlcs_focus(centre_pass, ac_mode="taylor")
+
+
+def test_without_azimuth_compression_the_target_is_not_focused(centre_pass, centre_products):
+    """Negative control for the width test: the same chain with an all-pass H8 leaves a smeared response."""
+    grid = centre_products.grid
+    k = centre_products.coefficients
+    echo, x_rel = nlcs.prepare_track(centre_pass, grid)
+    s = nlcs.range_fft(echo, grid)
+    s = nlcs.linear_range_walk_correction(s, x_rel, grid)
+    s = nlcs.resample_to_uniform_track(s, x_rel, grid)
+    s = nlcs.az_fft(nlcs.pad_azimuth(s, grid))
+    s = nlcs.range_ifft(nlcs.secondary_range_compression(s, grid), grid)
+    s = nlcs.az_fft(nlcs.nlcs_scaling(nlcs.az_ifft(nlcs.nlcs_filter(s, k, grid)), k, grid))
+    unfocused = nlcs.az_ifft(s)  # H8 left out
+    peak_ratio = np.abs(unfocused).max() / np.abs(centre_products.image).max()
+    _, ir = np.unravel_index(np.argmax(np.abs(unfocused)), unfocused.shape)
+    width = _half_power_width(unfocused[:, ir], grid.track_spacing_m)
+    # measured: 0.27 of the focused peak and a 1.0 m wide response (vs 0.07 m focused)
+    assert peak_ratio < 0.5
+    assert width > 0.5
