@@ -24,9 +24,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from uwbcl import geometry as geo  # noqa: E402
-from uwbcl import pipeline  # noqa: E402
-from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2  # noqa: E402
+from uwbcl import geometry as geo
+from uwbcl import pipeline
+from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2
 
 # Paper values, metres. Table 2's range column for C is lost in the published text.
 PAPER_AZ_RG = {
