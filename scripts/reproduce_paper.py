@@ -70,9 +70,7 @@ def run_scenario(sc, settings, passes):
         mine = [p for p in passes if p.cycle == c]
         by_height = {p.geometry.height_m: pipeline.detect_pass(p, settings) for p in mine}
         per_pass.update({(c, h): d for h, d in by_height.items()})
-        from uwbcl.locate import locate_plates
-        cycles.append(pipeline.CycleResult(mine[0].rig_id, c, mine[0].pass_start_time, tuple(sorted(by_height)),
-                                           locate_plates(by_height, mine[0].geometry.boresight_y_sign)))
+        cycles.append(pipeline.locate_detections(mine, by_height))
     (_, disp), = pipeline.cycle_displacements(cycles, settings)
     return per_pass, cycles, disp
 

@@ -61,7 +61,11 @@ def locate_cycle(passes: list[ScanPass], settings: ProcessingSettings = Processi
     """All passes of one rig and cycle (one per height) -> the 3-D plates of that cycle."""
     if len({p.geometry.height_m for p in passes}) < 2:
         raise ValueError("a cycle needs passes at two or more heights")
-    by_height = {p.geometry.height_m: detect_pass(p, settings) for p in passes}
+    return locate_detections(passes, {p.geometry.height_m: detect_pass(p, settings) for p in passes})
+
+
+def locate_detections(passes: list[ScanPass], by_height: dict[float, list[detect.Detection]]) -> CycleResult:
+    """The plates of one cycle from its passes' detections, keyed by rail height."""
     plates = locate_plates(by_height, passes[0].geometry.boresight_y_sign)
     first = min(passes, key=lambda p: p.pass_start_time)
     return CycleResult(first.rig_id, first.cycle, first.pass_start_time, tuple(sorted(by_height)), plates)
