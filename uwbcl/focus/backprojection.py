@@ -73,6 +73,26 @@ def backproject_points(rc: RangeCompressed, grid: nlcs.FocusGrid, u_m, r_lrcm_m,
     return out.reshape(shape)
 
 
+def point_target_echo(rc: RangeCompressed, grid: nlcs.FocusGrid, u_m: float, r_lrcm_m: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The range-compressed echo (n_pulses, n_fine) of a point target at (u, r_LRCM) with unit gain on every
+    pulse, and the pulses whose slant squint to it lies in the Doppler band (those `backproject_points` sums).
+
+    Per pulse exp(-j 4 pi f_c R / c) p_c(t - 2R / c), R exact from the logged rail position and
+    p_c(t) = exp(-t^2 / 4 sigma^2) / sqrt(2) the Gaussian pulse after its matched filter H4 (P(0) = 1): what
+    `range_compress` makes of the echo of eq. (2) up to the beam gain w_a, which the caller supplies.
+    """
+    x_rel, rc_range = pixel_track_coordinates(float(u_m), float(r_lrcm_m), grid)
+    dx = x_rel - rc.x_rel_m
+    rng = np.sqrt(dx * dx + rc_range**2)
+    lo, hi = grid.doppler_band
+    in_band = (dx >= lo * rng) & (dx <= hi * rng)
+    delay = rc.t0_s + rc.dt_s * np.arange(rc.data.shape[1])[None, :] - 2.0 * rng[:, None] / C
+    k = 4.0 * math.pi * grid.carrier_frequency_hz / C
+    echo = (np.exp(-1j * k * rng) / math.sqrt(2.0))[:, None] * np.exp(-((delay / (2.0 * grid.pulse_sigma_s)) ** 2))
+    return echo, in_band
+
+
 @dataclasses.dataclass
 class BackprojectionProducts:
     image: np.ndarray  # (n_u, n_r)
@@ -82,14 +102,19 @@ class BackprojectionProducts:
     compressed: RangeCompressed
 
 
+def image_axes(grid: nlcs.FocusGrid, pixel_m: float, range_margin_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """u (= v t_n) and r_LRCM axes of the BP image: the rail's extent, the range window less a margin."""
+    half = 0.5 * (grid.n_track - 1) * grid.track_spacing_m
+    u_axis = np.arange(-half, half + 1e-9, pixel_m)
+    bins = grid.range_bins_m
+    return u_axis, np.arange(bins[0] + range_margin_m, bins[-1] - range_margin_m, pixel_m)
+
+
 def backprojection_focus(scan: ScanPass, *, pixel_m: float = 0.01, grid: nlcs.FocusGrid | None = None,
                          range_margin_m: float = 0.1) -> BackprojectionProducts:
     """BP image over the scene the pass can image: t_n within the rail, r_LRCM within the range window."""
     grid = nlcs.focus_grid(scan) if grid is None else grid
     rc = range_compress(scan, grid)
-    half = 0.5 * (grid.n_track - 1) * grid.track_spacing_m
-    u_axis = np.arange(-half, half + 1e-9, pixel_m)
-    bins = grid.range_bins_m
-    r_axis = np.arange(bins[0] + range_margin_m, bins[-1] - range_margin_m, pixel_m)
+    u_axis, r_axis = image_axes(grid, pixel_m, range_margin_m)
     image = backproject_points(rc, grid, u_axis[:, None], r_axis[None, :])
     return BackprojectionProducts(image=image, u_axis_m=u_axis, r_axis_m=r_axis, grid=grid, compressed=rc)

@@ -284,7 +284,14 @@ def exact_reference_azimuth_compression(k: coef.NlcsCoefficients, grid: FocusGri
     # The reference sees the whole beam (no rail ends): its spectrum is then smooth, and the fit is of the
     # stationary-phase law rather than of the Gibbs ripple of one particular truncation.
     ref = az_fft(slow_time_point_response(k.r_m, 0.0, grid, aperture_m, rail_only=False))
-    x_ref = _azimuth_nlcs_chain(ref, k, grid)
+    return fit_azimuth_compression(_azimuth_nlcs_chain(ref, k, grid), k, grid, degree)
+
+
+def fit_azimuth_compression(x_ref: np.ndarray, k: coef.NlcsCoefficients, grid: FocusGrid, degree: int = 8
+                            ) -> AzimuthCompression:
+    """H8 polynomials from the reference spectra X_ref (centred f_a, one column per bin): a weighted fit of the
+    unwrapped phase over the strong part of the band. Shared by the numpy chain and the OpenCL engine, which
+    computes X_ref on the device."""
     f = grid.f_azimuth_hz
     f_scale = 0.5 / grid.dt_s
     n = k.r_m.size

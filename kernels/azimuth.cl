@@ -1,0 +1,75 @@
+/* Azimuth stages of the modified NLCS chain (paper eqs. 12-17). Every phase function is evaluated from a
+ * few scalars per range bin; work item (j, row): range bin j, azimuth sample (time or frequency) row. */
+
+/* H5 (eq. 13) and H6, the NLCS filter (eq. 15): exp(-j pi eta1 f_a) exp(j pi (Y3 f_a^3 + Y4 f_a^4)). */
+__kernel void nlcs_filter(__global float2 *s, __global const real_t *eta1, __global const real_t *y3,
+                          __global const real_t *y4, const int n_range, const int n_azimuth,
+                          const real_t azimuth_df_hz) {
+    const int j = get_global_id(0), row = get_global_id(1);
+    if (j >= n_range) return;
+    const real_t f = signed_index(row, n_azimuth) * azimuth_df_hz;
+    const real_t f2 = f * f;
+    const real_t phase = UWBCL_PI * (-eta1[j] * f + f2 * f * (y3[j] + y4[j] * f));
+    s[row * n_range + j] = cmul(s[row * n_range + j], cis(phase));
+}
+
+/* H7, the nonlinear chirp scaling function (eq. 15): exp(j pi (q2 t^2 + q3 t^3 + q4 t^4)), absolute t_a. */
+__kernel void nlcs_scaling(__global float2 *s, __global const real_t *q2, __global const real_t *q3,
+                           __global const real_t *q4, const int n_range, const int n_azimuth,
+                           const real_t azimuth_dt_s) {
+    const int j = get_global_id(0), row = get_global_id(1);
+    if (j >= n_range) return;
+    const real_t t = signed_index(row, n_azimuth) * azimuth_dt_s;
+    const real_t phase = UWBCL_PI * t * t * (q2[j] + t * (q3[j] + t * q4[j]));
+    s[row * n_range + j] = cmul(s[row * n_range + j], cis(phase));
+}
+
+/* H8, azimuth compression (eq. 17 [fix]): exp(-j sum_d a_d (f_a / f_scale)^d) inside the bin's band, zero
+ * outside; `poly` holds degree + 1 ascending coefficients per bin. The band is given as signed frequency
+ * indices [band_first, band_last] (decided on the host, so band edges that fall on a grid frequency are
+ * treated exactly as the reference treats them). */
+__kernel void azimuth_compression(__global float2 *s, __global const real_t *poly, const int n_coeff,
+                                  __global const int *band_first, __global const int *band_last,
+                                  const int n_range, const int n_azimuth, const real_t azimuth_df_hz,
+                                  const real_t f_scale_hz) {
+    const int j = get_global_id(0), row = get_global_id(1);
+    if (j >= n_range) return;
+    const int idx = row * n_range + j;
+    const int i = signed_index(row, n_azimuth);
+    const real_t f = i * azimuth_df_hz;
+    if (i < band_first[j] || i > band_last[j]) {
+        s[idx] = (float2)(0.0f, 0.0f);
+        return;
+    }
+    const real_t u = f / f_scale_hz;
+    real_t phase = 0;
+    for (int d = n_coeff - 1; d >= 0; --d)
+        phase = phase * u + poly[j * n_coeff + d];  /* Horner */
+    s[idx] = cmul(s[idx], cis(-phase));
+}
+
+/* The slow-time signal of the reference target of each bin (t_n = 0, r0 = r_j) after LRWC, SRC and RC,
+ * through the whole beam (notes 7b): w(t) exp{-j 4 pi / lambda [R(t) + v s_q t]}. The exact-reference
+ * azimuth compression is matched to it after H6 and H7. Two-way main-lobe beam sinc^2(D sin(psi - theta)
+ * / lambda) about the slant squint theta. */
+__kernel void reference_point_response(__global float2 *out, __global const real_t *r_bin_m,
+                                       const int n_range, const int n_azimuth, const real_t azimuth_dt_s,
+                                       const real_t speed_m_s, const real_t sin_squint,
+                                       const real_t wavelength_m, const real_t aperture_m) {
+    const int j = get_global_id(0), row = get_global_id(1);
+    if (j >= n_range) return;
+    const real_t t = signed_index(row, n_azimuth) * azimuth_dt_s;
+    const real_t r0 = r_bin_m[j], vt = speed_m_s * t;
+    const real_t rng = sqrt(r0 * r0 + vt * vt - 2.0 * r0 * vt * sin_squint);
+    const real_t sin_look = (r0 * sin_squint - vt) / rng;
+    const real_t cos_look = sqrt(fmax(1.0 - sin_look * sin_look, 0.0));
+    const real_t cos_squint = sqrt(1.0 - sin_squint * sin_squint);
+    const real_t u = aperture_m * (sin_look * cos_squint - cos_look * sin_squint) / wavelength_m;
+    float beam = 0.0f;
+    if (fabs(u) < 1.0) {
+        const real_t x = UWBCL_PI * u;
+        const real_t sinc = x == 0 ? 1.0 : sin(x) / x;
+        beam = (float)(sinc * sinc);
+    }
+    out[row * n_range + j] = beam * cis(-2.0 * UWBCL_TWO_PI / wavelength_m * (rng + speed_m_s * sin_squint * t));
+}

@@ -1,0 +1,38 @@
+/* Helpers shared by every uwbcl kernel.
+ *
+ * Data are single-precision complex (float2), row-major (azimuth, range). Phase arguments are evaluated in
+ * real_t (double where the device has fp64, float otherwise), reduced modulo 2 pi in that precision, and
+ * only then handed to float trigonometry: arguments reach ~1e3 rad (4 pi R / lambda), where float32
+ * arithmetic alone would leave 1e-4 rad errors.
+ *
+ * Azimuth axes are stored in FFT (natural) order: element k is signed index k (k < N/2) or k - N (k >= N/2),
+ * for time and frequency alike. The host's centred arrays are fftshift of these.
+ */
+#ifdef UWBCL_FP64
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+typedef double real_t;
+#else
+typedef float real_t;
+#endif
+
+#define UWBCL_PI 3.14159265358979323846
+#define UWBCL_TWO_PI 6.28318530717958647692
+#define UWBCL_C 299792458.0
+
+inline float2 cmul(float2 a, float2 b) {
+    return (float2)(a.x * b.x - a.y * b.y, a.x * b.y + a.y * b.x);
+}
+
+/* exp(i phase) */
+inline float2 cis(real_t phase) {
+    real_t turns = phase / (real_t)UWBCL_TWO_PI;
+    float reduced = (float)((turns - rint(turns)) * (real_t)UWBCL_TWO_PI);
+    float c;
+    float s = sincos(reduced, &c);
+    return (float2)(c, s);
+}
+
+/* Signed index of FFT-order position k on an axis of length n (numpy's fftfreq * n). */
+inline int signed_index(int k, int n) {
+    return k < (n + 1) / 2 ? k : k - n;
+}

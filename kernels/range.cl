@@ -1,0 +1,73 @@
+/* Range stages of the modified NLCS chain (paper eqs. 3-11). Work item (k, p): range sample k of row p. */
+
+/* eq. (3)-(4): restore the absolute delay origin of the range window, then H1, the linear range walk
+ * correction exp(-j 4 pi (f_c + f_r) sin(theta_q) x_p / c) with x_p the LOGGED rail position of pulse p. */
+__kernel void range_walk_correction(__global float2 *s, __global const real_t *x_rel_m, const int n_range,
+                                    const real_t sample_rate_hz, const real_t window_start_s,
+                                    const real_t carrier_hz, const real_t sin_squint) {
+    const int k = get_global_id(0), p = get_global_id(1);
+    if (k >= n_range) return;
+    const real_t f = signed_index(k, n_range) * sample_rate_hz / n_range;
+    const real_t phase = -UWBCL_TWO_PI * f * window_start_s
+                         - 2.0 * UWBCL_TWO_PI * (carrier_hz + f) * sin_squint * x_rel_m[p] / UWBCL_C;
+    s[p * n_range + k] = cmul(s[p * n_range + k], cis(phase));
+}
+
+/* Motion compensation and padding: Lagrange interpolation from the logged pulses onto the uniform track
+ * (weights from the host, `order` taps starting at pulse first[j]), H2 of the extended NLCS (eq. 6,
+ * exp(+j 4 pi (f_c + f_r) p2 t_a^2 / c)), written into the zero-padded azimuth grid in FFT order.
+ * Work item (k, row) of the (n_azimuth, n_range) output. */
+__kernel void resample_to_uniform_track(__global const float2 *s, __global float2 *out,
+                                        __global const int *first, __global const real_t *weights,
+                                        const int order, const int n_track, const int n_azimuth,
+                                        const int n_range, const real_t sample_rate_hz,
+                                        const real_t carrier_hz, const real_t track_dt_s,
+                                        const real_t p2_m_s2) {
+    const int k = get_global_id(0), row = get_global_id(1);
+    if (k >= n_range) return;
+    const int t_index = signed_index(row, n_azimuth);
+    const int j = t_index + (n_track - 1) / 2;
+    float2 acc = (float2)(0.0f, 0.0f);
+    if (j >= 0 && j < n_track) {
+        for (int m = 0; m < order; ++m)
+            acc += (float)weights[j * order + m] * s[(first[j] + m) * n_range + k];
+        if (p2_m_s2 != 0) {
+            const real_t f = signed_index(k, n_range) * sample_rate_hz / n_range;
+            const real_t t = t_index * track_dt_s;
+            acc = cmul(acc, cis(2.0 * UWBCL_TWO_PI * (carrier_hz + f) * p2_m_s2 * t * t / UWBCL_C));
+        }
+    }
+    out[row * n_range + k] = acc;
+}
+
+/* eqs. (9) [fix] - (11): H3 (bulk SRC with the reference target's exact 2-D spectrum phase), the beam's
+ * Doppler-band mask, H4 (matched filter of the Gaussian pulse) and the delay origin of the range IFFT,
+ * in one pass over the 2-D spectrum. Work item (k, row): range frequency k, azimuth frequency row. */
+__kernel void secondary_range_compression(__global float2 *s, const int n_range, const int n_azimuth,
+                                          const real_t sample_rate_hz, const real_t window_start_s,
+                                          const real_t carrier_hz, const real_t azimuth_df_hz,
+                                          const real_t speed_m_s, const real_t sin_squint,
+                                          const real_t reference_range_m, const real_t pulse_sigma_s,
+                                          const real_t band_lo, const real_t band_hi) {
+    const int k = get_global_id(0), row = get_global_id(1);
+    if (k >= n_range) return;
+    const real_t f_r = signed_index(k, n_range) * sample_rate_hz / n_range;
+    const real_t f_a = signed_index(row, n_azimuth) * azimuth_df_hz;
+    const real_t cos_squint = sqrt(1.0 - sin_squint * sin_squint);
+    const real_t x = sin_squint + UWBCL_C * f_a / (2.0 * speed_m_s * (carrier_hz + f_r));
+    const real_t x0 = sin_squint + UWBCL_C * f_a / (2.0 * speed_m_s * carrier_hz);
+    const int idx = row * n_range + k;
+    if (!(x >= band_lo && x <= band_hi && fabs(x) < 0.98)) {
+        s[idx] = (float2)(0.0f, 0.0f);
+        return;
+    }
+    const real_t g = cos_squint * sqrt(fmax(1.0 - x * x, 0.0)) + sin_squint * x;
+    const real_t g0 = cos_squint * sqrt(fmax(1.0 - x0 * x0, 0.0)) + sin_squint * x0;
+    const real_t k_ref = 2.0 * UWBCL_TWO_PI * reference_range_m / UWBCL_C;
+    const real_t phi = -k_ref * (carrier_hz + f_r) * g;  /* eq. (7) under P1 */
+    const real_t phi0 = -k_ref * carrier_hz * g0;
+    const real_t phase = -(phi - phi0 + k_ref * f_r) + UWBCL_TWO_PI * f_r * window_start_s;
+    const real_t a = UWBCL_PI * pulse_sigma_s * f_r;
+    const float h4 = (float)exp(-2.0 * a * a);
+    s[idx] = h4 * cmul(s[idx], cis(phase));
+}

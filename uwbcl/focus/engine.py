@@ -1,0 +1,268 @@
+"""The OpenCL focusing engine: the NLCS chain and backprojection of `nlcs.py` / `backprojection.py` on a device.
+
+One `FocusEngine` owns the context, the queue, the compiled program, the FFT plans and the device buffers, and is
+reused across passes (buffers and plans are kept per shape, so a batch of same-sized passes allocates once).
+Coefficients are computed on the host (`coefficients.py`, a few scalars per range bin); every phase function is
+evaluated in the kernels from them (`kernels/*.cl`). Data are complex64 on the device; phase arguments are
+evaluated in float64 where the device has fp64 (docs/opencl.md, error budget). FFTs are VkFFT through pyvkfft.
+
+Azimuth arrays live on the device in FFT (natural) order; the numpy reference keeps them centred. The engine
+converts at the edges only (writing the resampled track in natural order, fftshift of the read-back image).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .. import opencl
+from ..model import ScanPass
+from . import backprojection as bp
+from . import coefficients as coef
+from . import nlcs
+
+PROGRAM_FILES = ("common.cl", "range.cl", "azimuth.cl", "backprojection.cl")
+
+
+class FocusEngine:
+    """OpenCL implementation of the focusing stages; `nlcs_focus` and `backprojection_focus` return the same
+    products as the numpy functions of the same names."""
+
+    def __init__(self, device=None, *, fp64_phase: bool | None = None):
+        import pyopencl as cl
+
+        try:
+            from pyvkfft.opencl import VkFFTApp
+        except ImportError as exc:
+            raise opencl.OpenClUnavailable(f"pyvkfft is not importable ({exc}); " + opencl.INSTALL_HINT) from exc
+        self._cl = cl
+        self._vkfft_app = VkFFTApp
+        t0 = time.perf_counter()
+        dev = device if isinstance(device, cl.Device) else opencl.select_device(device)
+        self.device = dev
+        self.context = cl.Context([dev])
+        self.queue = cl.CommandQueue(self.context)
+        has_fp64 = bool(dev.double_fp_config)
+        if fp64_phase and not has_fp64:
+            raise opencl.OpenClUnavailable(f"{dev.name.strip()} has no fp64; use fp64_phase=False")
+        self.fp64_phase = has_fp64 if fp64_phase is None else fp64_phase
+        self.real = np.float64 if self.fp64_phase else np.float32
+        options = ["-DUWBCL_FP64"] if self.fp64_phase else []
+        source = opencl.kernel_source(*PROGRAM_FILES)
+        self.program = cl.Program(self.context, source).build(options=options)
+        self.kernels = {k.function_name: k for k in self.program.all_kernels()}  # fetched once
+        self._plans: dict = {}
+        self._buffers: dict = {}
+        self._self_test_fft()
+        self.startup_s = time.perf_counter() - t0
+
+    # ------------------------------------------------------------------------------------------ plumbing
+    def __repr__(self) -> str:
+        return f"FocusEngine({self.device.name.strip()!r}, fp64_phase={self.fp64_phase})"
+
+    def buffer(self, name: str, shape: tuple[int, ...], dtype=np.complex64):
+        """A device array kept between passes, reallocated only when the shape changes."""
+        import pyopencl.array as cla
+
+        key = (name, tuple(shape), np.dtype(dtype))
+        arr = self._buffers.get(key)
+        if arr is None:
+            self._buffers = {k: v for k, v in self._buffers.items() if k[0] != name}
+            arr = self._buffers[key] = cla.empty(self.queue, shape, dtype)
+        return arr
+
+    def to_device(self, name: str, host: np.ndarray, dtype=None):
+        host = np.ascontiguousarray(host, dtype=dtype or host.dtype)
+        arr = self.buffer(name, host.shape, host.dtype)
+        arr.set(host)
+        return arr
+
+    def reals(self, name: str, values) -> object:
+        """Per-bin coefficients (or positions) in the phase precision."""
+        return self.to_device(name, np.asarray(values, dtype=float), self.real)
+
+    def fft(self, arr, axis: int, inverse: bool = False) -> None:
+        """In-place complex FFT along one axis; the inverse is normalised by 1/N like numpy."""
+        key = (arr.shape, axis)
+        app = self._plans.get(key)
+        if app is None:
+            app = self._plans[key] = self._vkfft_app(arr.shape, np.complex64, self.queue, ndim=1, axes=(axis,),
+                                                     inplace=True, norm=1)
+        (app.ifft if inverse else app.fft)(arr, arr)
+
+    def _run(self, name: str, rows: int, cols: int, *args) -> None:
+        """Launch kernel `name` on a (cols, rows) grid; Python ints become int32, floats the phase precision."""
+        conv = []
+        for a in args:
+            if isinstance(a, bool):
+                raise TypeError("boolean kernel argument")
+            if isinstance(a, (int, np.integer)):
+                conv.append(np.int32(a))
+            elif isinstance(a, (float, np.floating)):
+                conv.append(self.real(a))
+            else:
+                conv.append(a.data if hasattr(a, "data") and not isinstance(a, np.ndarray) else a)
+        self.kernels[name](self.queue, (cols, rows), None, *conv)
+
+    def _self_test_fft(self) -> None:
+        """VkFFT is miscompiled by some OpenCL runtimes (e.g. PoCL 7.0-7.1): check it once against numpy."""
+        rng = np.random.default_rng(0)
+        x = (rng.standard_normal((64, 48)) + 1j * rng.standard_normal((64, 48))).astype(np.complex64)
+        for axis in (0, 1):
+            d = self.to_device("selftest", x)
+            self.fft(d, axis)
+            ref = np.fft.fft(x.astype(np.complex128), axis=axis)
+            err = np.linalg.norm(d.get() - ref) / np.linalg.norm(ref)
+            self.fft(d, axis, inverse=True)
+            err_inv = np.linalg.norm(d.get() - x) / np.linalg.norm(x)
+            if not (err < 1e-5 and err_inv < 1e-5):
+                raise opencl.OpenClUnavailable(
+                    f"VkFFT self-test failed on {self.device.name.strip()} (axis {axis}: relative error "
+                    f"{err:.1e}/{err_inv:.1e}); this OpenCL runtime miscompiles it, use --backend numpy")
+        self._plans.clear()
+        self._buffers = {k: v for k, v in self._buffers.items() if k[0] != "selftest"}
+
+    # ------------------------------------------------------------------------------------------ NLCS stages
+    def range_walk_correction(self, s, x_rel_m: np.ndarray, grid: nlcs.FocusGrid) -> None:
+        """range FFT delay origin (eq. 3) and H1 (eq. 4) in place on a range spectrum (pulses, n_range)."""
+        self._run("range_walk_correction", s.shape[0], s.shape[1], s, self.reals("x_rel", x_rel_m), grid.n_range,
+                  grid.sample_rate_hz, grid.range_window_start_s, grid.carrier_frequency_hz, grid.sin_squint)
+
+    def resample_to_uniform_track(self, s, x_rel_m: np.ndarray, grid: nlcs.FocusGrid, p2_m_s2: float = 0.0):
+        """Lagrange resampling onto the uniform track, ENLCS H2, padding: -> (n_azimuth, n_range), FFT order."""
+        idx, w = nlcs.lagrange_weights(x_rel_m, grid.t_track_s * grid.speed_m_s)
+        out = self.buffer("azimuth", (grid.n_azimuth, grid.n_range))
+        self._run("resample_to_uniform_track", grid.n_azimuth, grid.n_range, s, out,
+                  self.to_device("first", idx[:, 0].astype(np.int32)), self.reals("weights", w), w.shape[1],
+                  grid.n_track, grid.n_azimuth, grid.n_range, grid.sample_rate_hz, grid.carrier_frequency_hz,
+                  grid.dt_s, float(p2_m_s2))
+        return out
+
+    def secondary_range_compression(self, s, grid: nlcs.FocusGrid) -> None:
+        """H3 * band mask * H4 and the range IFFT's delay origin (eqs. 9-11), in place on the 2-D spectrum."""
+        lo, hi = grid.doppler_band
+        self._run("secondary_range_compression", grid.n_azimuth, grid.n_range, s, grid.n_range, grid.n_azimuth,
+                  grid.sample_rate_hz, grid.range_window_start_s, grid.carrier_frequency_hz,
+                  1.0 / (grid.n_azimuth * grid.dt_s), grid.speed_m_s, grid.sin_squint, grid.reference_range_m,
+                  grid.pulse_sigma_s, lo, hi)
+
+    def nlcs_filter(self, s, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, *, with_h5: bool = True) -> None:
+        """H5 (eq. 13) and H6 (eq. 15) in place on a range-Doppler array."""
+        eta1 = k.eta1 if with_h5 else np.zeros_like(k.eta1)
+        self._run("nlcs_filter", grid.n_azimuth, grid.n_range, s, self.reals("eta1", eta1),
+                  self.reals("y3", k.y3), self.reals("y4", k.y4), grid.n_range, grid.n_azimuth,
+                  1.0 / (grid.n_azimuth * grid.dt_s))
+
+    def nlcs_scaling(self, s, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid) -> None:
+        """H7 (eq. 15) in place on a range-time array."""
+        self._run("nlcs_scaling", grid.n_azimuth, grid.n_range, s, self.reals("q2", k.q2), self.reals("q3", k.q3),
+                  self.reals("q4", k.q4), grid.n_range, grid.n_azimuth, grid.dt_s)
+
+    def azimuth_compression(self, s, ac: nlcs.AzimuthCompression, grid: nlcs.FocusGrid) -> None:
+        """H8 (eq. 17 [fix]) in place on a range-Doppler array."""
+        f = grid.f_azimuth_hz[:, None]
+        inside = (f >= ac.f_lo_hz[None, :]) & (f <= ac.f_hi_hz[None, :])  # the reference's own test
+        any_inside = inside.any(axis=0)
+        first = np.where(any_inside, np.argmax(inside, axis=0) - grid.n_azimuth // 2, 1)
+        last = np.where(any_inside, grid.n_azimuth - 1 - np.argmax(inside[::-1], axis=0) - grid.n_azimuth // 2, 0)
+        self._run("azimuth_compression", grid.n_azimuth, grid.n_range, s, self.reals("ac_poly", ac.poly),
+                  ac.poly.shape[1], self.to_device("ac_first", first.astype(np.int32)),
+                  self.to_device("ac_last", last.astype(np.int32)),
+                  grid.n_range, grid.n_azimuth, 1.0 / (grid.n_azimuth * grid.dt_s), ac.f_scale_hz)
+
+    def azimuth_nlcs_chain(self, s, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, *, with_h5: bool) -> None:
+        """H5/H6 -> azimuth IFFT -> H7 -> azimuth FFT, in place on a range-Doppler array."""
+        self.nlcs_filter(s, k, grid, with_h5=with_h5)
+        self.fft(s, 0, inverse=True)
+        self.nlcs_scaling(s, k, grid)
+        self.fft(s, 0)
+
+    def exact_reference_azimuth_compression(self, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid,
+                                            aperture_m: float, degree: int = 8) -> nlcs.AzimuthCompression:
+        """As `nlcs.exact_reference_azimuth_compression`, with the reference spectra computed on the device."""
+        ref = self.buffer("reference", (grid.n_azimuth, grid.n_range))
+        self._run("reference_point_response", grid.n_azimuth, grid.n_range, ref, self.reals("r_bins", k.r_m),
+                  grid.n_range, grid.n_azimuth, grid.dt_s, grid.speed_m_s, grid.sin_squint, grid.wavelength_m,
+                  aperture_m)
+        self.fft(ref, 0)
+        self.azimuth_nlcs_chain(ref, k, grid, with_h5=False)
+        x_ref = np.fft.fftshift(ref.get(), axes=0)
+        return nlcs.fit_azimuth_compression(x_ref, k, grid, degree)
+
+    def nlcs_focus(self, scan: ScanPass, *, ac_mode: str = "exact", grid: nlcs.FocusGrid | None = None
+                   ) -> nlcs.NlcsProducts:
+        """Focus one pass with the modified NLCS chain on the device (mirrors `nlcs.nlcs_focus`)."""
+        if ac_mode not in ("exact", "series"):
+            raise ValueError(f"unknown azimuth compression mode {ac_mode!r} (exact|series)")
+        grid = nlcs.focus_grid(scan) if grid is None else grid
+        echo, x_rel = nlcs.prepare_track(scan, grid)
+        k = coef.nlcs_coefficients(grid.range_bins_m, grid.speed_m_s, grid.sin_squint, grid.wavelength_m)
+        p2 = coef.enlcs_coefficient(grid.range_bins_m, grid.speed_m_s, grid.sin_squint)
+        if np.ptp(p2) > 0:
+            raise NotImplementedError("the engine applies H2 with one p2 per pass; p2 varies across range here")
+        aperture = scan.radar.antenna_aperture_m
+        # The reference is independent of the data: queue it first so its host fit overlaps nothing else.
+        ac = (self.exact_reference_azimuth_compression(k, grid, aperture) if ac_mode == "exact"
+              else nlcs.series_azimuth_compression(k, grid))
+        s = self.to_device("echo", echo, np.complex64)
+        self.fft(s, 1)
+        self.range_walk_correction(s, x_rel, grid)
+        s = self.resample_to_uniform_track(s, x_rel, grid, float(p2[0]))
+        self.fft(s, 0)
+        self.secondary_range_compression(s, grid)
+        self.fft(s, 1, inverse=True)
+        self.azimuth_nlcs_chain(s, k, grid, with_h5=True)
+        self.azimuth_compression(s, ac, grid)
+        self.fft(s, 0, inverse=True)
+        image = np.fft.fftshift(s.get(), axes=0)
+        return nlcs.NlcsProducts(image=image, grid=grid, coefficients=k, compression=ac, aperture_m=aperture)
+
+    # ------------------------------------------------------------------------------------------ backprojection
+    def range_compress(self, scan: ScanPass, grid: nlcs.FocusGrid, upsample: int = 16):
+        """H4 and band-limited upsampling of every pulse (mirrors `backprojection.range_compress`); the result
+        stays on the device, its host copy is returned for sub-cell refinement."""
+        echo, x_rel = nlcs.prepare_track(scan, grid)
+        n_fine = grid.n_range * upsample
+        s = self.to_device("echo", echo, np.complex64)
+        self.fft(s, 1)
+        fine = self.buffer("fine", (echo.shape[0], n_fine))
+        self._run("pulse_compression_upsample", echo.shape[0], n_fine, s, fine, grid.n_range, n_fine,
+                  grid.sample_rate_hz, grid.pulse_sigma_s)
+        self.fft(fine, 1, inverse=True)
+        return fine, bp.RangeCompressed(fine.get(), x_rel, grid.range_window_start_s,
+                                        1.0 / (grid.sample_rate_hz * upsample))
+
+    def backprojection_focus(self, scan: ScanPass, *, pixel_m: float = 0.01, grid: nlcs.FocusGrid | None = None,
+                             range_margin_m: float = 0.1) -> bp.BackprojectionProducts:
+        """BP image on the device (mirrors `backprojection.backprojection_focus`)."""
+        grid = nlcs.focus_grid(scan) if grid is None else grid
+        fine, rc = self.range_compress(scan, grid)
+        u_axis, r_axis = bp.image_axes(grid, pixel_m, range_margin_m)
+        image = self.buffer("bp_image", (u_axis.size, r_axis.size))
+        lo, hi = grid.doppler_band
+        self._run("backproject", u_axis.size, r_axis.size, fine, self.reals("x_rel", rc.x_rel_m), image,
+                  rc.data.shape[0], rc.data.shape[1], rc.t0_s, rc.dt_s, u_axis.size, r_axis.size,
+                  float(u_axis[0]), pixel_m, float(r_axis[0]), pixel_m, grid.sin_squint,
+                  grid.carrier_frequency_hz, lo, hi)
+        return bp.BackprojectionProducts(image=image.get(), u_axis_m=u_axis, r_axis_m=r_axis, grid=grid,
+                                         compressed=rc)
+
+
+_ENGINES: dict = {}
+
+
+def shared_engine(device: str | None = None) -> FocusEngine:
+    """One engine per device spec and process: programs, plans and buffers survive across passes."""
+    key = device or ""
+    if key not in _ENGINES:
+        _ENGINES[key] = FocusEngine(device)
+    return _ENGINES[key]
+
+
+def warm_start_s(engine: FocusEngine) -> float:
+    """Time to build a second engine on the same device (kernel binaries come from the runtime's cache)."""
+    t = time.perf_counter()
+    FocusEngine(engine.device, fp64_phase=engine.fp64_phase)
+    return time.perf_counter() - t
+
