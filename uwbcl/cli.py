@@ -48,7 +48,10 @@ def _simulate(args: argparse.Namespace) -> int:
 
 
 def _process(args: argparse.Namespace) -> int:
-    settings = pipeline.ProcessingSettings(algorithm=args.algorithm, backend=args.backend, ac_mode=args.ac_mode)
+    settings = pipeline.ProcessingSettings(algorithm=args.algorithm, backend=args.backend, device=args.device,
+                                           ac_mode=args.ac_mode)
+    if args.backend == "opencl" and not _engine_ready(args.device):
+        return 2
     in_dir = Path(args.in_dir)
     if not in_dir.is_dir():
         print(f"uwbcl process: {in_dir}: not a directory", file=sys.stderr)
@@ -61,6 +64,32 @@ def _process(args: argparse.Namespace) -> int:
         for file, reason in report.errors:
             print(f"  {reason}", file=sys.stderr)
         return 1
+    return 0
+
+
+def _engine_ready(device: str | None) -> bool:
+    """Start the OpenCL engine before any work, so a missing runtime is one clear message, not a failure per pass."""
+    from . import opencl
+    from .focus.engine import shared_engine
+
+    try:
+        engine = shared_engine(device)
+    except opencl.OpenClUnavailable as exc:
+        print(f"uwbcl: OpenCL backend unavailable: {exc}", file=sys.stderr)
+        return False
+    logging.getLogger("uwbcl").info("OpenCL engine on %s (start-up %.2f s)", engine.device.name.strip(),
+                                    engine.startup_s)
+    return True
+
+
+def _devices(args: argparse.Namespace) -> int:
+    from . import opencl
+
+    try:
+        print(opencl.describe_devices())
+    except opencl.OpenClUnavailable as exc:
+        print(f"uwbcl devices: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 
@@ -86,11 +115,18 @@ def build_parser() -> argparse.ArgumentParser:
     q = sub.add_parser("process", help="focus every pass under IN_DIR and write the displacement time series")
     q.add_argument("in_dir")
     q.add_argument("--out", required=True, help="output directory (displacements.csv, errors.csv)")
-    q.add_argument("--backend", choices=pipeline.BACKENDS, default="numpy")
+    q.add_argument("--backend", choices=pipeline.BACKENDS, default="opencl",
+                   help="opencl: the OpenCL engine (default); numpy: the float64 reference")
+    q.add_argument("--device", default=None,
+                   help="OpenCL device: 'P:D' indices or part of its name (`uwbcl devices`); "
+                        "default: $PYOPENCL_CTX, else the first GPU, else the first device")
     q.add_argument("--algorithm", choices=pipeline.ALGORITHMS, default="nlcs")
     q.add_argument("--ac-mode", choices=("exact", "series"), default="exact",
                    help="NLCS azimuth compression: exact-reference (default) or the series of eq. 17")
     q.set_defaults(func=_process)
+
+    d = sub.add_parser("devices", help="list the OpenCL platforms and devices (specs for --device)")
+    d.set_defaults(func=_devices)
     return p
 
 

@@ -67,6 +67,14 @@ class DeviceInfo:
     fp64: bool
 
 
+def _kind(cl, device_type: int) -> str:
+    for flag, name in ((cl.device_type.GPU, "GPU"), (cl.device_type.ACCELERATOR, "ACCELERATOR"),
+                       (cl.device_type.CPU, "CPU")):
+        if device_type & flag:
+            return name
+    return cl.device_type.to_string(device_type)
+
+
 def list_devices() -> list[DeviceInfo]:
     cl = _cl()
     try:
@@ -82,7 +90,7 @@ def list_devices() -> list[DeviceInfo]:
         for idev, d in enumerate(devices):
             out.append(DeviceInfo(
                 spec=f"{ip}:{idev}", platform=platform.name.strip(), name=d.name.strip(),
-                kind=cl.device_type.to_string(d.type), compute_units=d.max_compute_units,
+                kind=_kind(cl, d.type), compute_units=d.max_compute_units,
                 global_memory_bytes=d.global_mem_size, fp64=bool(d.double_fp_config),
             ))
     if not out:
@@ -103,7 +111,7 @@ def select_device(spec: str | None = None):
 
     spec = spec if spec is not None else os.environ.get("PYOPENCL_CTX") or None
     if spec is None:
-        gpus = [i for i in infos if "GPU" in i.kind]
+        gpus = [i for i in infos if i.kind == "GPU"]
         return device((gpus or infos)[0])
     parts = spec.split(":")
     if all(p.isdigit() for p in parts if p) and parts[0]:

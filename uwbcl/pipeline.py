@@ -25,27 +25,39 @@ from .model import ScanPass
 log = logging.getLogger("uwbcl")
 
 ALGORITHMS = ("nlcs", "bp")
-BACKENDS = ("numpy",)
+BACKENDS = ("opencl", "numpy")  # the OpenCL engine, and the float64 numpy reference it is checked against
 
 
 @dataclasses.dataclass(frozen=True)
 class ProcessingSettings:
     algorithm: str = "nlcs"
-    backend: str = "numpy"
+    backend: str = "opencl"
+    device: str | None = None  # OpenCL device spec (`uwbcl devices`); None: PYOPENCL_CTX, else GPU first
     ac_mode: str = "exact"  # NLCS azimuth compression: "exact" reference or "series" (eq. 17)
     detection: detect.DetectionSettings = detect.DetectionSettings()
     association: AssociationSettings = AssociationSettings()
 
 
+def _focuser(settings: ProcessingSettings):
+    """The module or engine whose `nlcs_focus` / `backprojection_focus` the backend uses."""
+    if settings.backend == "numpy":
+        return nlcs, backprojection
+    if settings.backend == "opencl":
+        from .focus.engine import shared_engine  # imports pyopencl/pyvkfft only when asked for
+
+        engine = shared_engine(settings.device)
+        return engine, engine
+    raise ValueError(f"unknown backend {settings.backend!r}; available: {', '.join(BACKENDS)}")
+
+
 def detect_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSettings()) -> list[detect.Detection]:
     """Focus one pass and return its point targets in closest-approach coordinates."""
-    if settings.backend not in BACKENDS:
-        raise ValueError(f"unknown backend {settings.backend!r}; available: {', '.join(BACKENDS)}")
+    if settings.algorithm not in ALGORITHMS:
+        raise ValueError(f"unknown algorithm {settings.algorithm!r}; available: {', '.join(ALGORITHMS)}")
+    nlcs_focuser, bp_focuser = _focuser(settings)
     if settings.algorithm == "nlcs":
-        return detect.detect_nlcs(nlcs.nlcs_focus(scan, ac_mode=settings.ac_mode), settings.detection)
-    if settings.algorithm == "bp":
-        return detect.detect_bp(backprojection.backprojection_focus(scan), settings.detection)
-    raise ValueError(f"unknown algorithm {settings.algorithm!r}; available: {', '.join(ALGORITHMS)}")
+        return detect.detect_nlcs(nlcs_focuser.nlcs_focus(scan, ac_mode=settings.ac_mode), settings.detection)
+    return detect.detect_bp(bp_focuser.backprojection_focus(scan), settings.detection)
 
 
 @dataclasses.dataclass
