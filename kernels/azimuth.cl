@@ -2,20 +2,22 @@
  * few scalars per range bin; work item (j, row): range bin j, azimuth sample (time or frequency) row. */
 
 /* H5 (eq. 13) and H6, the NLCS filter (eq. 15): exp(-j pi eta1 f_a) exp(j pi (Y3 f_a^3 + Y4 f_a^4)). */
-__kernel void nlcs_filter(__global float2 *s, __global const real_t *eta1, __global const real_t *y3,
-                          __global const real_t *y4, const int n_range, const int n_azimuth,
+__kernel void nlcs_filter(__global float2 *restrict s, __global const real_t *restrict eta1, __global const real_t *restrict y3,
+                          __global const real_t *restrict y4, const int n_range, const int n_azimuth,
                           const real_t azimuth_df_hz) {
     const int j = get_global_id(0), row = get_global_id(1);
     if (j >= n_range) return;
+    const float2 v = s[row * n_range + j];
+    if (v.x == 0.0f && v.y == 0.0f) return;  /* outside the Doppler band (most of the padded spectrum) */
     const real_t f = signed_index(row, n_azimuth) * azimuth_df_hz;
     const real_t f2 = f * f;
     const real_t phase = UWBCL_PI * (-eta1[j] * f + f2 * f * (y3[j] + y4[j] * f));
-    s[row * n_range + j] = cmul(s[row * n_range + j], cis(phase));
+    s[row * n_range + j] = cmul(v, cis(phase));
 }
 
 /* H7, the nonlinear chirp scaling function (eq. 15): exp(j pi (q2 t^2 + q3 t^3 + q4 t^4)), absolute t_a. */
-__kernel void nlcs_scaling(__global float2 *s, __global const real_t *q2, __global const real_t *q3,
-                           __global const real_t *q4, const int n_range, const int n_azimuth,
+__kernel void nlcs_scaling(__global float2 *restrict s, __global const real_t *restrict q2, __global const real_t *restrict q3,
+                           __global const real_t *restrict q4, const int n_range, const int n_azimuth,
                            const real_t azimuth_dt_s) {
     const int j = get_global_id(0), row = get_global_id(1);
     if (j >= n_range) return;
@@ -28,8 +30,8 @@ __kernel void nlcs_scaling(__global float2 *s, __global const real_t *q2, __glob
  * outside; `poly` holds degree + 1 ascending coefficients per bin. The band is given as signed frequency
  * indices [band_first, band_last] (decided on the host, so band edges that fall on a grid frequency are
  * treated exactly as the reference treats them). */
-__kernel void azimuth_compression(__global float2 *s, __global const real_t *poly, const int n_coeff,
-                                  __global const int *band_first, __global const int *band_last,
+__kernel void azimuth_compression(__global float2 *restrict s, __global const real_t *restrict poly, const int n_coeff,
+                                  __global const int *restrict band_first, __global const int *restrict band_last,
                                   const int n_range, const int n_azimuth, const real_t azimuth_df_hz,
                                   const real_t f_scale_hz) {
     const int j = get_global_id(0), row = get_global_id(1);
@@ -52,7 +54,7 @@ __kernel void azimuth_compression(__global float2 *s, __global const real_t *pol
  * through the whole beam (notes 7b): w(t) exp{-j 4 pi / lambda [R(t) + v s_q t]}. The exact-reference
  * azimuth compression is matched to it after H6 and H7. Two-way main-lobe beam sinc^2(D sin(psi - theta)
  * / lambda) about the slant squint theta. */
-__kernel void reference_point_response(__global float2 *out, __global const real_t *r_bin_m,
+__kernel void reference_point_response(__global float2 *restrict out, __global const real_t *restrict r_bin_m,
                                        const int n_range, const int n_azimuth, const real_t azimuth_dt_s,
                                        const real_t speed_m_s, const real_t sin_squint,
                                        const real_t wavelength_m, const real_t aperture_m) {

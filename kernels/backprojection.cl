@@ -22,31 +22,36 @@ __kernel void pulse_compression_upsample(__global const float2 *spec, __global f
 
 /* One pixel per work item (i_r, i_u) on the (u = v t_n, r_LRCM) axes: sum over the pulses whose slant squint
  * lies in the beam's Doppler band of the linearly interpolated range-compressed echo at the exact two-way
- * delay, with the carrier phase restored. P1: r0 = r - s_q u, x_M = u + r0 s_q, R_c = r0 c_q. */
-__kernel void backproject(__global const float2 *rc, __global const real_t *x_rel_m, __global float2 *image,
-                          const int n_pulses, const int n_fine, const real_t t0_s, const real_t fine_dt_s,
-                          const int n_u, const int n_r, const real_t u0_m, const real_t du_m,
-                          const real_t r_start_m, const real_t dr_m, const real_t sin_squint,
-                          const real_t carrier_hz, const real_t band_lo, const real_t band_hi) {
+ * delay, with the carrier phase restored. P1: r0 = r - s_q u, x_M = u + r0 s_q, R_c = r0 c_q.
+ * The loop runs in float: the carrier phase k R is split into k R_c (per pixel, in real_t) and
+ * k (R - R_c) = k dx^2 / (R + R_c) (float, no cancellation), which keeps the phase error near 1e-5 rad. */
+__kernel void backproject(__global const float2 *restrict rc, __global const float *restrict x_rel_m,
+                          __global float2 *restrict image, const int n_pulses, const int n_fine,
+                          const real_t t0_s, const real_t fine_dt_s, const int n_u, const int n_r,
+                          const real_t u0_m, const real_t du_m, const real_t r_start_m, const real_t dr_m,
+                          const real_t sin_squint, const real_t carrier_hz, const real_t band_lo,
+                          const real_t band_hi) {
     const int ir = get_global_id(0), iu = get_global_id(1);
     if (ir >= n_r || iu >= n_u) return;
     const real_t u = u0_m + iu * du_m, r = r_start_m + ir * dr_m;
     const real_t r0 = r - sin_squint * u;
-    const real_t x_m = u + r0 * sin_squint;
-    const real_t rc_m = r0 * sqrt(1.0 - sin_squint * sin_squint);
     const real_t k = 2.0 * UWBCL_TWO_PI * carrier_hz / UWBCL_C;
+    const real_t rc_pixel = r0 * sqrt(1.0 - sin_squint * sin_squint);
+    const float x_m = (float)(u + r0 * sin_squint), rc_m = (float)rc_pixel, rc2 = rc_m * rc_m;
+    const float kf = (float)k, lo = (float)band_lo, hi = (float)band_hi;
+    const float samples_per_m = (float)(2.0 / (UWBCL_C * fine_dt_s)), first = (float)(t0_s / fine_dt_s);
     float2 acc = (float2)(0.0f, 0.0f);
     for (int p = 0; p < n_pulses; ++p) {
-        const real_t dx = x_m - x_rel_m[p];
-        const real_t rng = sqrt(dx * dx + rc_m * rc_m);
-        if (dx < band_lo * rng || dx > band_hi * rng) continue;
-        const real_t pos = (2.0 * rng / UWBCL_C - t0_s) / fine_dt_s;
-        const real_t fl = floor(pos);
+        const float dx = x_m - x_rel_m[p];
+        const float rng = sqrt(dx * dx + rc2);
+        if (dx < lo * rng || dx > hi * rng) continue;
+        const float pos = rng * samples_per_m - first;
+        const float fl = floor(pos);
         const int i = (int)fl;
         if (i < 0 || i >= n_fine - 1) continue;
-        const float frac = (float)(pos - fl);
+        const float frac = pos - fl;
         const float2 sample = (1.0f - frac) * rc[p * n_fine + i] + frac * rc[p * n_fine + i + 1];
-        acc += cmul(sample, cis(k * rng));
+        acc += cmul(sample, cis_f(kf * dx * dx / (rng + rc_m)));
     }
-    image[iu * n_r + ir] = acc;
+    image[iu * n_r + ir] = cmul(acc, cis(k * rc_pixel));
 }

@@ -23,12 +23,22 @@ inline float2 cmul(float2 a, float2 b) {
     return (float2)(a.x * b.x - a.y * b.y, a.x * b.y + a.y * b.x);
 }
 
+#define UWBCL_INV_TWO_PI 0.15915494309189533577
+
 /* exp(i phase) */
 inline float2 cis(real_t phase) {
-    real_t turns = phase / (real_t)UWBCL_TWO_PI;
-    float reduced = (float)((turns - rint(turns)) * (real_t)UWBCL_TWO_PI);
+    const float reduced = (float)(phase - (real_t)UWBCL_TWO_PI * rint(phase * (real_t)UWBCL_INV_TWO_PI));
     float c;
-    float s = sincos(reduced, &c);
+    const float s = sincos(reduced, &c);
+    return (float2)(c, s);
+}
+
+/* exp(i phase) in float throughout, for arguments small enough (|phase| < ~1e3) that float rounding of the
+ * argument itself is within the error budget. */
+inline float2 cis_f(float phase) {
+    const float reduced = phase - (float)UWBCL_TWO_PI * rint(phase * (float)UWBCL_INV_TWO_PI);
+    float c;
+    const float s = sincos(reduced, &c);
     return (float2)(c, s);
 }
 

@@ -2,7 +2,7 @@
 
 /* eq. (3)-(4): restore the absolute delay origin of the range window, then H1, the linear range walk
  * correction exp(-j 4 pi (f_c + f_r) sin(theta_q) x_p / c) with x_p the LOGGED rail position of pulse p. */
-__kernel void range_walk_correction(__global float2 *s, __global const real_t *x_rel_m, const int n_range,
+__kernel void range_walk_correction(__global float2 *restrict s, __global const real_t *restrict x_rel_m, const int n_range,
                                     const real_t sample_rate_hz, const real_t window_start_s,
                                     const real_t carrier_hz, const real_t sin_squint) {
     const int k = get_global_id(0), p = get_global_id(1);
@@ -17,8 +17,8 @@ __kernel void range_walk_correction(__global float2 *s, __global const real_t *x
  * (weights from the host, `order` taps starting at pulse first[j]), H2 of the extended NLCS (eq. 6,
  * exp(+j 4 pi (f_c + f_r) p2 t_a^2 / c)), written into the zero-padded azimuth grid in FFT order.
  * Work item (k, row) of the (n_azimuth, n_range) output. */
-__kernel void resample_to_uniform_track(__global const float2 *s, __global float2 *out,
-                                        __global const int *first, __global const real_t *weights,
+__kernel void resample_to_uniform_track(__global const float2 *restrict s, __global float2 *restrict out,
+                                        __global const int *restrict first, __global const real_t *restrict weights,
                                         const int order, const int n_track, const int n_azimuth,
                                         const int n_range, const real_t sample_rate_hz,
                                         const real_t carrier_hz, const real_t track_dt_s,
@@ -43,7 +43,7 @@ __kernel void resample_to_uniform_track(__global const float2 *s, __global float
 /* eqs. (9) [fix] - (11): H3 (bulk SRC with the reference target's exact 2-D spectrum phase), the beam's
  * Doppler-band mask, H4 (matched filter of the Gaussian pulse) and the delay origin of the range IFFT,
  * in one pass over the 2-D spectrum. Work item (k, row): range frequency k, azimuth frequency row. */
-__kernel void secondary_range_compression(__global float2 *s, const int n_range, const int n_azimuth,
+__kernel void secondary_range_compression(__global float2 *restrict s, const int n_range, const int n_azimuth,
                                           const real_t sample_rate_hz, const real_t window_start_s,
                                           const real_t carrier_hz, const real_t azimuth_df_hz,
                                           const real_t speed_m_s, const real_t sin_squint,

@@ -241,7 +241,8 @@ class FocusEngine:
         u_axis, r_axis = bp.image_axes(grid, pixel_m, range_margin_m)
         image = self.buffer("bp_image", (u_axis.size, r_axis.size))
         lo, hi = grid.doppler_band
-        self._run("backproject", u_axis.size, r_axis.size, fine, self.reals("x_rel", rc.x_rel_m), image,
+        x_rel = self.to_device("x_rel_f32", rc.x_rel_m, np.float32)
+        self._run("backproject", u_axis.size, r_axis.size, fine, x_rel, image,
                   rc.data.shape[0], rc.data.shape[1], rc.t0_s, rc.dt_s, u_axis.size, r_axis.size,
                   float(u_axis[0]), pixel_m, float(r_axis[0]), pixel_m, grid.sin_squint,
                   grid.carrier_frequency_hz, lo, hi)
