@@ -148,9 +148,14 @@ def reference_point_response(k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, ape
     t = natural_t_azimuth_s(grid)[:, None]
     v, s, lam = grid.speed_m_s, grid.sin_squint, grid.wavelength_m
     rng = np.sqrt(r**2 + (v * t) ** 2 - 2 * r * v * t * s)
-    beam = geo.two_way_beam_gain(np.arcsin((r * s - v * t) / rng), math.asin(s), aperture_m, lam)
-    out = cis((-4.0 * np.pi / lam) * (rng + v * s * t), dtype)
-    out *= beam
+    sin_look = (r * s - v * t) / rng
+    # The main lobe covers a fraction of the padded slow time: evaluate only rows some bin sees (the gain is
+    # exactly zero elsewhere); |u| < 1 is the lobe test of geo.two_way_beam_gain, with sin(psi - theta_q) expanded.
+    u = aperture_m / lam * (sin_look * math.sqrt(1 - s * s) - np.sqrt(1 - sin_look**2) * s)
+    rows = np.flatnonzero((np.abs(u) < 1.0 + 1e-6).any(axis=1))
+    beam = geo.two_way_beam_gain(np.arcsin(sin_look[rows]), math.asin(s), aperture_m, lam)
+    out = np.zeros(rng.shape, dtype=dtype)
+    out[rows] = cis((-4.0 * np.pi / lam) * (rng[rows] + v * s * t[rows]), dtype) * beam
     return out
 
 
