@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import archive, detect
+from . import detect
 from .displacement import AssociationSettings, Displacement, estimate_advance
 from .focus import backprojection, nlcs
 from .locate import Located, locate_plates
@@ -56,7 +56,8 @@ def detect_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSetting
         raise ValueError(f"unknown algorithm {settings.algorithm!r}; available: {', '.join(ALGORITHMS)}")
     nlcs_focuser, bp_focuser = _focuser(settings)
     if settings.algorithm == "nlcs":
-        return detect.detect_nlcs(nlcs_focuser.nlcs_focus(scan, ac_mode=settings.ac_mode), settings.detection)
+        products = nlcs_focuser.nlcs_focus(scan, ac_mode=settings.ac_mode)
+        return detect.detect_nlcs(products, settings.detection, scan)  # the echo lets it model neighbours
     return detect.detect_bp(bp_focuser.backprojection_focus(scan), settings.detection)
 
 
@@ -134,43 +135,12 @@ def write_csv_atomic(path: Path, columns, rows) -> None:
         raise
 
 
-@dataclasses.dataclass
-class BatchReport:
-    rows: list[dict]
-    errors: list[tuple[str, str]]  # (file or group, reason)
-    cycles: list[CycleResult]
+def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings = ProcessingSettings(),
+                      options=None):
+    """Every archive under in_dir -> the outputs of docs/outputs.md in out_dir (the batch job: uwbcl.batch)."""
+    from . import batch
 
-
-def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings = ProcessingSettings()
-                      ) -> BatchReport:
-    """Every archive under in_dir -> out_dir/displacements.csv (+ errors.csv). Bad files are reported, skipped."""
-    errors: list[tuple[str, str]] = []
-    groups: dict[tuple[str, int], list[ScanPass]] = defaultdict(list)
-    for path in archive.find_pass_files(in_dir):
-        try:
-            scan = archive.read_pass(path)
-        except (archive.ArchiveError, OSError) as exc:
-            log.error("%s", exc)
-            errors.append((str(path), str(exc)))
-            continue
-        groups[(scan.rig_id, scan.cycle)].append(scan)
-    cycles = []
-    for (rig, cycle), passes in sorted(groups.items()):
-        try:
-            result = locate_cycle(passes, settings)
-        except ValueError as exc:
-            files = ", ".join(p.source for p in passes)
-            log.error("rig %s cycle %d (%s): %s", rig, cycle, files, exc)
-            errors.append((files, f"rig {rig} cycle {cycle}: {exc}"))
-            continue
-        log.info("rig %s cycle %d: %d plates located from %d heights", rig, cycle, len(result.plates),
-                 len(result.heights_m))
-        cycles.append(result)
-    rows = displacement_rows(cycle_displacements(cycles, settings))
-    write_csv_atomic(Path(out_dir) / "displacements.csv", DISPLACEMENT_COLUMNS, rows)
-    write_csv_atomic(Path(out_dir) / "errors.csv", ("file", "reason"),
-                     [{"file": f, "reason": r} for f, r in errors])
-    return BatchReport(rows, errors, cycles)
+    return batch.process_directory(in_dir, out_dir, settings, options or batch.BatchOptions())
 
 
 def plates_array(plates: list[Located]) -> np.ndarray:

@@ -1,0 +1,262 @@
+"""The outputs of `uwbcl process` (contract: docs/outputs.md), each written atomically.
+
+displacements.csv / displacements.h5: one row per cycle after a rig's first; targets.csv: every located plate;
+errors.csv: every problem; plots/ (on request): time series per rig and focused images per pass.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import logging
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__, archive
+from .batch import FILE_MODE, Problem, SeriesRow, write_bytes_atomic
+from .displacement import TRUSTED_STATUSES
+from .pipeline import CycleResult
+
+log = logging.getLogger("uwbcl")
+
+DISPLACEMENT_COLUMNS = (
+    "rig_id", "cycle", "from_cycle", "start_time", "retreat_m", "creep_m", "vertical_m",
+    "cumulative_retreat_m", "cumulative_creep_m", "cumulative_vertical_m", "n_targets", "n_plates",
+    "residual_m", "retreat_spread_m", "creep_spread_m", "vertical_spread_m", "runner_up_targets", "status",
+)
+TARGET_COLUMNS = (
+    "rig_id", "cycle", "plate", "track", "x_m", "y_m", "z_m", "residual_m", "n_passes", "amplitude",
+    "matched_plate", "inlier", "x_first_m", "y_first_m", "z_first_m",
+)
+ERROR_COLUMNS = ("file", "kind", "reason")
+H5_FORMAT = "uwbcl-displacements"
+H5_FORMAT_VERSION = 1
+UNITS = {"_m": "m", "cycle": "1", "from_cycle": "1", "n_targets": "1", "n_plates": "1", "runner_up_targets": "1",
+         "plate": "1", "track": "1", "n_passes": "1", "matched_plate": "1", "inlier": "1", "amplitude": "arb",
+         "start_time": "ISO 8601 UTC", "rig_id": "", "status": ""}
+
+
+def _m(v: float) -> str:
+    return f"{v:.6f}"  # micrometres: far below the measurement's resolution, stable text
+
+
+def displacement_records(rows: list[SeriesRow]) -> list[dict]:
+    """Typed values per displacement row (floats NaN when unknown)."""
+    out = []
+    for r in rows:
+        d = r.displacement
+        out.append({
+            "rig_id": r.cycle.rig_id, "cycle": r.cycle.cycle, "from_cycle": r.reference.cycle,
+            "start_time": r.cycle.start_time,
+            "retreat_m": d.retreat_m, "creep_m": d.creep_m, "vertical_m": d.vertical_m,
+            "cumulative_retreat_m": float(r.cumulative_m[0]), "cumulative_creep_m": float(r.cumulative_m[1]),
+            "cumulative_vertical_m": float(r.cumulative_m[2]),
+            "n_targets": d.n_targets, "n_plates": len(r.cycle.plates), "residual_m": d.residual_m,
+            "retreat_spread_m": float(d.spread_m[0]), "creep_spread_m": float(d.spread_m[1]),
+            "vertical_spread_m": float(d.spread_m[2]), "runner_up_targets": d.runner_up_targets,
+            "status": d.status,
+        })
+    return out
+
+
+def _text(records: list[dict]) -> list[dict]:
+    return [{k: _m(v) if isinstance(v, float) else v for k, v in rec.items()} for rec in records]
+
+
+def target_records(rows: list[SeriesRow], cycles: list[CycleResult]) -> list[dict]:
+    """Every plate of every cycle, with a track id that follows a physical plate through trusted matches."""
+    row_of = {(r.cycle.rig_id, r.cycle.cycle): r for r in rows}
+    tracks: dict[tuple[str, int], list[int]] = {}
+    next_track: dict[str, int] = {}
+    out = []
+    for c in sorted(cycles, key=lambda c: (c.rig_id, c.cycle)):
+        key = (c.rig_id, c.cycle)
+        r = row_of.get(key)
+        ids = [-1] * len(c.plates)
+        matched = [-1] * len(c.plates)
+        trusted = r is not None and r.displacement.status in TRUSTED_STATUSES
+        if r is not None:
+            for i, j in r.displacement.pairs:
+                matched[j] = i
+                if trusted:
+                    ids[j] = tracks[(c.rig_id, r.reference.cycle)][i]
+        for j in range(len(ids)):
+            if ids[j] < 0:
+                ids[j] = next_track.get(c.rig_id, 0)
+                next_track[c.rig_id] = ids[j] + 1
+        tracks[key] = ids
+        cum = r.cumulative_m if r is not None else np.zeros(3)  # the rig's first cycle is the origin
+        for j, p in enumerate(c.plates):
+            first = p.position_m + cum
+            out.append({
+                "rig_id": c.rig_id, "cycle": c.cycle, "plate": j, "track": ids[j],
+                "x_m": float(p.position_m[0]), "y_m": float(p.position_m[1]), "z_m": float(p.position_m[2]),
+                "residual_m": float(p.residual_m), "n_passes": p.n_passes, "amplitude": float(p.amplitude),
+                "matched_plate": matched[j], "inlier": int(matched[j] >= 0),
+                "x_first_m": float(first[0]), "y_first_m": float(first[1]), "z_first_m": float(first[2]),
+            })
+    return out
+
+
+def csv_bytes(columns, rows) -> bytes:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(columns), lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    return buf.getvalue().encode()
+
+
+def _unit(name: str) -> str:
+    if name in UNITS:
+        return UNITS[name]
+    return next(u for suffix, u in UNITS.items() if suffix.startswith("_") and name.endswith(suffix))
+
+
+def write_h5_atomic(path: Path, tables: dict[str, tuple[tuple[str, ...], list[dict]]]) -> None:
+    """One group per table, one 1-D dataset per column with a `units` attribute; deterministic bytes."""
+    import h5py
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
+    os.fchmod(fd, FILE_MODE)
+    os.close(fd)
+    try:
+        with h5py.File(tmp, "w", libver=("v110", "v110"), track_order=True) as f:
+            f.attrs["format"] = H5_FORMAT
+            f.attrs["format_version"] = np.int64(H5_FORMAT_VERSION)
+            f.attrs["created_by"] = f"uwbcl {__version__}"
+            for name, (columns, records) in tables.items():
+                g = f.create_group(name, track_order=True)
+                g.attrs["rows"] = np.int64(len(records))
+                for col in columns:
+                    values = [rec[col] for rec in records]
+                    unit = _unit(col)
+                    if col in ("rig_id", "start_time", "status"):
+                        data = np.array(values, dtype=h5py.string_dtype())
+                    elif unit == "1":
+                        data = np.array(values, dtype=np.int64)
+                    else:
+                        data = np.array(values, dtype=np.float64)
+                    ds = g.create_dataset(col, data=data, shape=(len(values),))
+                    ds.attrs["units"] = unit
+        with open(tmp, "rb") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_all(out_dir: Path, rows: list[SeriesRow], cycles: list[CycleResult], problems: list[Problem], opts,
+              *, groups: dict, in_dir: Path, settings) -> list[dict]:
+    """Every output of a run; returns the displacements.csv rows (text)."""
+    disp = displacement_records(rows)
+    disp_text = _text(disp)
+    write_bytes_atomic(out_dir / "displacements.csv", csv_bytes(DISPLACEMENT_COLUMNS, disp_text))
+    targets = target_records(rows, cycles) if (opts.targets or opts.hdf5) else []
+    if opts.targets:
+        write_bytes_atomic(out_dir / "targets.csv", csv_bytes(TARGET_COLUMNS, _text(targets)))
+    if opts.hdf5:
+        write_h5_atomic(out_dir / "displacements.h5",
+                        {"displacements": (DISPLACEMENT_COLUMNS, disp), "targets": (TARGET_COLUMNS, targets)})
+    write_bytes_atomic(out_dir / "errors.csv",
+                       csv_bytes(ERROR_COLUMNS, [dataclasses.asdict(p) for p in problems]))
+    if opts.plots:
+        plot_time_series(out_dir / "plots", disp)
+    if opts.cycle_images:
+        plot_cycle_images(out_dir / "plots" / "cycles", groups, in_dir, settings)
+    return disp_text
+
+
+# ----------------------------------------------------------------------------------------------- plots
+def require_matplotlib() -> None:
+    from .batch import BatchError
+
+    try:
+        import matplotlib  # noqa: F401
+    except ModuleNotFoundError:
+        raise BatchError("plots need matplotlib: pip install 'uwbcl[plot]'") from None
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> None:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, metadata={"Software": None})
+    write_bytes_atomic(path, buf.getvalue())
+
+
+def plot_time_series(plot_dir: Path, records: list[dict]) -> None:
+    """plots/timeseries_<rig>.png: cumulative and per-cycle retreat and creep against time, flags in red."""
+    import datetime as dt
+
+    plt = _pyplot()
+    by_rig: dict[str, list[dict]] = {}
+    for rec in records:
+        by_rig.setdefault(rec["rig_id"], []).append(rec)
+    for rig, recs in sorted(by_rig.items()):
+        t = [dt.datetime.fromisoformat(r["start_time"].replace("Z", "+00:00")) for r in recs]
+        flagged = [r["status"] != "ok" for r in recs]
+        fig, axes = plt.subplots(2, 2, figsize=(11, 6), sharex=True)
+        for col, (name, label) in enumerate((("retreat", "retreat"), ("creep", "creep"))):
+            cum = np.array([r[f"cumulative_{name}_m"] for r in recs])
+            step = np.array([r[f"{name}_m"] for r in recs]) * 1000.0
+            axes[0, col].plot(t, cum, ".-", color="C0")
+            axes[0, col].set_ylabel(f"cumulative {label} (m)")
+            axes[1, col].plot(t, step, ".", color="C0", label="ok")
+            bad = np.array(flagged)
+            if bad.any():
+                axes[1, col].plot(np.array(t, dtype=object)[bad], step[bad], "x", color="C3", label="flagged")
+            axes[1, col].set_ylabel(f"{label} per cycle (mm)")
+            axes[1, col].legend(loc="best", fontsize=8)
+        fig.suptitle(f"{rig}: {len(recs)} displacements, {sum(flagged)} flagged")
+        fig.autofmt_xdate()
+        fig.tight_layout()
+        _save(fig, plot_dir / f"timeseries_{rig}.png")
+        plt.close(fig)
+
+
+def plot_cycle_images(plot_dir: Path, groups: dict, in_dir: Path, settings) -> None:
+    """plots/cycles/<rig>/c<cycle>_h<mm>.png: |image| in dB with the detections marked; existing files are kept.
+
+    Refocuses every pass with the numpy reference (the engine's image is the same within its tolerance).
+    """
+    from .focus import backprojection, nlcs
+
+    plt = _pyplot()
+    for (rig, cycle), recs in sorted(groups.items()):
+        for hmm, rec in sorted(recs.items()):
+            path = plot_dir / rig / f"c{cycle:06d}_h{hmm:04d}.png"
+            if path.exists():
+                continue
+            scan = archive.read_pass(in_dir / rec.file)
+            if settings.algorithm == "bp":
+                prod = backprojection.backprojection_focus(scan)
+                az, rg = prod.u_axis_m, prod.r_axis_m
+            else:
+                prod = nlcs.nlcs_focus(scan, ac_mode=settings.ac_mode)
+                az, rg = prod.grid.t_azimuth_s * prod.grid.speed_m_s, prod.grid.range_bins_m
+            mag = 20 * np.log10(np.abs(prod.image) / np.abs(prod.image).max() + 1e-12)
+            fig, ax = plt.subplots(figsize=(7, 5))
+            ax.imshow(mag.T, origin="lower", aspect="auto", vmin=-40, vmax=0, cmap="viridis",
+                      extent=(az[0], az[-1], rg[0], rg[-1]))
+            ax.plot([d.image_azimuth_m for d in rec.detections], [d.image_range_m for d in rec.detections], "o",
+                    mfc="none", mec="red", ms=10)
+            half = 0.5 * (scan.pulse_position_m.max() - scan.pulse_position_m.min())
+            ax.set_xlim(-1.2 * half, 1.2 * half)
+            ax.set_xlabel("azimuth v t (m)")
+            ax.set_ylabel("range r_LRCM (m)")
+            ax.set_title(f"{rig} cycle {cycle} h {hmm} mm: {len(rec.detections)} detections")
+            _save(fig, path)
+            plt.close(fig)
