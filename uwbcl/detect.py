@@ -16,7 +16,9 @@ import numpy as np
 from scipy import ndimage, optimize
 
 from .focus import backprojection as bp
+from .focus import coefficients as coef
 from .focus import nlcs
+from .model import ScanPass
 
 
 @dataclasses.dataclass(frozen=True)
@@ -27,7 +29,7 @@ class DetectionSettings:
     range_separation_m: float = 0.12  # and in range (beyond the azimuth side-lobes, inside the plate spacing)
     max_targets: int = 64
     # CLEAN-like re-refinements of every peak with the other targets' modelled responses removed (0: off)
-    neighbour_cancellation_passes: int = 2
+    neighbour_cancellation_passes: int = 1
     neighbour_cancellation_tol_m: float = 1e-5  # stop early once no peak moves more than this
     neighbour_gain_degree: int = 8  # Legendre degree of a modelled target's gain along the rail (beam pattern)
 
@@ -120,7 +122,10 @@ def invert_focus_position(products: nlcs.NlcsProducts, r_m: float, t_f_s: float,
     return float(np.polynomial.polynomial.polyval(t_f_s, fit))
 
 
-def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = DetectionSettings()) -> list[Detection]:
+def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = DetectionSettings(),
+                scan: ScanPass | None = None) -> list[Detection]:
+    """Point targets of an NLCS image. With the pass's echo (`scan`), the peaks are re-refined with the
+    neighbours' modelled responses removed (`cancel_neighbours_nlcs`); without it, on the image alone."""
     grid = products.grid
     mag = np.abs(products.image)
     t = grid.t_azimuth_s
@@ -130,15 +135,73 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     valid[np.abs(t) <= half, 2:-2] = True
     peaks, floor = _local_peaks(mag, valid, (grid.track_spacing_m, dr), settings)
     value = _trig_evaluator(products.image)
+    cells = [_maximise(value, float(i), float(j)) for i, j in peaks]
+    if settings.neighbour_cancellation_passes > 0 and len(cells) > 1 and scan is not None:
+        cells = cancel_neighbours_nlcs(products, scan, cells, settings.neighbour_cancellation_passes,
+                                       settings.neighbour_cancellation_tol_m, settings.neighbour_gain_degree)
     out = []
-    for i, j in peaks:
-        a, b, val = _maximise(value, float(i), float(j))
-        t_f = (a - grid.n_azimuth // 2) * grid.dt_s
-        r = grid.range_bins_m[0] + b * dr
-        t_n = invert_focus_position(products, r, t_f)
+    for a, b, val in cells:
+        t_f, r, t_n = _nlcs_peak_time(products, a, b)
         r0 = r - grid.speed_m_s * grid.sin_squint * t_n  # eq. (19) [fix]: r_LC = r_LRCM - v sin(theta_q) t_nc
         out.append(_detection(grid, t_n, r0, grid.speed_m_s * t_f, r, abs(val), floor))
     return out
+
+
+def _nlcs_peak_time(products: nlcs.NlcsProducts, a: float, b: float) -> tuple[float, float, float]:
+    """(t_f, r_LRCM, t_n) of a peak at fractional image indices (a, b)."""
+    grid = products.grid
+    t_f = (a - grid.n_azimuth // 2) * grid.dt_s
+    r = grid.range_bins_m[0] + b * (grid.range_bins_m[1] - grid.range_bins_m[0])
+    return t_f, r, invert_focus_position(products, r, t_f)
+
+
+def nlcs_model_chain(products: nlcs.NlcsProducts, x_rel_m: np.ndarray):
+    """echo -> NLCS image: the linear chain of `nlcs.nlcs_focus` for this pass (pulses at x_rel_m), reusing the
+    products' coefficients and azimuth compression. The stages after the resampling multiply by filters that
+    depend on the grid only, so they are computed once here (applied to ones) and each model costs 6 FFTs."""
+    grid, k = products.grid, products.coefficients
+    ones = np.ones((grid.n_azimuth, grid.n_range), dtype=np.complex128)
+    src = nlcs.secondary_range_compression(ones, grid)
+    h5h6 = nlcs.nlcs_filter(nlcs.azimuth_compensation(ones, k.eta1, grid), k, grid)
+    h7 = nlcs.nlcs_scaling(ones, k, grid)
+    h8 = products.compression.filter(grid.f_azimuth_hz)
+    p2 = coef.enlcs_coefficient(grid.range_bins_m, grid.speed_m_s, grid.sin_squint)
+
+    def focus(echo: np.ndarray) -> np.ndarray:
+        s = nlcs.linear_range_walk_correction(nlcs.range_fft(echo, grid), x_rel_m, grid)
+        s = nlcs.extended_nlcs(nlcs.resample_to_uniform_track(s, x_rel_m, grid), p2, grid)
+        s = nlcs.range_ifft(nlcs.az_fft(nlcs.pad_azimuth(s, grid)) * src, grid) * h5h6
+        return nlcs.az_ifft(nlcs.az_fft(nlcs.az_ifft(s) * h7) * h8)
+
+    return focus
+
+
+def cancel_neighbours_nlcs(products: nlcs.NlcsProducts, scan: ScanPass, cells: list[tuple[float, float, complex]],
+                           passes: int, tol_m: float, degree: int) -> list[tuple[float, float, complex]]:
+    """`cancel_neighbours_bp` for the NLCS image: each target's echo is modelled at its current position with
+    gains fitted to the pass's range-compressed echo, focused by the same chain (`nlcs_model_chain`), and each
+    peak is re-refined on the image minus the other targets' modelled images."""
+    grid = products.grid
+    rc = bp.range_compress(scan, grid, upsample=1)  # the gain fit needs no upsampling; same delays as the echo
+    focus = nlcs_model_chain(products, rc.x_rel_m)
+    dr = grid.range_bins_m[1] - grid.range_bins_m[0]
+    for _ in range(passes):
+        at = np.array([(a, b) for a, b, _ in cells])
+        peaks = [_nlcs_peak_time(products, a, b) for a, b in at]
+        u = [grid.speed_m_s * t_n for _, _, t_n in peaks]
+        r = [r_lrcm for _, r_lrcm, _ in peaks]
+        echoes = [bp.point_target_echo(grid, rc.x_rel_m, rc.t_s, u[j], r[j]) for j in range(len(at))]
+        gains = fit_pulse_gains(rc.data, rc.x_rel_m, echoes, degree)
+        images = [focus(g[:, None] * bp.point_target_echo(grid, rc.x_rel_m, rc.t_s, u[j], r[j], matched=False)[0])
+                  for j, g in enumerate(gains)]
+        residual = products.image - sum(images)
+        cells = [_maximise(_trig_evaluator(residual + images[i]), at[i, 0], at[i, 1], step=0.2)
+                 for i in range(len(at))]
+        moved = np.hypot((np.array([c[0] for c in cells]) - at[:, 0]) * grid.track_spacing_m,
+                         (np.array([c[1] for c in cells]) - at[:, 1]) * dr)
+        if moved.max() <= tol_m:
+            break
+    return cells
 
 
 def _detection(grid: nlcs.FocusGrid, t_n: float, r0: float, image_az: float, image_r: float, amp: float,
@@ -230,7 +293,7 @@ def cancel_neighbours_bp(products: bp.BackprojectionProducts, cells: list[tuple[
         at = np.array([(a, b) for a, b, _ in cells])
         u = products.u_axis_m[0] + at[:, 0] * du
         r = products.r_axis_m[0] + at[:, 1] * dr
-        echoes = [bp.point_target_echo(rc, grid, u[j], r[j]) for j in range(len(at))]
+        echoes = [bp.point_target_echo(grid, rc.x_rel_m, rc.t_s, u[j], r[j]) for j in range(len(at))]
         gains = fit_pulse_gains(rc.data, rc.x_rel_m, echoes, degree)
         models = [g[:, None] * e for g, (e, _) in zip(gains, echoes)]
         residual = rc.data - sum(models)

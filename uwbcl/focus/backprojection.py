@@ -26,6 +26,11 @@ class RangeCompressed:
     t0_s: float  # absolute delay of fine sample 0
     dt_s: float  # fine sample spacing
 
+    @property
+    def t_s(self) -> np.ndarray:
+        """Absolute delay of every fine sample."""
+        return self.t0_s + self.dt_s * np.arange(self.data.shape[1])
+
 
 def range_compress(scan: ScanPass, grid: nlcs.FocusGrid, upsample: int = 16) -> RangeCompressed:
     """Matched filter H4 (eq. 10) and band-limited upsampling of every pulse."""
@@ -73,24 +78,28 @@ def backproject_points(rc: RangeCompressed, grid: nlcs.FocusGrid, u_m, r_lrcm_m,
     return out.reshape(shape)
 
 
-def point_target_echo(rc: RangeCompressed, grid: nlcs.FocusGrid, u_m: float, r_lrcm_m: float
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """The range-compressed echo (n_pulses, n_fine) of a point target at (u, r_LRCM) with unit gain on every
-    pulse, and the pulses whose slant squint to it lies in the Doppler band (those `backproject_points` sums).
+def point_target_echo(grid: nlcs.FocusGrid, x_rel_m: np.ndarray, t_s: np.ndarray, u_m: float, r_lrcm_m: float,
+                      *, matched: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """The echo (n_pulses, n_t) of a point target at (u, r_LRCM) with unit gain on every pulse, seen from the rail
+    positions x_rel_m at the absolute delays t_s, and the pulses whose slant squint to it lies in the Doppler band
+    (those `backproject_points` sums).
 
-    Per pulse exp(-j 4 pi f_c R / c) p_c(t - 2R / c), R exact from the logged rail position and
-    p_c(t) = exp(-t^2 / 4 sigma^2) / sqrt(2) the Gaussian pulse after its matched filter H4 (P(0) = 1): what
-    `range_compress` makes of the echo of eq. (2) up to the beam gain w_a, which the caller supplies.
+    Per pulse exp(-j 4 pi f_c R / c) p(t - 2R / c), R exact, with p the Gaussian pulse of eq. (2),
+    exp(-t^2 / 2 sigma^2), or with `matched` the pulse after its matched filter H4 (P(0) = 1),
+    exp(-t^2 / 4 sigma^2) / sqrt(2), as `range_compress` gives it. The beam gain w_a is the caller's.
     """
     x_rel, rc_range = pixel_track_coordinates(float(u_m), float(r_lrcm_m), grid)
-    dx = x_rel - rc.x_rel_m
+    dx = x_rel - np.asarray(x_rel_m)
     rng = np.sqrt(dx * dx + rc_range**2)
     lo, hi = grid.doppler_band
     in_band = (dx >= lo * rng) & (dx <= hi * rng)
-    delay = rc.t0_s + rc.dt_s * np.arange(rc.data.shape[1])[None, :] - 2.0 * rng[:, None] / C
+    delay = np.asarray(t_s)[None, :] - 2.0 * rng[:, None] / C
     k = 4.0 * math.pi * grid.carrier_frequency_hz / C
-    echo = (np.exp(-1j * k * rng) / math.sqrt(2.0))[:, None] * np.exp(-((delay / (2.0 * grid.pulse_sigma_s)) ** 2))
-    return echo, in_band
+    if matched:
+        envelope = np.exp(-((delay / (2.0 * grid.pulse_sigma_s)) ** 2)) / math.sqrt(2.0)
+    else:
+        envelope = np.exp(-0.5 * (delay / grid.pulse_sigma_s) ** 2)
+    return np.exp(-1j * k * rng)[:, None] * envelope, in_band
 
 
 @dataclasses.dataclass
