@@ -16,6 +16,7 @@ import concurrent.futures as cf
 import contextlib
 import dataclasses
 import fcntl
+import functools
 import hashlib
 import json
 import logging
@@ -96,7 +97,8 @@ class SeriesRow:
     cycle: CycleResult
     reference: CycleResult
     displacement: Displacement
-    cumulative_m: np.ndarray  # (3,) rig position relative to its first cycle; NaN once the chain is broken
+    cumulative_m: np.ndarray  # (3,) rig position relative to the chain's first cycle; NaN: not in the chain
+    chain: int = 0  # 0, then +1 each time the chain of trusted matches had to start again
 
 
 @dataclasses.dataclass
@@ -118,11 +120,27 @@ def file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+@functools.lru_cache(maxsize=1)
+def code_fingerprint() -> str:
+    """Hash of the package's own source (Python and OpenCL): a changed focuser or detector invalidates the cache
+    even when the version number did not move (development installs)."""
+    root = Path(__file__).resolve().parent
+    files = sorted(p for p in root.rglob("*") if p.suffix in (".py", ".cl") and "__pycache__" not in p.parts)
+    kernels = root.parent / "kernels"  # editable install: the .cl sources live beside the package
+    if kernels.is_dir():
+        files += sorted(kernels.glob("*.cl"))
+    h = hashlib.sha256()
+    for p in files:
+        h.update(p.name.encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()[:16]
+
+
 def settings_key(settings: ProcessingSettings) -> str:
     """Hash of everything that shapes a pass's detections (not the association, which is recomputed)."""
     shaping = {k: v for k, v in dataclasses.asdict(settings).items() if k != "association"}
-    text = json.dumps({"cache_version": CACHE_VERSION, "uwbcl": __version__, "settings": shaping},
-                      sort_keys=True, default=str)
+    text = json.dumps({"cache_version": CACHE_VERSION, "uwbcl": __version__, "code": code_fingerprint(),
+                       "settings": shaping}, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -298,9 +316,8 @@ def group_cycles(records: list[PassRecord], options: BatchOptions) -> tuple[dict
                 kept[hmm] = rs[0]
             elif len({r.sha256 for r in rs}) == 1:
                 kept[hmm] = rs[0]
-                for r in rs[1:]:
-                    problems.append(Problem(r.file, "duplicate_pass",
-                                            f"{where} height {hmm} mm: identical copy of {rs[0].file}; ignored"))
+                problems.append(Problem("; ".join(r.file for r in rs), "duplicate_pass",
+                                        f"{where} height {hmm} mm: {len(rs)} identical copies; {rs[0].file} used"))
             else:
                 problems.append(Problem("; ".join(r.file for r in rs), "duplicate_pass",
                                         f"{where} height {hmm} mm: {len(rs)} different passes; none used"))
@@ -323,7 +340,7 @@ def group_cycles(records: list[PassRecord], options: BatchOptions) -> tuple[dict
                 fields = ", ".join(_params_differ(ref.parameters, g[0].parameters))
                 for r in g:
                     problems.append(Problem(r.file, "mismatched_parameters",
-                                            f"{where}: {fields} differ from {ref.file}"
+                                            f"{where}: differs from {ref.file} in {fields}"
                                             + ("" if majority else " (no majority; cycle not used)")))
             if majority is None:
                 continue
@@ -370,7 +387,8 @@ def rig_series(cycles: list[CycleResult], association: AssociationSettings, max_
     matched to the wrong plates never enters the cumulative values. An "inconsistent" match (unique plates that
     disagree by centimetres) is held in reserve: if the next cycle cannot be bridged from the anchor but matches
     the inconsistent cycle, the chain runs through it. After max_bridge_cycles without a trusted match the
-    chain is broken: later cumulative values are NaN rather than silently off by a plate spacing.
+    chain is broken and starts again at the current cycle (`chain` + 1, cumulative from 0): the break is
+    visible, never bridged by a guess that may be off by a plate spacing.
     """
     seq = sorted(cycles, key=lambda c: c.cycle)
     if not seq:
@@ -385,13 +403,18 @@ def rig_series(cycles: list[CycleResult], association: AssociationSettings, max_
         return d.status in TRUSTED_STATUSES and bool(np.all(np.isfinite(d.advance_m)))
 
     rows: list[SeriesRow] = []
+    chain = 0
     anchor, anchor_cum = seq[0], np.zeros(3)
     reserve: tuple[int, CycleResult, np.ndarray] | None = None  # (row index, cycle, cumulative through it)
     for cur in seq[1:]:
         d = measure(anchor, cur)
+        if not anchor.plates:  # nothing to measure from (an empty first cycle, or a restart on one)
+            rows.append(SeriesRow(cur, anchor, d, np.zeros(3), chain))
+            anchor, anchor_cum, reserve = cur, np.zeros(3), None
+            continue
         if trusted(d):
             cum = anchor_cum + d.advance_m
-            rows.append(SeriesRow(cur, anchor, d, cum))
+            rows.append(SeriesRow(cur, anchor, d, cum, chain))
             anchor, anchor_cum, reserve = cur, cum, None
             continue
         if reserve is not None:
@@ -400,16 +423,20 @@ def rig_series(cycles: list[CycleResult], association: AssociationSettings, max_
             if trusted(d2):
                 rows[index].cumulative_m = via_cum
                 cum = via_cum + d2.advance_m
-                rows.append(SeriesRow(cur, via, d2, cum))
+                rows.append(SeriesRow(cur, via, d2, cum, chain))
                 anchor, anchor_cum, reserve = cur, cum, None
                 continue
-        rows.append(SeriesRow(cur, anchor, d, np.full(3, np.nan)))
-        if d.status == "inconsistent" and reserve is None and np.all(np.isfinite(anchor_cum)):
+        rows.append(SeriesRow(cur, anchor, d, np.full(3, np.nan), chain))
+        if d.status == "inconsistent" and reserve is None:
             reserve = (len(rows) - 1, cur, anchor_cum + d.advance_m)
         if cur.cycle - anchor.cycle >= max_bridge_cycles:
-            log.warning("rig %s: no trusted match for %d cycles up to cycle %d; cumulative values are lost",
-                        cur.rig_id, cur.cycle - anchor.cycle, cur.cycle)
-            anchor, anchor_cum, reserve = cur, np.full(3, np.nan), None
+            # Start a new chain here: its cumulative values count from this cycle, not from the rig's first.
+            log.warning("rig %s: no trusted match for %d cycles up to cycle %d; the cumulative values start "
+                        "again from 0 at cycle %d (chain %d)", cur.rig_id, cur.cycle - anchor.cycle, cur.cycle,
+                        cur.cycle, chain + 1)
+            chain += 1
+            rows[-1].cumulative_m, rows[-1].chain = np.zeros(3), chain
+            anchor, anchor_cum, reserve = cur, np.zeros(3), None
     return rows
 
 

@@ -191,8 +191,9 @@ def validate(cfg: SiteConfig, path=None) -> None:
     if cfg.max_bridge_cycles < 1:
         raise ConfigError(path, "association.max_bridge_cycles", f"must be >= 1, got {cfg.max_bridge_cycles}")
     try:
-        cfg.association_settings()
-        cfg.detection_settings()
+        cfg.processing_settings()
+    except ConfigError as e:
+        raise ConfigError(path, e.key, e.reason) from None
     except (TypeError, ValueError) as e:
         raise ConfigError(path, "association/detection", str(e)) from e
 

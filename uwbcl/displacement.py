@@ -9,7 +9,6 @@ retreat = Delta P.x, creep = Delta P.y, vertical = Delta P.z.
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 

@@ -25,7 +25,7 @@ log = logging.getLogger("uwbcl")
 
 DISPLACEMENT_COLUMNS = (
     "rig_id", "cycle", "from_cycle", "start_time", "retreat_m", "creep_m", "vertical_m",
-    "cumulative_retreat_m", "cumulative_creep_m", "cumulative_vertical_m", "n_targets", "n_plates",
+    "cumulative_retreat_m", "cumulative_creep_m", "cumulative_vertical_m", "chain", "n_targets", "n_plates",
     "residual_m", "retreat_spread_m", "creep_spread_m", "vertical_spread_m", "runner_up_targets", "status",
 )
 TARGET_COLUMNS = (
@@ -35,7 +35,7 @@ TARGET_COLUMNS = (
 ERROR_COLUMNS = ("file", "kind", "reason")
 H5_FORMAT = "uwbcl-displacements"
 H5_FORMAT_VERSION = 1
-UNITS = {"_m": "m", "cycle": "1", "from_cycle": "1", "n_targets": "1", "n_plates": "1", "runner_up_targets": "1",
+UNITS = {"_m": "m", "cycle": "1", "from_cycle": "1", "chain": "1", "n_targets": "1", "n_plates": "1", "runner_up_targets": "1",
          "plate": "1", "track": "1", "n_passes": "1", "matched_plate": "1", "inlier": "1", "amplitude": "arb",
          "start_time": "ISO 8601 UTC", "rig_id": "", "status": ""}
 
@@ -54,7 +54,7 @@ def displacement_records(rows: list[SeriesRow]) -> list[dict]:
             "start_time": r.cycle.start_time,
             "retreat_m": d.retreat_m, "creep_m": d.creep_m, "vertical_m": d.vertical_m,
             "cumulative_retreat_m": float(r.cumulative_m[0]), "cumulative_creep_m": float(r.cumulative_m[1]),
-            "cumulative_vertical_m": float(r.cumulative_m[2]),
+            "cumulative_vertical_m": float(r.cumulative_m[2]), "chain": r.chain,
             "n_targets": d.n_targets, "n_plates": len(r.cycle.plates), "residual_m": d.residual_m,
             "retreat_spread_m": float(d.spread_m[0]), "creep_spread_m": float(d.spread_m[1]),
             "vertical_spread_m": float(d.spread_m[2]), "runner_up_targets": d.runner_up_targets,

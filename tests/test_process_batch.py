@@ -1,0 +1,324 @@
+"""`uwbcl process` as the nightly job (docs/outputs.md): outputs, incremental and resumable runs, bad input.
+
+One small simulated shift (1 rig, 3 cycles, 2 heights) is focused once; the other runs reuse its per-pass
+cache, so each case below only focuses the files it adds or changes.
+"""
+
+from __future__ import annotations
+
+import csv
+import fcntl
+import hashlib
+import shutil
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from uwbcl import batch, shift
+from uwbcl.cli import main
+from uwbcl.config import OutputOptions
+from uwbcl.displacement import AssociationSettings
+from uwbcl.pipeline import ProcessingSettings
+
+SETTINGS = ProcessingSettings(backend="numpy", association=AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0)))
+OUTPUTS = ("displacements.csv", "displacements.h5", "targets.csv", "errors.csv")
+CONFIG = shift.ShiftConfig(rigs=1, cycles=3, seed=5)
+
+
+def options(**kw) -> batch.BatchOptions:
+    return batch.BatchOptions(**{"jobs": 1, "progress": False, **kw})
+
+
+def snapshot(out: Path) -> dict[str, bytes]:
+    return {name: (out / name).read_bytes() for name in OUTPUTS}
+
+
+def rows(path: Path) -> list[dict]:
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+def tree_hashes(root: Path) -> dict[str, str]:
+    return {p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def archive_dir(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("shift")
+    shift.write_shift(out, CONFIG)
+    return out
+
+
+@pytest.fixture(scope="module")
+def clean(archive_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("clean-out")
+    report = batch.process_directory(archive_dir, out, SETTINGS, options())
+    return out, report
+
+
+def warm_out(clean_out: Path, tmp_path: Path) -> Path:
+    """An output directory that already holds the clean run's per-pass cache."""
+    out = tmp_path / "out"
+    shutil.copytree(clean_out / batch.CACHE_DIR, out / batch.CACHE_DIR)
+    return out
+
+
+def copy_archive(archive_dir: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / "in"
+    shutil.copytree(archive_dir, dst)
+    return dst
+
+
+def pass_files(root: Path) -> list[Path]:
+    return sorted(root.rglob("*.h5"))
+
+
+# ----------------------------------------------------------------------------------------------- outputs
+def test_a_clean_shift_gives_one_row_per_cycle_after_the_first_and_matches_the_truth(archive_dir, clean):
+    out, report = clean
+    assert report.errors == [] and report.n_passes == 6 and report.n_detected == 6
+    got = rows(out / "displacements.csv")
+    truth = {int(r["cycle"]): r for r in rows(archive_dir / "truth.csv")}
+    assert [int(r["cycle"]) for r in got] == [1, 2]
+    for r in got:
+        t = truth[int(r["cycle"])]
+        assert r["status"] == "ok" and int(r["from_cycle"]) == int(r["cycle"]) - 1
+        assert float(r["retreat_m"]) == pytest.approx(float(t["retreat_m"]), abs=0.005)
+        assert float(r["creep_m"]) == pytest.approx(float(t["creep_m"]), abs=0.01)
+        assert float(r["cumulative_retreat_m"]) == pytest.approx(float(t["cumulative_retreat_m"]), abs=0.01)
+    assert float(got[1]["cumulative_retreat_m"]) == pytest.approx(
+        float(got[0]["retreat_m"]) + float(got[1]["retreat_m"]), abs=2e-6)
+    assert rows(out / "errors.csv") == []
+
+
+def test_hdf5_output_carries_the_csv_values_with_units(clean):
+    out, _ = clean
+    csv_rows = rows(out / "displacements.csv")
+    with h5py.File(out / "displacements.h5", "r") as f:
+        assert f.attrs["format"] == "uwbcl-displacements"
+        g = f["displacements"]
+        assert g["retreat_m"].attrs["units"] == "m" and g["cycle"].attrs["units"] == "1"
+        np.testing.assert_allclose(g["retreat_m"][()], [float(r["retreat_m"]) for r in csv_rows], atol=5e-7)
+        assert [s.decode() for s in g["status"][()]] == [r["status"] for r in csv_rows]
+        assert f["targets"]["x_m"].shape[0] == len(rows(out / "targets.csv"))
+
+
+def test_targets_follow_a_plate_through_the_cycles(clean):
+    out, _ = clean
+    targets = rows(out / "targets.csv")
+    by_track: dict[str, list[dict]] = {}
+    for t in targets:
+        by_track.setdefault(t["track"], []).append(t)
+    followed = [ts for ts in by_track.values() if len(ts) > 1]
+    assert followed, "no plate was matched across cycles"
+    for ts in followed:
+        # A fixed plate, expressed in the first cycle's frame through the cumulative advance, stays put.
+        first = np.array([[float(t["x_first_m"]), float(t["y_first_m"])] for t in ts])
+        assert np.ptp(first, axis=0).max() < 0.02
+
+
+# ----------------------------------------------------------------------------------------------- resumption
+def test_a_second_run_focuses_nothing_and_writes_the_same_bytes(archive_dir, clean, tmp_path):
+    out = warm_out(clean[0], tmp_path)
+    report = batch.process_directory(archive_dir, out, SETTINGS, options())
+    assert report.n_detected == 0
+    assert snapshot(out) == snapshot(clean[0])
+
+
+def test_new_cycles_are_the_only_passes_focused_by_the_next_run(archive_dir, clean, tmp_path):
+    src = copy_archive(archive_dir, tmp_path)
+    out = warm_out(clean[0], tmp_path)
+    shift.write_shift(src, shift.ShiftConfig(rigs=1, cycles=1, first_cycle=3, seed=5))  # the next shift
+    report = batch.process_directory(src, out, SETTINGS, options())
+    assert report.n_detected == 2  # one new cycle, two heights
+    got = rows(out / "displacements.csv")
+    assert [int(r["cycle"]) for r in got] == [1, 2, 3]
+    assert got[:2] == rows(clean[0] / "displacements.csv")
+
+
+class Killed(Exception):
+    pass
+
+
+def test_a_run_killed_midway_and_restarted_writes_what_an_uninterrupted_run_writes(archive_dir, clean, tmp_path):
+    out = tmp_path / "out"
+
+    def die_after_two(done: int) -> None:
+        if done == 2:
+            raise Killed
+
+    with pytest.raises(Killed):
+        batch.process_directory(archive_dir, out, SETTINGS, options(on_pass_done=die_after_two))
+    assert not (out / "displacements.csv").exists()  # nothing half-done was published
+    assert len(list((out / batch.CACHE_DIR).rglob("*.json"))) == 2
+    report = batch.process_directory(archive_dir, out, SETTINGS, options(jobs=2))  # and in parallel this time
+    assert report.n_detected == 4
+    assert snapshot(out) == snapshot(clean[0])
+
+
+def test_a_damaged_cache_entry_is_recomputed_not_trusted(archive_dir, clean, tmp_path):
+    out = warm_out(clean[0], tmp_path)
+    entry = min((out / batch.CACHE_DIR).rglob("*.json"))
+    entry.write_text(entry.read_text()[:100])
+    report = batch.process_directory(archive_dir, out, SETTINGS, options())
+    assert report.n_detected == 1
+    assert snapshot(out) == snapshot(clean[0])
+
+
+def test_an_output_directory_inside_the_input_tree_is_not_read_as_input(archive_dir, clean, tmp_path):
+    src = copy_archive(archive_dir, tmp_path)
+    out = src / "results"
+    shutil.copytree(clean[0] / batch.CACHE_DIR, out / batch.CACHE_DIR)
+    for _ in range(2):  # the second run finds displacements.h5 under the input directory
+        report = batch.process_directory(src, out, SETTINGS, options())
+        assert report.errors == [] and report.n_passes == 6
+
+
+def test_a_second_process_on_the_same_output_directory_is_refused(archive_dir, tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    with (out / batch.LOCK_FILE).open("a") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        with pytest.raises(batch.BatchError, match="another uwbcl process"):
+            batch.process_directory(archive_dir, out, SETTINGS, options())
+
+
+# ----------------------------------------------------------------------------------------------- bad input
+def _damage_copy(src: Path, dst: Path, change) -> None:
+    shutil.copyfile(src, dst)
+    with h5py.File(dst, "r+") as f:
+        change(f)
+
+
+def _corrupt_echo(dst: Path) -> None:
+    with h5py.File(dst, "r") as f:
+        chunk = f["echo"].id.get_chunk_info(0)
+    data = bytearray(dst.read_bytes())
+    for k in range(32):
+        data[chunk.byte_offset + chunk.size // 2 + k] ^= 0xFF
+    dst.write_bytes(bytes(data))
+
+
+def _set_nan(f) -> None:
+    f["echo"][3, 5] = complex(np.nan, 0.0)
+
+
+ADDED = {  # an extra file next to the good ones: name -> (make(src_pass, dst), kind, words in the reason)
+    "not_hdf5": (lambda src, dst: dst.write_text("operator notes\n"), "invalid_archive", "not an HDF5 file"),
+    "truncated": (lambda src, dst: dst.write_bytes(src.read_bytes()[: src.stat().st_size // 2]),
+                  "invalid_archive", "truncated"),
+    "corrupt": (lambda src, dst: (shutil.copyfile(src, dst), _corrupt_echo(dst)), "invalid_archive",
+                "/echo: cannot read data"),
+    "missing_dataset": (lambda src, dst: _damage_copy(src, dst, lambda f: f.__delitem__("/pulses/time_s")),
+                        "invalid_archive", "/pulses/time_s: missing"),
+    "missing_attribute": (lambda src, dst: _damage_copy(src, dst, lambda f: f["radar"].attrs.__delitem__(
+        "sample_rate_hz")), "invalid_archive", "/radar@sample_rate_hz: missing"),
+    "nan_echo": (lambda src, dst: _damage_copy(src, dst, _set_nan), "invalid_archive", "/echo: NaN"),
+    "identical_duplicate": (lambda src, dst: shutil.copyfile(src, dst), "duplicate_pass", "identical copies"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(ADDED))
+def test_a_bad_extra_file_is_named_in_errors_csv_and_the_good_cycles_are_untouched(
+        case, archive_dir, clean, tmp_path):
+    src = copy_archive(archive_dir, tmp_path)
+    bad = src / "incoming" / f"{case}.h5"
+    bad.parent.mkdir()
+    make, kind, words = ADDED[case]
+    make(pass_files(archive_dir)[0], bad)
+    before = tree_hashes(src)
+    out = warm_out(clean[0], tmp_path)
+
+    assert main(["process", str(src), "--out", str(out), "--backend", "numpy", "--jobs", "1", "--web-depth",
+                 "0.9", "--no-progress"]) == 1
+    (error,) = rows(out / "errors.csv")
+    assert f"incoming/{case}.h5" in error["file"].split("; ") and error["kind"] == kind
+    assert words in error["reason"]
+    assert rows(out / "displacements.csv") == rows(clean[0] / "displacements.csv")
+    assert (out / "targets.csv").read_bytes() == (clean[0] / "targets.csv").read_bytes()
+    assert tree_hashes(src) == before  # input never modified
+
+
+def _cycle_files(root: Path, cycle: int) -> list[Path]:
+    return [p for p in pass_files(root) if f"_c{cycle:06d}_" in p.name]
+
+
+def _run(src: Path, out: Path) -> batch.BatchReport:
+    return batch.process_directory(src, out, SETTINGS, options())
+
+
+def test_a_cycle_with_one_height_is_reported_and_the_next_cycle_bridges_the_gap(archive_dir, clean, tmp_path):
+    src = copy_archive(archive_dir, tmp_path)
+    gone = _cycle_files(src, 1)[1]
+    gone.unlink()
+    report = _run(src, warm_out(clean[0], tmp_path))
+    assert [(p.kind, p.file) for p in report.errors] == [("single_height", _cycle_files(src, 1)[0]
+                                                          .relative_to(src).as_posix())]
+    assert "two or more heights" in report.errors[0].reason
+    (row,) = report.rows
+    assert (row["cycle"], row["from_cycle"]) == (2, 0)  # measured across the missing cycle
+    clean_rows = rows(clean[0] / "displacements.csv")
+    assert float(row["cumulative_retreat_m"]) == pytest.approx(float(clean_rows[1]["cumulative_retreat_m"]),
+                                                               abs=0.005)
+
+
+def test_passes_of_one_cycle_with_different_radar_parameters_are_not_combined(archive_dir, clean, tmp_path):
+    src = copy_archive(archive_dir, tmp_path)
+    a, b = _cycle_files(src, 2)
+    with h5py.File(b, "r+") as f:
+        f["radar"].attrs["carrier_frequency_hz"] = np.float64(4.1e9)
+    out = warm_out(clean[0], tmp_path)
+    report = _run(src, out)
+    mismatched = sorted(p.file for p in report.errors if p.kind == "mismatched_parameters")
+    assert mismatched == sorted(p.relative_to(src).as_posix() for p in (a, b))
+    assert all("carrier_frequency_hz" in p.reason for p in report.errors)
+    assert [r["cycle"] for r in report.rows] == [1]  # cycle 2 is not used; cycle 1 is untouched
+    assert rows(out / "displacements.csv") == rows(clean[0] / "displacements.csv")[:1]
+
+
+def test_a_majority_of_agreeing_passes_outvotes_the_odd_one(archive_dir, tmp_path):
+    src = tmp_path / "in"
+    shift.write_shift(src, shift.ShiftConfig(rigs=1, cycles=1, seed=5, heights_m=(0.2, 0.4, 0.6)))
+    odd = _cycle_files(src, 0)[2]
+    with h5py.File(odd, "r+") as f:
+        f["geometry"].attrs["rotation_table_angle_deg"] = np.float64(12.0)
+    report = _run(src, tmp_path / "out")
+    assert [(p.kind, p.file) for p in report.errors] == [("mismatched_parameters",
+                                                          odd.relative_to(src).as_posix())]
+    (cycle,) = report.cycles
+    assert cycle.heights_m == (0.2, 0.4)
+
+
+def test_two_different_passes_for_the_same_height_are_both_rejected(archive_dir, clean, tmp_path):
+    src = copy_archive(archive_dir, tmp_path)
+    first = _cycle_files(src, 2)[0]
+    other = src / "rescan" / first.name
+    other.parent.mkdir()
+    shutil.copyfile(first, other)
+    with h5py.File(other, "r+") as f:
+        f.attrs["pass_start_time"] = "2026-11-02T23:59:00Z"
+    report = _run(src, warm_out(clean[0], tmp_path))
+    kinds = {p.kind for p in report.errors}
+    assert kinds == {"duplicate_pass", "single_height"}
+    dup = next(p for p in report.errors if p.kind == "duplicate_pass")
+    assert first.relative_to(src).as_posix() in dup.file and other.relative_to(src).as_posix() in dup.file
+    assert "none used" in dup.reason
+    assert [r["cycle"] for r in report.rows] == [1]
+
+
+def test_a_pass_at_a_height_the_site_does_not_use_is_rejected(archive_dir, clean, tmp_path):
+    out = warm_out(clean[0], tmp_path)
+    report = batch.process_directory(archive_dir, out, SETTINGS, options(heights_m=(0.2, 0.8)))
+    assert {p.kind for p in report.errors} == {"unexpected_height", "single_height"}
+    assert all("0.6" in p.reason for p in report.errors if p.kind == "unexpected_height")
+    assert report.rows == []
+
+
+def test_outputs_options_leave_out_what_is_not_wanted(archive_dir, clean, tmp_path):
+    out = warm_out(clean[0], tmp_path)
+    batch.process_directory(archive_dir, out, SETTINGS, options(outputs=OutputOptions(hdf5=False, targets=False)))
+    assert (out / "displacements.csv").exists() and (out / "errors.csv").exists()
+    assert not (out / "displacements.h5").exists() and not (out / "targets.csv").exists()

@@ -1,0 +1,91 @@
+"""Site configuration (docs/configuration.md): TOML file, checked key by key, overridden by flags."""
+
+from __future__ import annotations
+
+import pytest
+
+from uwbcl import config
+from uwbcl.cli import main
+
+SITE = """
+[processing]
+algorithm = "bp"
+backend = "numpy"
+jobs = 3
+
+[site]
+web_depth_m = 0.85
+prior_window_m = [0.3, 0.2, 0.4]
+heights_m = [0.2, 0.6]
+
+[association]
+min_confident_targets = 3
+range_sigma_m = 0.004
+max_bridge_cycles = 2
+
+[detection]
+min_snr_db = 14.0
+
+[output]
+plots = true
+hdf5 = false
+"""
+
+
+def write(tmp_path, text):
+    path = tmp_path / "site.toml"
+    path.write_text(text)
+    return path
+
+
+def test_every_section_reaches_the_settings_it_names(tmp_path):
+    cfg = config.load_config(write(tmp_path, SITE))
+    s = cfg.processing_settings()
+    assert (s.algorithm, s.backend) == ("bp", "numpy")
+    assert s.association.prior_advance_m == (0.85, 0.0, 0.0)
+    assert s.association.prior_window_m == (0.3, 0.2, 0.4)
+    assert s.association.min_confident_targets == 3 and s.association.range_sigma_m == 0.004
+    assert s.detection.min_snr_db == 14.0
+    opts = cfg.batch_options()
+    assert opts.jobs == 3 and opts.heights_m == (0.2, 0.6) and opts.max_bridge_cycles == 2
+    assert opts.outputs.plots and not opts.outputs.hdf5 and opts.outputs.targets
+
+
+def test_command_line_flags_override_the_file(tmp_path):
+    cfg = config.override(config.load_config(write(tmp_path, SITE)), web_depth_m=0.95, jobs=None, backend=None,
+                          plots=None, hdf5=True)
+    s = cfg.processing_settings()
+    assert s.association.prior_advance_m[0] == 0.95
+    assert cfg.jobs == 3 and s.backend == "numpy"  # flags left unset keep the file's values
+    assert cfg.output.hdf5 and cfg.output.plots
+
+
+def test_without_a_file_the_defaults_apply():
+    s = config.SiteConfig().processing_settings()
+    assert s.association.prior_advance_m is None and s.algorithm == "nlcs"
+
+
+@pytest.mark.parametrize(("text", "key"), [
+    ("[site]\nweb_depth = 0.9\n", "site.web_depth"),
+    ("[sites]\nweb_depth_m = 0.9\n", "sites"),
+    ("[site]\nweb_depth_m = '0.9'\n", "site.web_depth_m"),
+    ("[site]\nweb_depth_m = -0.9\n", "site.web_depth_m"),
+    ("[site]\nheights_m = [0.2]\n", "site.heights_m"),
+    ("[association]\ntolerance_m = [0.05, 0.1]\n", "association.tolerance_m"),
+    ("[processing]\nbackend = 'cuda'\n", "processing.backend"),
+    ("[site\n", "-"),
+])
+def test_a_mistake_names_the_file_and_the_key(tmp_path, text, key):
+    path = write(tmp_path, text)
+    with pytest.raises(config.ConfigError) as info:
+        config.load_config(path).processing_settings()
+    assert info.value.key == key
+    assert str(path) in str(info.value)
+
+
+def test_cli_refuses_a_bad_config_before_touching_anything(tmp_path, capsys):
+    path = write(tmp_path, "[site]\nweb_depth = 0.9\n")
+    out = tmp_path / "out"
+    assert main(["process", str(tmp_path), "--out", str(out), "--config", str(path)]) == 2
+    assert "site.web_depth" in capsys.readouterr().err
+    assert not out.exists()
