@@ -322,3 +322,38 @@ def test_outputs_options_leave_out_what_is_not_wanted(archive_dir, clean, tmp_pa
     batch.process_directory(archive_dir, out, SETTINGS, options(outputs=OutputOptions(hdf5=False, targets=False)))
     assert (out / "displacements.csv").exists() and (out / "errors.csv").exists()
     assert not (out / "displacements.h5").exists() and not (out / "targets.csv").exists()
+
+
+def test_plots_are_written_on_request(archive_dir, clean, tmp_path):
+    pytest.importorskip("matplotlib")
+    out = warm_out(clean[0], tmp_path)
+    batch.process_directory(archive_dir, out, SETTINGS, options(outputs=OutputOptions(plots=True)))
+    png = (out / "plots" / "timeseries_rig-1.png").read_bytes()
+    assert png.startswith(b"\x89PNG")
+    assert not (out / "plots" / "cycles").exists()  # the focused images only when asked for
+
+
+def test_a_focused_image_per_pass_marks_its_detections(tmp_path):
+    pytest.importorskip("matplotlib")
+    src = tmp_path / "in"
+    shift.write_shift(src, shift.ShiftConfig(rigs=1, cycles=1, seed=5))
+    out = tmp_path / "out"
+    batch.process_directory(src, out, SETTINGS, options(outputs=OutputOptions(cycle_images=True)))
+    images = sorted((out / "plots" / "cycles" / "rig-1").glob("*.png"))
+    assert [p.name for p in images] == ["c000000_h0200.png", "c000000_h0600.png"]
+
+
+def test_plots_without_matplotlib_stop_the_run_before_it_starts(archive_dir, tmp_path, monkeypatch):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_matplotlib(name, *args, **kw):
+        if name.startswith("matplotlib"):
+            raise ModuleNotFoundError(name)
+        return real_import(name, *args, **kw)
+
+    monkeypatch.setattr(builtins, "__import__", no_matplotlib)
+    with pytest.raises(batch.BatchError, match="uwbcl\\[plot\\]"):
+        batch.process_directory(archive_dir, tmp_path / "out", SETTINGS, options(outputs=OutputOptions(plots=True)))
+    assert not (tmp_path / "out" / "displacements.csv").exists()
