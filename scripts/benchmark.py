@@ -10,7 +10,8 @@ Legs (all focus with modified NLCS and exact-reference azimuth compression; what
 Workloads
   (a) batch: N paper-sized passes (PAPER_SIM1 and PAPER_SIM2 on alternate rigs, SNR 10 dB, +-10 % carriage speed;
       one rig = 2 cycles x 2 heights = 4 passes) written as scan archives first (untimed); then, per leg, end to
-      end: archive read -> focus -> detect -> locate -> displacement -> displacements.csv written.
+      end: archive read -> focus -> detect (as pipeline.detect_pass, with the echo for neighbour cancellation)
+      -> locate -> displacement -> displacements.csv written.
   (b) hires: one pass of 2048 pulses x 1024 range samples (sim 1 geometry, PRF 153.6 Hz so 2048 pulses span the
       2 m aperture, 16 GHz fast-time sampling and a 2 m range margin for the 1024 samples) focused by each leg.
 Each leg is warmed up once on every input shape (FFT plans, kernels, caches) before it is timed. The FFT share is
@@ -211,8 +212,8 @@ def run_batch(leg: Leg, files: list[Path], out_csv: Path, settings: pipeline.Pro
             scan = archive.read_pass(path)
         with clock("focus"):
             products = leg.focus(scan)
-        with clock("detect"):
-            found = detect.detect_nlcs(products, settings.detection)
+        with clock("detect"):  # as pipeline.detect_pass: the echo lets detection model the neighbours
+            found = detect.detect_nlcs(products, settings.detection, scan)
         shapes[scan.echo.shape] += 1
         n_det += len(found)
         by_cycle[(scan.rig_id, scan.cycle)].append((scan, found))
@@ -410,7 +411,7 @@ def benchmark_batch(args, legs: list[Leg], workdir: Path, failures: list[str]) -
         images = []
         for scan in warm_scans:  # warm-up: plans, kernels, caches
             products = leg.focus(scan)
-            detect.detect_nlcs(products, settings.detection)
+            detect.detect_nlcs(products, settings.detection, scan)
             images.append(products.image)
         agreement[leg.name] = max(rel_err(im, ref) for im, ref in zip(images, reference))
 
