@@ -1,0 +1,150 @@
+"""Fault injection for the simulated rig: which Modbus request gets which fault, seeded and reproducible.
+
+Spec (`uwbcl simulate-device --faults SPEC`), comma-separated items:
+
+    KIND=P        each request gets fault KIND with probability P
+    KIND@N        request number N (1-based, counted from server start) gets fault KIND
+    every=N       every N-th request gets a fault, KIND taken in turn from `kinds`
+    kinds=A+B+..  the rotation for `every` (default: all kinds)
+    after=N       no fault before request N (default 1)
+    limit=N       at most N faults in all
+    seed=S        seed of the random draws (default 0)
+    slow_s=X      how late a slow reply is (real seconds, default 0.3)
+    reboot_s=X    how long a reboot keeps the controller away (device seconds, default 20)
+    overflow_pulses=N  pulses a buffer overflow drops (default 4)
+
+Kinds: drop (the connection is closed instead of a reply; the request is not executed), missing (executed, no
+reply), slow (the reply is late by slow_s), exception (Modbus exception 06 DEVICE BUSY or 04 DEVICE FAILURE
+in turn, not executed), corrupt (executed; one bit of one register of the next read reply is flipped), reboot
+(the controller restarts while a pass runs: the pass and the buffer are lost), overflow (the buffer drops the
+next `overflow_pulses` pulses of a running pass as if it were full). reboot and overflow wait for a pass to be
+running; the others hit the request they are drawn for.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+KINDS = ("drop", "missing", "slow", "exception", "corrupt", "reboot", "overflow")
+PASS_KINDS = ("reboot", "overflow")  # only meaningful while a pass runs
+
+
+@dataclasses.dataclass(frozen=True)
+class FaultPlan:
+    probabilities: tuple[tuple[str, float], ...] = ()
+    at: tuple[tuple[int, str], ...] = ()
+    every: int = 0
+    kinds: tuple[str, ...] = KINDS
+    after: int = 1
+    limit: int | None = None
+    seed: int = 0
+    slow_s: float = 0.3
+    reboot_s: float = 20.0
+    overflow_pulses: int = 4
+
+    @property
+    def empty(self) -> bool:
+        return not (self.probabilities or self.at or self.every)
+
+
+def parse_faults(spec: str | None) -> FaultPlan:
+    """FaultPlan from the spec above; ValueError naming the bad item."""
+    if not spec:
+        return FaultPlan()
+    probs, at, kw = [], [], {}
+    for item in (s.strip() for s in spec.split(",")):
+        if not item:
+            continue
+        try:
+            if "@" in item:
+                kind, n = item.split("@", 1)
+                _check_kind(kind)
+                at.append((int(n), kind))
+            elif "=" in item:
+                key, value = item.split("=", 1)
+                if key in KINDS:
+                    p = float(value)
+                    if not 0.0 <= p <= 1.0:
+                        raise ValueError("a probability must be in [0, 1]")
+                    probs.append((key, p))
+                elif key == "kinds":
+                    kinds = tuple(k for k in value.split("+") if k)
+                    for k in kinds:
+                        _check_kind(k)
+                    kw["kinds"] = kinds
+                elif key in ("every", "after", "limit", "seed", "overflow_pulses"):
+                    kw[key] = int(value)
+                    if kw[key] < 0:
+                        raise ValueError("must be >= 0")
+                elif key in ("slow_s", "reboot_s"):
+                    kw[key] = float(value)
+                    if kw[key] < 0:
+                        raise ValueError("must be >= 0")
+                else:
+                    raise ValueError(f"unknown key {key!r}")
+            else:
+                raise ValueError("expected KIND=P, KIND@N or KEY=VALUE")
+        except ValueError as exc:
+            raise ValueError(f"--faults item {item!r}: {exc}") from None
+    return FaultPlan(probabilities=tuple(probs), at=tuple(sorted(at)), **kw)
+
+
+def _check_kind(kind: str) -> None:
+    if kind not in KINDS:
+        raise ValueError(f"unknown fault kind {kind!r}; kinds: {', '.join(KINDS)}")
+
+
+@dataclasses.dataclass(frozen=True)
+class Injected:
+    request: int  # request number the fault was applied to
+    kind: str
+    device_time_s: float
+
+
+class FaultInjector:
+    """Decides, request by request, which fault to apply; remembers what it injected."""
+
+    def __init__(self, plan: FaultPlan):
+        self.plan = plan
+        self.rng = np.random.default_rng(plan.seed)
+        self.requests = 0
+        self.injected: list[Injected] = []
+        self._pending: list[str] = []  # pass-only faults waiting for a running pass
+        self._rotation = 0
+        self._at = dict(plan.at)
+
+    def next_request(self, pass_running: bool, device_time_s: float) -> str | None:
+        """Count a request; return the fault kind to apply to it, or None."""
+        self.requests += 1
+        n = self.requests
+        p = self.plan
+        if p.limit is not None and len(self.injected) >= p.limit:
+            return None
+        drawn = [kind for kind, prob in p.probabilities if self.rng.uniform() < prob]  # same draws every request
+        if n < p.after:
+            return None
+        if n in self._at:
+            drawn.insert(0, self._at[n])
+        if p.every and n % p.every == 0:
+            drawn.insert(0, p.kinds[self._rotation % len(p.kinds)])
+            self._rotation += 1
+        for kind in drawn:
+            if kind in PASS_KINDS:
+                self._pending.append(kind)
+        immediate = [k for k in drawn if k not in PASS_KINDS]
+        kind = None
+        if pass_running and self._pending:
+            kind = self._pending.pop(0)
+        elif immediate:
+            kind = immediate[0]
+        if kind is not None:
+            self.injected.append(Injected(n, kind, device_time_s))
+        return kind
+
+    def counts(self) -> dict[str, int]:
+        out = dict.fromkeys(KINDS, 0)
+        for f in self.injected:
+            out[f.kind] += 1
+        return out

@@ -1,0 +1,136 @@
+"""`uwbcl acquire --process`: focus each finished cycle beside the acquisition and measure it against the last one.
+
+A worker thread takes cycles from a bounded queue (acquisition never waits on processing: a full queue means
+the cycle stays archived and is left to `uwbcl process`), locates the plates with `pipeline.locate_cycle` and
+estimates the advance from the previous located cycle with `displacement.estimate_advance`. Results come back
+through `results` to the acquisition thread, which alone talks Modbus and publishes them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import queue
+import threading
+from pathlib import Path
+
+from .. import pipeline
+from ..displacement import estimate_advance
+from . import registers as R
+
+log = logging.getLogger("uwbcl.acquire")
+
+RESULT_COLUMNS = ("rig_id", "cycle", "previous_cycle", "start_time", "retreat_m", "creep_m", "vertical_m",
+                  "n_targets", "residual_m", "status")
+RESULTS_FILE = "acquire-results.csv"
+
+
+def processing_settings(backend: str = "", web_depth_m: float = 0.0) -> pipeline.ProcessingSettings:
+    """ProcessingSettings with the chosen backend (empty: the pipeline's default) and the web-depth prior."""
+    s = pipeline.ProcessingSettings()
+    if backend:
+        s = dataclasses.replace(s, backend=backend)
+    if web_depth_m > 0:
+        s = dataclasses.replace(s, association=dataclasses.replace(s.association,
+                                                                   prior_advance_m=(web_depth_m, 0.0, 0.0)))
+    return s
+
+
+def backend_available(settings: pipeline.ProcessingSettings) -> str | None:
+    """None if the backend can run here, else the reason it cannot."""
+    if settings.backend != "opencl":
+        return None
+    try:
+        from .. import opencl
+        from ..focus.engine import shared_engine
+
+        try:
+            shared_engine(getattr(settings, "device", None))
+        except opencl.OpenClUnavailable as exc:
+            return str(exc)
+    except Exception as exc:  # noqa: BLE001 - any import or start-up failure means "not here"
+        return f"{type(exc).__name__}: {exc}"
+    return None
+
+
+_STATUS = {"ok": R.ResultStatus.OK, "ambiguous": R.ResultStatus.AMBIGUOUS,
+           "too_few_targets": R.ResultStatus.TOO_FEW_TARGETS}
+
+
+class LiveProcessor:
+    def __init__(self, settings: pipeline.ProcessingSettings, rig_id: str = "", max_pending: int = 2):
+        self.settings = settings
+        self.rig_id = rig_id
+        self.results: queue.Queue = queue.Queue()
+        self._todo: queue.Queue = queue.Queue(maxsize=max_pending)
+        self._previous = None  # the last located cycle
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._work, name="uwbcl-live-process", daemon=True)
+        self._thread.start()
+
+    def submit(self, cycle: int, passes, *, complete: bool, start_time) -> bool:
+        try:
+            self._todo.put_nowait((cycle, list(passes), complete, start_time))
+            return True
+        except queue.Full:
+            log.warning("cycle %d: processing is behind; the cycle is archived for `uwbcl process`", cycle)
+            return False
+
+    def close(self, timeout_s: float = 60.0) -> None:
+        """Finish the cycles already queued (bounded by timeout_s), then stop the worker."""
+        self._todo.put((None, None, None, None))
+        self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            self._stop.set()
+            log.warning("processing still running after %.0f s; left behind", timeout_s)
+
+    def _work(self) -> None:
+        while not self._stop.is_set():
+            cycle, passes, complete, start_time = self._todo.get()
+            if cycle is None:
+                return
+            try:
+                self.results.put(self._process(cycle, passes, complete, start_time))
+            except Exception as exc:  # noqa: BLE001 - one cycle's failure must not end the service
+                log.exception("cycle %d: processing failed", cycle)
+                self.results.put(self._row(cycle, start_time, None, R.ResultStatus.PROCESSING_ERROR,
+                                           f"processing_error: {exc}"))
+
+    def _process(self, cycle: int, passes, complete: bool, start_time) -> dict:
+        if not complete or len({p.geometry.height_m for p in passes}) < 2:
+            log.warning("cycle %d: incomplete (%d passes); no displacement", cycle, len(passes))
+            return self._row(cycle, start_time, None, R.ResultStatus.INCOMPLETE_CYCLE, "incomplete_cycle")
+        located = pipeline.locate_cycle(passes, self.settings)
+        previous, self._previous = self._previous, located
+        log.info("cycle %d: %d plates located", cycle, len(located.plates))
+        if previous is None:
+            return self._row(cycle, start_time, None, None, "reference", located=len(located.plates))
+        assoc = self.settings.association
+        gap = cycle - previous.cycle
+        if gap > 1 and hasattr(assoc, "for_gap"):
+            assoc = assoc.for_gap(gap)
+        d = estimate_advance(previous.plates, located.plates, assoc)
+        code = _STATUS.get(d.status, R.ResultStatus.FLAGGED)
+        return self._row(cycle, start_time, previous.cycle, code, d.status, d=d)
+
+    def _row(self, cycle, start_time, previous_cycle, code, status, d=None, located=0) -> dict:
+        from .recorder import _parse_time
+
+        nan = math.nan
+        return {"rig_id": self.rig_id, "cycle": cycle, "previous_cycle": previous_cycle,
+                "start_time": start_time or "", "time_s": _parse_time(start_time),
+                "retreat_m": d.retreat_m if d else nan, "creep_m": d.creep_m if d else nan,
+                "vertical_m": d.vertical_m if d else nan, "n_targets": d.n_targets if d else located,
+                "residual_m": d.residual_m if d else nan, "status": status,
+                "status_code": None if code is None else int(code)}
+
+    @staticmethod
+    def write_csv(out_dir: Path, results: list[dict]) -> Path:
+        rows = []
+        for r in results:
+            rows.append({k: (f"{r[k]:.6f}" if isinstance(r[k], float) and math.isfinite(r[k]) else
+                             ("" if isinstance(r[k], float) or r[k] is None else r[k])) for k in RESULT_COLUMNS})
+        path = Path(out_dir) / RESULTS_FILE
+        pipeline.write_csv_atomic(path, RESULT_COLUMNS, rows)
+        return path

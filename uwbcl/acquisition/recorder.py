@@ -1,0 +1,154 @@
+"""Drained pulse records -> a validated ScanPass -> an archive file (docs/archive-format.md), or a clear reason
+why the pass is incomplete. Memory is bounded before anything is allocated: a device claiming absurd sizes is
+refused, and a pass that delivers more pulses than it announced is cut off.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as dt
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__, archive
+from ..model import PassGeometry, RadarParameters, ScanPass
+from . import registers as R
+
+
+class PassIncomplete(Exception):
+    """The pass lost, duplicated or could not trust pulses: it must not be written as whole; re-run it."""
+
+
+class DeviceRefused(Exception):
+    """The device describes something this client will not handle (map version, absurd sizes)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Limits:
+    max_samples_per_pulse: int = 8192
+    max_pulses_per_pass: int = 100_000
+    max_pass_bytes: int = 512 * 2**20  # int16 I/Q held in memory for one pass
+
+
+def check_radar(radar: dict, limits: Limits) -> None:
+    """Refuse a RADAR block this client cannot use safely."""
+    for name in ("CARRIER_FREQUENCY", "BANDWIDTH", "SAMPLE_RATE", "PRF", "ANTENNA_APERTURE", "NOMINAL_SPEED"):
+        if not radar[name] > 0:
+            raise DeviceRefused(f"RADAR.{name} = {radar[name]}: must be > 0")
+    if radar["BORESIGHT_Y_SIGN"] not in (-1, 1):
+        raise DeviceRefused(f"RADAR.BORESIGHT_Y_SIGN = {radar['BORESIGHT_Y_SIGN']}: must be -1 or +1")
+    if radar["WINDOW_ADDRESS"] != R.WINDOW_ADDRESS:
+        raise DeviceRefused(f"RADAR.WINDOW_ADDRESS = {radar['WINDOW_ADDRESS']}: map 1.x puts it at {R.WINDOW_ADDRESS}")
+    if not R.WINDOW_HEADER.length + R.record_regs(1) <= radar["WINDOW_REGS"] <= 65536 - R.WINDOW_ADDRESS:
+        raise DeviceRefused(f"RADAR.WINDOW_REGS = {radar['WINDOW_REGS']}: outside the window's address space")
+    if radar["BUFFER_CAPACITY"] < 1:
+        raise DeviceRefused("RADAR.BUFFER_CAPACITY = 0")
+
+
+def radar_parameters(radar: dict) -> RadarParameters:
+    return RadarParameters(carrier_frequency_hz=radar["CARRIER_FREQUENCY"], bandwidth_hz=radar["BANDWIDTH"],
+                           sample_rate_hz=radar["SAMPLE_RATE"], pulse_repetition_frequency_hz=radar["PRF"],
+                           antenna_aperture_m=radar["ANTENNA_APERTURE"])
+
+
+class PassAssembler:
+    """Collects the records of one pass in order; any gap, repeat, foreign or damaged pulse ends it incomplete."""
+
+    def __init__(self, descriptor: dict, radar: dict, limits: Limits):
+        m, n = int(descriptor["SAMPLES_PER_PULSE"]), int(descriptor["PULSES_PLANNED"])
+        if not 1 <= m <= min(limits.max_samples_per_pulse, radar["MAX_SAMPLES_PER_PULSE"] or m):
+            raise DeviceRefused(f"PASS.SAMPLES_PER_PULSE = {m}: outside 1..{limits.max_samples_per_pulse}")
+        if R.WINDOW_HEADER.length + R.record_regs(m) > radar["WINDOW_REGS"]:
+            raise DeviceRefused(f"PASS.SAMPLES_PER_PULSE = {m}: a record does not fit RADAR.WINDOW_REGS")
+        if not 2 <= n <= limits.max_pulses_per_pass:
+            raise DeviceRefused(f"PASS.PULSES_PLANNED = {n}: outside 2..{limits.max_pulses_per_pass}")
+        if n * m * 4 > limits.max_pass_bytes:
+            raise DeviceRefused(f"PASS: {n} pulses x {m} samples need {n * m * 4 / 2**20:.0f} MiB, more than the "
+                                f"{limits.max_pass_bytes / 2**20:.0f} MiB limit")
+        scale = descriptor["AMPLITUDE_SCALE"]
+        if not (math.isfinite(scale) and scale > 0):
+            raise DeviceRefused(f"PASS.AMPLITUDE_SCALE = {scale}: must be a finite number > 0")
+        self.descriptor = descriptor
+        self.samples_per_pulse = m
+        self.planned = n
+        self.token = descriptor["TOKEN"]
+        self.next_seq = descriptor["FIRST_SEQ"]
+        self.time_s = np.empty(n)
+        self.position_m = np.empty(n)
+        self.iq = np.empty((n, m, 2), dtype=np.int16)
+        self.count = 0
+        self.last_seen = False
+
+    @property
+    def last_seq(self) -> int:
+        return self.next_seq - 1
+
+    def add(self, seq, time_s, position_m, flags, iq) -> None:
+        """Append consecutive records (arrays from registers.decode_records); PassIncomplete on any defect."""
+        for i in range(len(seq)):
+            if seq[i] != self.next_seq:
+                if seq[i] < self.next_seq:
+                    raise PassIncomplete(f"pulse seq {seq[i]} repeated (expected {self.next_seq})")
+                raise PassIncomplete(f"pulses lost: seq {self.next_seq}-{seq[i] - 1} missing")
+            if self.last_seen:
+                raise PassIncomplete(f"pulse seq {seq[i]} after the pass's LAST pulse")
+            if self.count >= self.planned:
+                raise PassIncomplete(f"more pulses than the {self.planned} the device planned")
+            if (self.count == 0) != bool(flags[i] & R.RecordFlag.FIRST):
+                raise PassIncomplete(f"pulse seq {seq[i]}: FIRST flag {'missing' if self.count == 0 else 'repeated'}")
+            k = self.count
+            if k and not time_s[i] > self.time_s[k - 1]:
+                raise PassIncomplete(f"pulse seq {seq[i]}: time {time_s[i]:.6f} s not after the previous pulse")
+            self.time_s[k], self.position_m[k], self.iq[k] = time_s[i], position_m[i], iq[i]
+            self.count += 1
+            self.next_seq += 1
+            self.last_seen = bool(flags[i] & R.RecordFlag.LAST)
+
+    def finish(self, descriptor: dict) -> None:
+        """The pass as the device reports it at the end must match what arrived, pulse for pulse."""
+        d0 = self.descriptor
+        for name in ("TOKEN", "CYCLE", "FIRST_SEQ", "RANGE_WINDOW_START", "SAMPLES_PER_PULSE", "AMPLITUDE_SCALE",
+                     "HEIGHT", "TABLE_ANGLE", "START_TIME", "DIRECTION"):
+            if descriptor[name] != d0[name]:
+                raise PassIncomplete(f"PASS.{name} changed during the pass ({d0[name]} -> {descriptor[name]})")
+        if descriptor["PASS_STATE"] != R.PassState.COMPLETE:
+            raise PassIncomplete(f"pass ended in state {R.PassState(descriptor['PASS_STATE']).name}")
+        if descriptor["OVERFLOW_COUNT"]:
+            raise PassIncomplete(f"device buffer overflowed: {descriptor['OVERFLOW_COUNT']} pulses dropped")
+        if descriptor["PULSES_PRODUCED"] != self.count or not self.last_seen:
+            raise PassIncomplete(f"{self.count} pulses received, device produced {descriptor['PULSES_PRODUCED']}")
+        steps = np.diff(self.position_m[:self.count])
+        if not (np.all(steps > 0) or np.all(steps < 0)):
+            raise PassIncomplete("rail positions not strictly monotonic (encoder fault)")
+
+    def scan_pass(self, radar: dict, *, rig_id: str, reference_point_m, cycle: int) -> ScanPass:
+        d, n = self.descriptor, self.count
+        echo = float(d["AMPLITUDE_SCALE"]) * (self.iq[:n, :, 0].astype(np.float64)
+                                              + 1j * self.iq[:n, :, 1].astype(np.float64))
+        geometry = PassGeometry(height_m=d["HEIGHT"], rotation_table_angle_deg=d["TABLE_ANGLE"],
+                                reference_point_m=tuple(float(v) for v in reference_point_m),
+                                boresight_y_sign=int(radar["BORESIGHT_Y_SIGN"]))
+        return ScanPass(radar=radar_parameters(radar), geometry=geometry,
+                        range_window_start_s=d["RANGE_WINDOW_START"], pulse_time_s=self.time_s[:n].copy(),
+                        pulse_position_m=self.position_m[:n].copy(), echo=echo, rig_id=rig_id, cycle=cycle,
+                        pass_start_time=iso_utc(d["START_TIME"]))
+
+
+def iso_utc(epoch_s: float) -> str:
+    t = dt.datetime.fromtimestamp(round(epoch_s, 3), tz=dt.timezone.utc)
+    return t.strftime("%Y-%m-%dT%H:%M:%S.") + f"{t.microsecond // 1000:03d}Z"
+
+
+def _parse_time(iso: str | None) -> float:
+    """Seconds since 1970 of an ISO 8601 UTC time from iso_utc (0.0 for none)."""
+    if not iso:
+        return 0.0
+    return dt.datetime.fromisoformat(iso.replace("Z", "+00:00")).timestamp()
+
+
+def write_scan(out_dir: Path, scan: ScanPass, pass_id: str) -> Path:
+    """Write the pass atomically under its archive path; FileExistsError if that pass is already there."""
+    path = Path(out_dir) / archive.default_relative_path(scan)
+    return archive.write_pass(path, scan, pass_id=pass_id, created_by=f"uwbcl {__version__} acquire")
