@@ -187,6 +187,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("devices", help="list the OpenCL platforms and devices (specs for --device)")
     d.set_defaults(func=_devices)
+    from .acquisition.cli import add_acquisition_commands  # simulate-device, acquire, demo
+
+    add_acquisition_commands(sub)
     return p
 
 
