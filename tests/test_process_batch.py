@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import fcntl
 import hashlib
+import os
 import shutil
 from pathlib import Path
 
@@ -357,3 +358,25 @@ def test_plots_without_matplotlib_stop_the_run_before_it_starts(archive_dir, tmp
     with pytest.raises(batch.BatchError, match="uwbcl\\[plot\\]"):
         batch.process_directory(archive_dir, tmp_path / "out", SETTINGS, options(outputs=OutputOptions(plots=True)))
     assert not (tmp_path / "out" / "displacements.csv").exists()
+
+
+def die_on_cycle_1(path: str, settings):
+    """A per-pass worker that takes its process down, like a segfault or the out-of-memory killer."""
+    if "_c000001_" in path:
+        os._exit(3)
+    return batch.detect_file(path, settings)
+
+
+def test_a_pass_that_kills_its_worker_is_reported_and_the_others_are_still_focused(
+        archive_dir, clean, tmp_path, monkeypatch):
+    out = warm_out(clean[0], tmp_path)
+    redo = _cycle_files(archive_dir, 1) + _cycle_files(archive_dir, 2)[:1]
+    for f in redo:
+        (out / batch.CACHE_DIR / batch.settings_key(SETTINGS) / f"{batch.file_sha256(f)}.json").unlink()
+    monkeypatch.setattr(batch, "DETECT", die_on_cycle_1)
+    report = batch.process_directory(archive_dir, out, SETTINGS, options(jobs=2))
+    dead = sorted(p.file for p in report.errors if p.kind == "processing_failed")
+    assert dead == [f.relative_to(archive_dir).as_posix() for f in _cycle_files(archive_dir, 1)]
+    assert "worker process died" in report.errors[0].reason
+    assert [r["cycle"] for r in report.rows] == [2]  # cycle 2 measured from cycle 0, across the lost cycle
+    assert report.rows[0]["from_cycle"] == 0

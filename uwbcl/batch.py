@@ -176,6 +176,9 @@ def detect_file(path: str, settings: ProcessingSettings) -> dict:
     return {"header": header, "detections": [dataclasses.asdict(d) for d in detections]}
 
 
+DETECT = detect_file  # the per-pass worker (tests substitute one that crashes)
+
+
 def _record(file: str, sha: str, entry: dict) -> PassRecord:
     h = entry["header"]
     return PassRecord(file=file, sha256=sha, rig_id=h["rig_id"], cycle=h["cycle"], height_m=h["height_m"],
@@ -458,6 +461,9 @@ def _exclusive(out_dir: Path):
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             raise BatchError(f"{out_dir}: another uwbcl process is writing here") from None
+        # Temporary files of a run that was killed mid-write; nobody else writes here while we hold the lock.
+        for stale in [*out_dir.glob(".*.partial"), *(out_dir / CACHE_DIR).rglob(".*.partial")]:
+            stale.unlink(missing_ok=True)
         yield
 
 
@@ -470,6 +476,24 @@ def discover(in_dir: Path, out_dir: Path) -> list[Path]:
 def _pool(jobs: int) -> cf.Executor:
     # spawn: each worker starts clean (no inherited OpenCL context, BLAS threads or locks from the parent).
     return cf.ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"))
+
+
+def _run_pool(todo: list[tuple[Path, str, str]], settings: ProcessingSettings, jobs: int, finish) -> list:
+    """Focus `todo` in a pool of `jobs` workers; returns the items left unfinished if the pool broke."""
+    pool = _pool(jobs)
+    done: set[int] = set()
+    try:
+        futures = {pool.submit(DETECT, str(item[0]), settings): k for k, item in enumerate(todo)}
+        for fut in cf.as_completed(futures):
+            try:
+                entry = fut.result()
+            except cf.process.BrokenProcessPool:
+                break
+            done.add(futures[fut])
+            finish(*todo[futures[fut]], entry)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+    return [item for k, item in enumerate(todo) if k not in done]
 
 
 def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, cache: PassCache,
@@ -513,15 +537,17 @@ def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, ca
     try:
         if jobs <= 1 or len(todo) <= 1:
             for path, rel, sha in todo:
-                finish(path, rel, sha, detect_file(str(path), settings))
+                finish(path, rel, sha, DETECT(str(path), settings))
         else:
-            pool = _pool(min(jobs, len(todo)))
-            try:
-                futures = {pool.submit(detect_file, str(path), settings): (path, rel, sha) for path, rel, sha in todo}
-                for fut in cf.as_completed(futures):
-                    finish(*futures[fut], fut.result())
-            finally:
-                pool.shutdown(wait=True, cancel_futures=True)
+            left = _run_pool(todo, settings, min(jobs, len(todo)), finish)
+            if left:
+                # A worker died (a crash or the out-of-memory killer) and took the pool with it: redo the
+                # unfinished passes one per fresh worker, so the one that kills its worker is the one reported.
+                log.warning("a worker process died; focusing the %d unfinished passes one at a time", len(left))
+                for item in left:
+                    if _run_pool([item], settings, 1, finish):
+                        finish(*item, {"error": "the worker process died while focusing it (crash or out of "
+                                                "memory)", "kind": "processing_failed"})
     finally:
         progress.close()
     return records, problems, len(todo)
