@@ -4,7 +4,8 @@ Both focusers give an image on (azimuth, r_LRCM) axes. Peaks are found on the pi
 floor relative to the strongest peak and to the image's noise level), refined to sub-cell accuracy on the
 underlying band-limited image, and mapped to the target's closest-approach coordinates (x_M, R_c) of the pass:
 for NLCS through the inverse of the focus-position map t_f(t_n) (eq. 19 [fix], notes section 8), for
-backprojection directly.
+backprojection directly. Close plates bias each other's sub-cell peaks through their point responses' arms, so
+each peak is refined again with the other plates' modelled responses removed (docs/method.md section 4).
 """
 
 from __future__ import annotations
@@ -261,18 +262,18 @@ def fit_pulse_gains(data: np.ndarray, x_rel_m: np.ndarray, echoes: list[tuple[np
     for j, (_, band) in enumerate(echoes):
         x = x_rel_m[band]
         if x.size:
-            mid, half = 0.5 * (x[0] + x[-1]), max(0.5 * (x[-1] - x[0]), 1e-9)
+            mid, half = 0.5 * (x.min() + x.max()), max(0.5 * (x.max() - x.min()), 1e-9)
             basis[j, band] = np.polynomial.legendre.legvander((x - mid) / half, degree)
     normal = np.zeros((n, m, n, m), dtype=np.complex128)
     rhs = np.zeros((n, m), dtype=np.complex128)
-    for j, (ej, _) in enumerate(echoes):
-        rhs[j] = basis[j].T @ np.einsum("kt,kt->k", ej.conj(), data)
-        for k, (ek, _) in enumerate(echoes[j:], start=j):
-            block = basis[j].T @ (np.einsum("kt,kt->k", ej.conj(), ek)[:, None] * basis[k])
-            normal[j, :, k, :] = block
-            normal[k, :, j, :] = block.conj().T
-    coef = np.linalg.lstsq(normal.reshape(n * m, n * m), rhs.ravel(), rcond=1e-10)[0].reshape(n, m)
-    return np.einsum("jkm,jm->jk", basis, coef)
+    for j, (echo_j, _) in enumerate(echoes):
+        rhs[j] = basis[j].T @ np.einsum("kt,kt->k", echo_j.conj(), data)
+        for i in range(j, n):
+            block = basis[j].T @ (np.einsum("kt,kt->k", echo_j.conj(), echoes[i][0])[:, None] * basis[i])
+            normal[j, :, i, :] = block
+            normal[i, :, j, :] = block.conj().T
+    series = np.linalg.lstsq(normal.reshape(n * m, n * m), rhs.ravel(), rcond=1e-10)[0].reshape(n, m)
+    return np.einsum("jkm,jm->jk", basis, series)
 
 
 def cancel_neighbours_bp(products: bp.BackprojectionProducts, cells: list[tuple[float, float, complex]],
@@ -295,7 +296,8 @@ def cancel_neighbours_bp(products: bp.BackprojectionProducts, cells: list[tuple[
         r = products.r_axis_m[0] + at[:, 1] * dr
         echoes = [bp.point_target_echo(grid, rc.x_rel_m, rc.t_s, u[j], r[j]) for j in range(len(at))]
         gains = fit_pulse_gains(rc.data, rc.x_rel_m, echoes, degree)
-        models = [g[:, None] * e for g, (e, _) in zip(gains, echoes)]
+        models = [e * g[:, None] for g, (e, _) in zip(gains, echoes)]
+        del echoes  # one model per target is held: n_pulses x n_fine each
         residual = rc.data - sum(models)
         cells = [_maximise(_bp_evaluator(products, dataclasses.replace(rc, data=residual + models[i])),
                            at[i, 0], at[i, 1], step=0.1) for i in range(len(at))]
