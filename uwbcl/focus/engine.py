@@ -190,8 +190,8 @@ class FocusEngine:
         x_ref = np.fft.fftshift(ref.get(), axes=0)
         return nlcs.fit_azimuth_compression(x_ref, k, grid, degree)
 
-    def nlcs_focus(self, scan: ScanPass, *, ac_mode: str = "exact", grid: nlcs.FocusGrid | None = None
-                   ) -> nlcs.NlcsProducts:
+    def nlcs_focus(self, scan: ScanPass, *, ac_mode: str = "exact", grid: nlcs.FocusGrid | None = None,
+                   compression: nlcs.AzimuthCompression | None = None) -> nlcs.NlcsProducts:
         """Focus one pass with the modified NLCS chain on the device (mirrors `nlcs.nlcs_focus`)."""
         if ac_mode not in ("exact", "series"):
             raise ValueError(f"unknown azimuth compression mode {ac_mode!r} (exact|series)")
@@ -202,9 +202,12 @@ class FocusEngine:
         if np.ptp(p2) > 0:
             raise NotImplementedError("the engine applies H2 with one p2 per pass; p2 varies across range here")
         aperture = scan.radar.antenna_aperture_m
-        # The reference is independent of the data: queue it first so its host fit overlaps nothing else.
-        ac = (self.exact_reference_azimuth_compression(k, grid, aperture) if ac_mode == "exact"
-              else nlcs.series_azimuth_compression(k, grid))
+        if compression is not None:
+            ac = compression
+        elif ac_mode == "exact":
+            ac = self.exact_reference_azimuth_compression(k, grid, aperture)
+        else:
+            ac = nlcs.series_azimuth_compression(k, grid)
         s = self.to_device("echo", echo, np.complex64)
         self.fft(s, 1)
         self.range_walk_correction(s, x_rel, grid)

@@ -340,8 +340,10 @@ def prepare_track(scan: ScanPass, grid: FocusGrid) -> tuple[np.ndarray, np.ndarr
     return scan.echo[order], scan.pulse_position_m[order] - grid.aperture_centre_m
 
 
-def nlcs_focus(scan: ScanPass, *, ac_mode: str = "exact", grid: FocusGrid | None = None) -> NlcsProducts:
-    """Focus one pass with the modified NLCS chain (float64 reference)."""
+def nlcs_focus(scan: ScanPass, *, ac_mode: str = "exact", grid: FocusGrid | None = None,
+               compression: AzimuthCompression | None = None) -> NlcsProducts:
+    """Focus one pass with the modified NLCS chain (float64 reference). `compression` reuses an H8 already
+    computed for this grid (focusing model echoes of the same pass)."""
     grid = focus_grid(scan) if grid is None else grid
     echo, x_rel = prepare_track(scan, grid)
     k = coef.nlcs_coefficients(grid.range_bins_m, grid.speed_m_s, grid.sin_squint, grid.wavelength_m)
@@ -355,7 +357,9 @@ def nlcs_focus(scan: ScanPass, *, ac_mode: str = "exact", grid: FocusGrid | None
     s = azimuth_compensation(s, k.eta1, grid)
     s = _azimuth_nlcs_chain(s, k, grid)
     aperture = scan.radar.antenna_aperture_m
-    if ac_mode == "exact":
+    if compression is not None:
+        ac = compression
+    elif ac_mode == "exact":
         ac = exact_reference_azimuth_compression(k, grid, aperture)
     elif ac_mode == "series":
         ac = series_azimuth_compression(k, grid)
