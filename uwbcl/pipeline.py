@@ -57,7 +57,8 @@ def detect_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSetting
     nlcs_focuser, bp_focuser = _focuser(settings)
     if settings.algorithm == "nlcs":
         products = nlcs_focuser.nlcs_focus(scan, ac_mode=settings.ac_mode)
-        return detect.detect_nlcs(products, settings.detection, scan)  # the echo lets it model neighbours
+        # The echo lets detection model the neighbours, focused by the same engine.
+        return detect.detect_nlcs(products, settings.detection, scan, nlcs_focuser)
     return detect.detect_bp(bp_focuser.backprojection_focus(scan), settings.detection)
 
 

@@ -332,6 +332,8 @@ class NlcsProducts:
     coefficients: coef.NlcsCoefficients
     compression: AzimuthCompression
     aperture_m: float
+    # detection's t_n(t_f) calibration fits, keyed by range (they depend on the grid only, not on the image)
+    focus_calibration: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
 
 
 def prepare_track(scan: ScanPass, grid: FocusGrid) -> tuple[np.ndarray, np.ndarray]:
