@@ -76,6 +76,7 @@ class AcquireSettings:
     stall_timeout_s: float = 15.0  # no new pulse for this long: the pass is given up and re-run
     command_timeout_s: float = 120.0
     poll_s: float = 0.02  # between window reads when the buffer is empty
+    heartbeat_timeout_s: float = 2.0  # replies with a frozen HEARTBEAT for this long: the controller is hung
     max_samples_per_pulse: int = Limits.max_samples_per_pulse
     max_pulses_per_pass: int = Limits.max_pulses_per_pass
     max_pass_bytes: int = Limits.max_pass_bytes
@@ -96,7 +97,7 @@ class AcquireSettings:
     def validate(self) -> None:
         if not self.heights_m:
             raise ConfigError("heights_m: at least one height")
-        if len(set(round(h * 1000) for h in self.heights_m)) != len(self.heights_m):
+        if len({round(h * 1000) for h in self.heights_m}) != len(self.heights_m):
             raise ConfigError("heights_m: heights must differ by at least 1 mm")
         if not -89.0 < self.rotation_table_angle_deg < 89.0:
             raise ConfigError("rotation_table_angle_deg: must be within (-89, 89)")
@@ -162,9 +163,10 @@ class FaultCounts:
     corrupt: int = 0  # CRC mismatches
     reconnects: int = 0
     reboots: int = 0
+    stalls: int = 0  # heartbeat frozen while replies kept coming
 
     def total(self) -> int:
-        return self.no_reply + self.disconnects + self.exceptions + self.corrupt + self.reboots
+        return self.no_reply + self.disconnects + self.exceptions + self.corrupt + self.reboots + self.stalls
 
 
 class RigLink:
@@ -265,9 +267,9 @@ class RigLink:
 
     def read(self, table: R.Table, address: int, count: int) -> list[int]:
         if table is R.Table.INPUT:
-            fn = lambda: self.client.read_input_registers(address, count=count, device_id=self.unit_id)  # noqa: E731
+            fn = lambda: self.client.read_input_registers(address, count=count, device_id=self.unit_id)
         else:
-            fn = lambda: self.client.read_holding_registers(address, count=count, device_id=self.unit_id)  # noqa: E731
+            fn = lambda: self.client.read_holding_registers(address, count=count, device_id=self.unit_id)
         regs = self._request(f"read {'IR' if table is R.Table.INPUT else 'HR'} {address}+{count}", fn).registers
         if len(regs) != count:
             self.counts.corrupt += 1
@@ -342,7 +344,7 @@ class AcquisitionReport:
 
 
 class AcquisitionSession:
-    """Runs `uwbcl acquire` against one rig; `run()` returns an AcquisitionReport. See docs/acquisition.md."""
+    """Runs `uwbcl acquire` against one rig; `run()` returns an AcquisitionReport (docs/modbus-register-map.md s. 8)."""
 
     def __init__(self, settings: AcquireSettings, stop: threading.Event | None = None, processor=None):
         settings.validate()
@@ -359,6 +361,9 @@ class AcquisitionSession:
         self._heartbeat = 0
         self._last_heartbeat_t = 0.0
         self._active_token: int | None = None
+        self._heartbeat_seen = (None, time.monotonic())  # (value, when it last changed)
+        self._last_result: dict | None = None
+        self._published_boot: int | None = None
 
     # ------------------------------------------------------------------------------------------ top level
 
@@ -419,6 +424,16 @@ class AcquisitionSession:
             self.link.counts.reboots += 1
             log.warning("fault: controller rebooted (BOOT_ID now 0x%08X)", status["BOOT_ID"])
             raise DeviceRebooted()
+        now = time.monotonic()
+        if status["HEARTBEAT"] != self._heartbeat_seen[0]:
+            self._heartbeat_seen = (status["HEARTBEAT"], now)
+        elif now - self._heartbeat_seen[1] > self.settings.heartbeat_timeout_s:
+            self.link.counts.stalls += 1
+            self._heartbeat_seen = (status["HEARTBEAT"], now)
+            log.warning("fault: controller heartbeat frozen for %.1f s; reconnecting",
+                        self.settings.heartbeat_timeout_s)
+            self.link.close()
+            return self._status()
         self._client_heartbeat()
         return status
 
@@ -669,6 +684,8 @@ class AcquisitionSession:
     def _publish_results(self, final: bool = False) -> None:
         if self.processor is None:
             return
+        if self._last_result is not None and self._published_boot != self.link.boot_id:
+            self._write_result(self._last_result, final)  # a reboot cleared the RESULT block: restore it
         while True:
             try:
                 result = self.processor.results.get_nowait()
@@ -685,11 +702,19 @@ class AcquisitionSession:
                       "STATUS": result["status_code"], "N_TARGETS": min(result["n_targets"], 65535),
                       "RESIDUAL": result["residual_m"] if math.isfinite(result["residual_m"]) else 0.0,
                       "TIME": result["time_s"]}
-            try:
-                self.link.write_block(R.RESULT, values)
+            self._last_result = values
+            if self._write_result(values, final):
                 log.info("cycle %d: published retreat %.4f m, creep %.4f m (%s) as result %d", result["cycle"],
                          result["retreat_m"], result["creep_m"], result["status"], self._result_seq)
-            except (LinkDown, DeviceRebooted, Interrupted) as exc:
-                if not final:
-                    raise
-                log.warning("cycle %d: result not published: %s", result["cycle"], exc or "interrupted")
+
+    def _write_result(self, values: dict, final: bool) -> bool:
+        try:
+            boot = self.link.boot_id
+            self.link.write_block(R.RESULT, values)
+            self._published_boot = boot
+            return True
+        except (LinkDown, DeviceRebooted, Interrupted) as exc:
+            if not final:
+                raise
+            log.warning("cycle %d: result not published: %s", values["CYCLE"], exc or "interrupted")
+            return False

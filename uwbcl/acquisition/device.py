@@ -17,7 +17,6 @@ import collections
 import dataclasses
 import datetime as dt
 import logging
-import math
 import threading
 import time
 
@@ -36,7 +35,7 @@ INT16_FULL_SCALE = 32767
 
 @dataclasses.dataclass(frozen=True)
 class DeviceConfig:
-    world: WorldConfig = WorldConfig()
+    world: WorldConfig = dataclasses.field(default_factory=WorldConfig)
     rig_id: str = "sim-rig"
     time_scale: float = 1.0
     initial_cycle: int = 1000  # the longwall counter when the simulation starts
@@ -215,6 +214,10 @@ class RigController:
         self.next_cycle_due = now + c.cycle_interval_s
         log.info("device: cycle signal, counter %d at t=%.1f s", self.cycle_counter, now)
 
+    def signal_cycle_now(self, now: float) -> None:
+        """Make the next cycle signal due now (it still waits for a running pass): tests and manual runs."""
+        self.next_cycle_due = min(self.next_cycle_due, now)
+
     def cycle_index(self, counter: int) -> int:
         """Campaign cycle index of a counter value: the first signal raised is cycle index 1."""
         return counter - self.config.initial_cycle
@@ -356,7 +359,7 @@ class RigController:
     # ------------------------------------------------------------------------------------------ registers
 
     def _clock_ms(self, now: float) -> int:
-        return int(round((DEVICE_EPOCH.timestamp() + now) * 1000.0))
+        return round((DEVICE_EPOCH.timestamp() + now) * 1000.0)
 
     def status_word(self, now: float) -> R.Status:
         s = R.Status.CYCLE_LINK_OK
@@ -485,7 +488,8 @@ class RigController:
                 if block is R.COMMAND:
                     self.advance(now)
                 return
-        raise ModbusFault(ILLEGAL_ADDRESS if address >= len(self.holding) else ILLEGAL_VALUE,
+        inside = any(b.address <= address < b.address + b.length for b in R.HOLDING_BLOCKS)
+        raise ModbusFault(ILLEGAL_VALUE if inside else ILLEGAL_ADDRESS,
                           f"HR {address}+{len(values)}: writes must cover exactly one holding block")
 
 
@@ -497,8 +501,8 @@ def _encode_records(first_seq: int, times_s, positions_m, flags, iq: np.ndarray)
     head = np.zeros(n, dtype=np.dtype([("seq", ">u4"), ("t", ">u4"), ("x", ">i4"), ("flags", ">u2"),
                                        ("res", ">u2")]))
     head["seq"] = first_seq + np.arange(n)
-    head["t"] = np.rint(np.asarray(times_s) / R.RECORD_TIME_SCALE_S)
-    head["x"] = np.rint(np.asarray(positions_m) / R.RECORD_POSITION_SCALE_M)
+    head["t"] = np.rint(np.asarray(times_s) * 1e6)  # microseconds (R.RECORD_TIME_SCALE_S)
+    head["x"] = np.rint(np.asarray(positions_m) * 1e6)  # micrometres (R.RECORD_POSITION_SCALE_M)
     head["flags"] = flags
     regs = np.zeros((n, R.record_regs(m)), dtype=np.uint16)
     regs[:, :R.RECORD_HEADER_REGS] = np.frombuffer(head.tobytes(), dtype=">u2").reshape(n, R.RECORD_HEADER_REGS)
@@ -555,7 +559,7 @@ class RigServer:
     def _run_thread(self) -> None:
         try:
             asyncio.run(self.serve())
-        except BaseException as exc:  # reported to start(); the thread ends
+        except BaseException as exc:  # noqa: BLE001 - reported to start(); the thread ends
             self._error = exc
             self._ready.set()
 
@@ -601,7 +605,7 @@ class RigServer:
         if self._thread is not None:
             self._thread.join(timeout_s)
 
-    def __enter__(self) -> RigServer:
+    def __enter__(self):
         self.start()
         return self
 

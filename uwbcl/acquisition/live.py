@@ -92,7 +92,7 @@ class LiveProcessor:
                 return
             try:
                 self.results.put(self._process(cycle, passes, complete, start_time))
-            except Exception as exc:  # noqa: BLE001 - one cycle's failure must not end the service
+            except Exception as exc:  # one cycle's failure must not end the service
                 log.exception("cycle %d: processing failed", cycle)
                 self.results.put(self._row(cycle, start_time, None, R.ResultStatus.PROCESSING_ERROR,
                                            f"processing_error: {exc}"))

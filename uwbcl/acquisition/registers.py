@@ -167,55 +167,54 @@ class Block:
 
 
 class Status(enum.IntFlag):
-    READY = 1 << 0  # booted, no fault, remote control: accepts commands
-    BUSY = 1 << 1  # a command is executing (move, rotation or pass)
-    PASS_ACTIVE = 1 << 2  # pulses of the pass in the PASS block are being produced
-    PASS_COMPLETE = 1 << 3  # that pass has finished: all its pulses are in the buffer or acknowledged
-    FAULT = 1 << 4  # FAULT_WORD != 0
-    OVERFLOW = 1 << 5  # the current pass has dropped pulses (PASS.OVERFLOW_COUNT > 0)
-    CYCLE_LINK_OK = 1 << 6  # CYCLE_COUNTER is current (link to the longwall control system is up)
-    LOCAL = 1 << 7  # operator in local control: remote commands are rejected
+    READY = 1 << 0
+    BUSY = 1 << 1
+    PASS_ACTIVE = 1 << 2
+    PASS_COMPLETE = 1 << 3
+    FAULT = 1 << 4
+    OVERFLOW = 1 << 5
+    CYCLE_LINK_OK = 1 << 6
+    LOCAL = 1 << 7
 
 
 class Fault(enum.IntFlag):
-    DRIVE = 1 << 0  # carriage or height drive
-    ENCODER = 1 << 1  # rail or height encoder
-    RADAR = 1 << 2  # radar module not responding / bad data
-    TABLE = 1 << 3  # rotation table
-    LIMIT = 1 << 4  # travel limit reached unexpectedly
-    BUFFER_OVERFLOW = 1 << 5  # pulses dropped in the current pass
-    PASS_ABORTED = 1 << 6  # the last pass was aborted (ABORT command or a fault)
-    CYCLE_LINK_LOST = 1 << 7  # no contact with the longwall control system
+    DRIVE = 1 << 0
+    ENCODER = 1 << 1
+    RADAR = 1 << 2
+    TABLE = 1 << 3
+    LIMIT = 1 << 4
+    BUFFER_OVERFLOW = 1 << 5
+    PASS_ABORTED = 1 << 6
+    CYCLE_LINK_LOST = 1 << 7
 
 
 class State(enum.IntEnum):
     BOOTING = 0
     IDLE = 1
-    MOVING = 2  # height drive running
-    ROTATING = 3  # rotation table turning
-    SCANNING = 4  # pass in progress
+    MOVING = 2
+    ROTATING = 3
+    SCANNING = 4
     FAULTED = 5
 
 
 class Command(enum.IntEnum):
     NONE = 0
-    MOVE_HEIGHT = 1  # ARG0: carriage height, s32 micrometres
-    SET_TABLE_ANGLE = 2  # ARG0: rotation-table angle, s32 millidegrees
-    START_PASS = 3  # ARG0: pass token, 1 .. 2^31 - 1, echoed in PASS.TOKEN
-    ABORT = 4  # stop any motion and the pass
+    MOVE_HEIGHT = 1
+    SET_TABLE_ANGLE = 2
+    START_PASS = 3
+    ABORT = 4
     CLEAR_FAULTS = 5
 
 
 class CommandResult(enum.IntEnum):
-    NONE = 0  # no command since boot
-    ACCEPTED = 1  # executing
+    NONE = 0
+    ACCEPTED = 1
     DONE = 2
-    REJECTED_BUSY = 3  # another command is executing
-    REJECTED_RANGE = 4  # argument outside the travel / limits
-    REJECTED_NOT_READY = 5  # booting, faulted or in local control
-    REJECTED_UNKNOWN = 6  # unknown command code
-    REJECTED_CRC = 7  # CMD_CRC does not match HR 0-6
-    FAILED = 8  # accepted, then aborted or faulted while executing
+    REJECTED_BUSY = 3
+    REJECTED_RANGE = 4
+    REJECTED_NOT_READY = 5
+    REJECTED_UNKNOWN = 6
+    FAILED = 8  # 7 is reserved
 
 
 class PassState(enum.IntEnum):
@@ -227,17 +226,71 @@ class PassState(enum.IntEnum):
 
 class ResultStatus(enum.IntEnum):
     OK = 0
-    AMBIGUOUS = 1  # another plate correspondence explains the data as well
+    AMBIGUOUS = 1
     TOO_FEW_TARGETS = 2
-    INCOMPLETE_CYCLE = 3  # not every height of the cycle could be acquired
+    INCOMPLETE_CYCLE = 3
     PROCESSING_ERROR = 4
-    FLAGGED = 5  # an estimate the processing flags for another reason (e.g. low confidence; see the results file)
+    FLAGGED = 5
 
 
 class RecordFlag(enum.IntFlag):
-    FIRST = 1 << 0  # first pulse of the pass
-    LAST = 1 << 1  # last pulse of the pass
-    SATURATED = 1 << 2  # an I or Q sample hit the ADC limit
+    FIRST = 1 << 0
+    LAST = 1 << 1
+    SATURATED = 1 << 2
+
+
+# What each enumeration value means, by "Class.NAME" (IntEnum members of different classes compare equal).
+ENUM_DOCS = {
+    "Status.READY": "booted, no fault, remote control: accepts commands",
+    "Status.BUSY": "a command is executing (move, rotation or pass)",
+    "Status.PASS_ACTIVE": "pulses of the pass in the PASS block are being produced",
+    "Status.PASS_COMPLETE": "that pass has finished: all its pulses are in the buffer or acknowledged",
+    "Status.FAULT": "FAULT_WORD != 0",
+    "Status.OVERFLOW": "the current pass has dropped pulses (PASS.OVERFLOW_COUNT > 0)",
+    "Status.CYCLE_LINK_OK": "CYCLE_COUNTER is current (the link to the longwall control system is up)",
+    "Status.LOCAL": "operator in local control: remote commands are rejected",
+    "Fault.DRIVE": "carriage or height drive",
+    "Fault.ENCODER": "rail or height encoder",
+    "Fault.RADAR": "radar module not responding or delivering bad data",
+    "Fault.TABLE": "rotation table",
+    "Fault.LIMIT": "travel limit reached unexpectedly",
+    "Fault.BUFFER_OVERFLOW": "pulses of the current pass were dropped (cleared by the next START_PASS)",
+    "Fault.PASS_ABORTED": "the last pass was aborted: ABORT, a fault, or the cycle counter changed during it",
+    "Fault.CYCLE_LINK_LOST": "no contact with the longwall control system",
+    "State.BOOTING": "starting up; the controller may refuse connections",
+    "State.IDLE": "ready for a command",
+    "State.MOVING": "height drive running (MOVE_HEIGHT)",
+    "State.ROTATING": "rotation table turning (SET_TABLE_ANGLE)",
+    "State.SCANNING": "pass in progress (START_PASS)",
+    "State.FAULTED": "a fault other than BUFFER_OVERFLOW / PASS_ABORTED is set; CLEAR_FAULTS",
+    "Command.NONE": "no operation (rejected as REJECTED_UNKNOWN)",
+    "Command.MOVE_HEIGHT": "ARG0: carriage height, s32 micrometres; DONE when the carriage is there",
+    "Command.SET_TABLE_ANGLE": "ARG0: rotation-table angle, s32 millidegrees; DONE when the table is there",
+    "Command.START_PASS": "ARG0: pass token, 1 .. 2^31 - 1, echoed in PASS.TOKEN; DONE when the pass is complete",
+    "Command.ABORT": "stop any motion and the pass; DONE at once (accepted even when BUSY)",
+    "Command.CLEAR_FAULTS": "clear FAULT_WORD; DONE at once",
+    "CommandResult.NONE": "no command since boot",
+    "CommandResult.ACCEPTED": "accepted and executing",
+    "CommandResult.DONE": "finished",
+    "CommandResult.REJECTED_BUSY": "another command is executing (only ABORT and CLEAR_FAULTS are taken when BUSY)",
+    "CommandResult.REJECTED_RANGE": "argument outside the travel, the limits, or (token) 1 .. 2^31 - 1",
+    "CommandResult.REJECTED_NOT_READY": "booting, faulted or in local control",
+    "CommandResult.REJECTED_UNKNOWN": "unknown command code",
+    "CommandResult.FAILED": "accepted, then stopped by a fault or a reboot while executing",
+    "PassState.NONE": "no pass since boot",
+    "PassState.RUNNING": "pulses are being produced",
+    "PassState.COMPLETE": "every pulse produced (some may have been dropped: OVERFLOW_COUNT)",
+    "PassState.ABORTED": "stopped before the end: the pass is unusable",
+    "ResultStatus.OK": "a trustworthy estimate",
+    "ResultStatus.AMBIGUOUS": "another plate correspondence explains the data as well",
+    "ResultStatus.TOO_FEW_TARGETS": "not enough plates matched between the two cycles: no estimate",
+    "ResultStatus.INCOMPLETE_CYCLE": "not every height of the cycle could be acquired: no estimate",
+    "ResultStatus.PROCESSING_ERROR": "the processing failed: no estimate",
+    "ResultStatus.FLAGGED": "an estimate the processing flags for another reason (e.g. low confidence)",
+    "RecordFlag.FIRST": "first pulse of the pass",
+    "RecordFlag.LAST": "last pulse of the pass",
+    "RecordFlag.SATURATED": "an I or Q sample of this pulse hit the converter's limit",
+}
 
 
 # --------------------------------------------------------------------------------------------- blocks
@@ -287,7 +340,7 @@ RADAR = Block("RADAR", Table.INPUT, 64, 32, (
     Field("RAIL_MAX", 20, "s32", 1e-6, "m", "rail travel, high end, micrometres"),
     Field("HEIGHT_MIN", 22, "s32", 1e-6, "m", "lowest carriage height, micrometres"),
     Field("HEIGHT_MAX", 24, "s32", 1e-6, "m", "highest carriage height, micrometres"),
-    Field("TABLE_MAX", 26, "s32", 1e-3, "deg", "largest |rotation-table angle|, millidegrees"),
+    Field("TABLE_MAX", 26, "s32", 1e-3, "deg", "largest absolute rotation-table angle, millidegrees"),
 ), "the radar and rail as built; constant while the controller runs")
 
 PASS = Block("PASS", Table.INPUT, 96, 32, (
@@ -326,9 +379,9 @@ RESULT = Block("RESULT", Table.HOLDING, 16, 21, (
     Field("RESULT_SEQ", 0, "u32", doc="+1 for every result published; readers take a changed value as new data"),
     Field("CYCLE", 2, "u32", doc="cycle counter value of the cycle measured"),
     Field("PREVIOUS_CYCLE", 4, "u32", doc="the cycle it is measured from (normally CYCLE - 1)"),
-    Field("RETREAT", 6, "s32", 1e-6, "m", "advance along the panel (X) since PREVIOUS_CYCLE, um; -2^31: n/a"),
-    Field("CREEP", 8, "s32", 1e-6, "m", "slide along the face (Y), micrometres; -2^31: not available"),
-    Field("VERTICAL", 10, "s32", 1e-6, "m", "vertical change (Z), micrometres; -2^31: not available"),
+    Field("RETREAT", 6, "s32", 1e-6, "m", "advance along the panel (X) since PREVIOUS_CYCLE, micrometres; -2^31: n/a"),
+    Field("CREEP", 8, "s32", 1e-6, "m", "slide along the face (Y), micrometres; -2^31: n/a"),
+    Field("VERTICAL", 10, "s32", 1e-6, "m", "vertical change (Z), micrometres; -2^31: n/a"),
     Field("STATUS", 12, "u16", doc="table Result status"),
     Field("N_TARGETS", 13, "u16", doc="bolt plates the estimate rests on"),
     Field("RESIDUAL", 14, "u32", 1e-6, "m", "RMS misfit of those plates, micrometres"),
@@ -364,7 +417,8 @@ def encode_record(seq: int, time_s: float, position_m: float, flags: int, iq) ->
     import numpy as np
 
     iq = np.asarray(iq, dtype=np.int16).reshape(-1)
-    head = struct.pack(">IIiHH", seq, round(time_s / RECORD_TIME_SCALE_S), round(position_m / RECORD_POSITION_SCALE_M),
+    head = struct.pack(">IIiHH", seq, round(time_s * _inverse(RECORD_TIME_SCALE_S)),
+                       round(position_m * _inverse(RECORD_POSITION_SCALE_M)),
                        int(flags), 0)
     regs = list(struct.unpack(">8H", head)) + iq.view(np.uint16).tolist()
     regs.append(crc16(regs))
@@ -388,8 +442,9 @@ def decode_records(regs: Sequence[int], n_records: int, samples_per_pulse: int):
     fields = np.frombuffer(head, dtype=np.dtype([("seq", ">u4"), ("t", ">u4"), ("x", ">i4"), ("flags", ">u2"),
                                                   ("res", ">u2")]), count=n_records)
     iq = block[:, RECORD_HEADER_REGS:-1].astype(np.uint16).view(np.int16).reshape(n_records, samples_per_pulse, 2)
-    return (fields["seq"].astype(np.int64), fields["t"].astype(np.float64) * RECORD_TIME_SCALE_S,
-            fields["x"].astype(np.float64) * RECORD_POSITION_SCALE_M, fields["flags"].astype(np.int64), iq, bad)
+    return (fields["seq"].astype(np.int64), fields["t"].astype(np.float64) / _inverse(RECORD_TIME_SCALE_S),
+            fields["x"].astype(np.float64) / _inverse(RECORD_POSITION_SCALE_M), fields["flags"].astype(np.int64), iq,
+            bad)
 
 
 # --------------------------------------------------------------------------------------------- documentation
@@ -414,9 +469,9 @@ def block_table(block: Block) -> str:
 
 def enum_table(enum_cls) -> str:
     bits = issubclass(enum_cls, enum.IntFlag)
-    rows = [f"| {'bit' if bits else 'value'} | name |", "|---|---|"]
+    rows = [f"| {'bit' if bits else 'value'} | name | meaning |", "|---|---|---|"]
     for m in enum_cls:
-        rows.append(f"| {int(m).bit_length() - 1 if bits else int(m)} | {m.name} |")
+        rows.append(f"| {int(m).bit_length() - 1 if bits else int(m)} | {m.name} | {ENUM_DOCS[f'{enum_cls.__name__}.{m.name}']} |")
     return "\n".join(rows)
 
 

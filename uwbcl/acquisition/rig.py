@@ -154,6 +154,6 @@ class Campaign:
         if self.config.range_samples:
             n = int(self.config.range_samples)
         else:
-            n = 1 << (int(math.ceil((r_hi - r_lo) / self.radar.range_bin_m)) - 1).bit_length()
+            n = 1 << (math.ceil((r_hi - r_lo) / self.radar.range_bin_m) - 1).bit_length()
         t0 = round(2.0 * r_lo / SPEED_OF_LIGHT_M_S * 1e12) / 1e12
         return t0, n

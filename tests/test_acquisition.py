@@ -1,0 +1,445 @@
+"""The acquisition front end: register map, simulated rig controller, `uwbcl acquire` over loopback.
+
+Every test talks to 127.0.0.1 only (a guard below fails any other connect) and is bounded in time: sessions run
+in a thread joined with a deadline, subprocesses with a timeout.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import re
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from uwbcl import archive
+from uwbcl.acquisition import registers as R
+from uwbcl.acquisition.client import AcquireSettings, AcquisitionSession, ConfigError, load_settings
+from uwbcl.acquisition.device import ILLEGAL_VALUE, DeviceConfig, ModbusFault, RigController, RigServer
+from uwbcl.acquisition.faults import KINDS, FaultInjector, parse_faults
+from uwbcl.acquisition.recorder import DeviceRefused, Limits, PassAssembler, PassIncomplete
+from uwbcl.acquisition.rig import WorldConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+LOOPBACK = "127.0.0.1"
+# A short pass (61 pulses x 32 samples, 3 s of device time) on a clock 50x faster than real time.
+FAST_WORLD = WorldConfig(aperture_length_m=0.45, range_samples=32)
+FAST_DEVICE = DeviceConfig(world=FAST_WORLD, time_scale=50.0, first_cycle_after_s=25.0, cycle_interval_s=100.0,
+                           reboot_s=5.0)
+
+
+@pytest.fixture(autouse=True)
+def loopback_only(monkeypatch):
+    real_connect = socket.socket.connect
+
+    def connect(sock, address):
+        if sock.family in (socket.AF_INET, socket.AF_INET6):
+            assert address[0] in (LOOPBACK, "::1", "localhost"), f"test tried to reach {address}"
+        return real_connect(sock, address)
+
+    monkeypatch.setattr(socket.socket, "connect", connect)
+
+
+def run_session(settings: AcquireSettings, timeout_s: float = 30.0, processor=None):
+    """AcquisitionSession.run() in a thread, stopped and failed if it outlives timeout_s."""
+    stop = threading.Event()
+    session = AcquisitionSession(settings, stop=stop, processor=processor)
+    box = {}
+    thread = threading.Thread(target=lambda: box.setdefault("report", session.run()), daemon=True)
+    thread.start()
+    thread.join(timeout_s)
+    if thread.is_alive():
+        stop.set()
+        thread.join(10.0)
+        pytest.fail(f"acquisition did not finish within {timeout_s} s")
+    return box["report"]
+
+
+def settings_for(server: RigServer, out, **kw) -> AcquireSettings:
+    base = {"host": LOOPBACK, "port": server.port, "out": str(out), "cycles": 1, "timeout_s": 0.3,
+            "reconnect_max_s": 0.5, "stall_timeout_s": 5.0, "command_timeout_s": 10.0}
+    base.update(kw)
+    return AcquireSettings(**base)
+
+
+def signal_cycle_after_passes(server: RigServer, passes: int, timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while len(server.snapshot()["completed_passes"]) < passes and time.monotonic() < deadline:
+        time.sleep(0.02)
+    with server.lock:
+        server.controller.signal_cycle_now(server.now())
+
+
+def assert_archives_match_device(report, server: RigServer) -> None:
+    """Every written file is whole and holds exactly the pulses the device produced for that pass."""
+    audits = {a["token"]: a for a in server.snapshot()["completed_passes"]}
+    for path in report.passes_written:
+        header = archive.read_pass_header(path)
+        scan = archive.read_pass(path)
+        token = int(re.search(r"-p(\d+)$", header["pass_id"]).group(1))
+        audit = audits[token]
+        assert audit["overflow"] == 0 and scan.cycle == audit["cycle"]
+        assert scan.n_pulses == audit["n_pulses"]
+        np.testing.assert_array_equal(np.rint(scan.pulse_position_m * 1e6), audit["positions_um"])
+        np.testing.assert_array_equal(np.rint(scan.pulse_time_s * 1e6), audit["times_us"])
+        iq = np.stack([scan.echo.real, scan.echo.imag], axis=-1) / audit["scale"]
+        np.testing.assert_array_equal(np.rint(iq), audit["iq"])
+    leftovers = [p for p in Path(report.passes_written[0]).parents[2].rglob(".*")] if report.passes_written else []
+    assert leftovers == [], f"partial files left: {leftovers}"
+
+
+# ============================================================================================== register map
+
+
+def test_32_bit_values_are_high_word_first_and_floats_are_ieee_binary32():
+    regs = R.RADAR.encode({"CARRIER_FREQUENCY": 4.3e9, "RAIL_MIN": -1.0})
+    assert regs[0:2] == [4_300_000 >> 16, 4_300_000 & 0xFFFF]  # kHz, high word first
+    assert struct.unpack(">i", struct.pack(">2H", *regs[18:20]))[0] == -1_000_000  # micrometres, signed
+    p = R.PASS.encode({"AMPLITUDE_SCALE": 1.5})
+    assert p[16:18] == list(struct.unpack(">2H", struct.pack(">f", 1.5)))
+
+
+def test_every_block_round_trips_in_si_units_and_a_flipped_bit_fails_its_crc():
+    values = {"TOKEN": 7, "CYCLE": 1001, "FIRST_SEQ": 1, "PULSES_PLANNED": 267, "RANGE_WINDOW_START": 9.387e-9,
+              "SAMPLES_PER_PULSE": 128, "DIRECTION": -1, "AMPLITUDE_SCALE": 2.5e-5, "HEIGHT": 0.15,
+              "TABLE_ANGLE": 30.0, "START_TIME": 1793599210.25, "PASS_STATE": 2}
+    regs = R.PASS.encode(values)
+    decoded = R.PASS.decode(regs)
+    for name, v in values.items():
+        assert decoded[name] == pytest.approx(v, rel=1e-7), name
+    regs[5] ^= 0x0100
+    with pytest.raises(R.RegisterError, match="CRC"):
+        R.PASS.decode(regs)
+
+
+def test_crc_is_crc16_ccitt_false():
+    assert R.crc16([0x3132, 0x3334, 0x3536, 0x3738]) == 0xA12B  # "12345678"
+    assert R.crc16(struct.unpack(">5H", b"123456789\0")) != 0  # defined over whole registers
+
+
+def test_unavailable_results_are_the_s32_sentinel():
+    regs = R.RESULT.encode({"RETREAT": float("nan"), "CREEP": 0.1})
+    assert struct.unpack(">i", struct.pack(">2H", *regs[6:8]))[0] == R.NOT_AVAILABLE_S32
+    assert math.isnan(R.RESULT.decode(regs)["RETREAT"]) and R.RESULT.decode(regs)["CREEP"] == 0.1
+
+
+def test_values_that_do_not_fit_are_refused_with_the_field_named():
+    with pytest.raises(R.RegisterError, match="PASS.SAMPLES_PER_PULSE"):
+        R.PASS.encode({"SAMPLES_PER_PULSE": 70000})
+
+
+def test_the_document_holds_the_register_tables_of_the_code():
+    doc = (ROOT / "docs" / "modbus-register-map.md").read_text()
+    for name, table in R.markdown_tables().items():
+        assert table in doc, f"docs/modbus-register-map.md: table {name} differs from uwbcl.acquisition.registers"
+
+
+def test_pulse_records_round_trip_and_a_damaged_record_is_named():
+    iq = np.array([[[1, -2], [32767, -32767]], [[0, 5], [-7, 8]]], dtype=np.int16)
+    regs = R.encode_record(41, 2.05, -0.75, R.RecordFlag.FIRST, iq[0]) + R.encode_record(42, 2.1, -0.7425, 0, iq[1])
+    seq, t, x, _flags, out, bad = R.decode_records(regs, 2, 2)
+    assert seq.tolist() == [41, 42] and t.tolist() == [2.05, 2.1] and x.tolist() == [-0.75, -0.7425]
+    np.testing.assert_array_equal(out, iq)
+    assert bad == []
+    regs[R.record_regs(2) + 9] ^= 1
+    assert R.decode_records(regs, 2, 2)[-1] == [1]
+
+
+# ============================================================================================== faults spec
+
+
+def test_fault_spec_parses_and_bad_items_are_named():
+    plan = parse_faults("drop=0.01,corrupt@120,every=50,kinds=reboot+overflow,seed=3,slow_s=0.2")
+    assert plan.probabilities == (("drop", 0.01),) and plan.at == ((120, "corrupt"),)
+    assert plan.every == 50 and plan.kinds == ("reboot", "overflow") and plan.seed == 3 and plan.slow_s == 0.2
+    for bad in ("melt=0.1", "drop=2", "every=x", "bogus"):
+        with pytest.raises(ValueError, match=re.escape(bad.split("=")[0])):
+            parse_faults(bad)
+
+
+def test_fault_rotation_is_deterministic_and_pass_faults_wait_for_a_pass():
+    inj = FaultInjector(parse_faults("every=2"))
+    kinds = [inj.next_request(pass_running=True, device_time_s=0.0) for _ in range(2 * len(KINDS))]
+    assert [k for k in kinds if k] == list(KINDS)
+    inj = FaultInjector(parse_faults("reboot@1"))
+    assert inj.next_request(False, 0.0) is None and inj.next_request(True, 0.0) == "reboot"
+
+
+# ============================================================================================== the controller
+
+
+def command(c: RigController, now, seq, code, arg=0):
+    c.write(now, 0, R.COMMAND.encode({"CMD_CODE": int(code), "CMD_SEQ": seq, "ARG0": arg}))
+    return R.CommandResult(c.cmd_result)
+
+
+def window(c: RigController, now):
+    regs = c.read(now, R.Table.INPUT, R.WINDOW_ADDRESS, 125)
+    return R.WINDOW_HEADER.decode(regs[:R.WINDOW_HEADER.length])
+
+
+def test_a_retransmitted_command_runs_once_and_a_busy_rig_rejects_new_ones():
+    c = RigController(dataclasses.replace(FAST_DEVICE, first_cycle_after_s=1e9))
+    assert command(c, 0.0, 1, R.Command.START_PASS, 5) is R.CommandResult.ACCEPTED
+    first_seq = c.pass_.first_seq
+    assert command(c, 0.1, 1, R.Command.START_PASS, 5) is R.CommandResult.ACCEPTED  # same seq: ignored
+    assert c.pass_.first_seq == first_seq
+    assert command(c, 0.2, 2, R.Command.MOVE_HEIGHT, 300_000) is R.CommandResult.REJECTED_BUSY
+    assert command(c, 0.3, 3, R.Command.ABORT) is R.CommandResult.DONE
+    assert command(c, 0.4, 4, R.Command.MOVE_HEIGHT, 5_000_000) is R.CommandResult.REJECTED_RANGE
+
+
+def test_a_full_buffer_drops_new_pulses_counts_them_and_never_changes_the_window():
+    c = RigController(dataclasses.replace(FAST_DEVICE, buffer_capacity=4, first_cycle_after_s=1e9))
+    command(c, 0.0, 1, R.Command.START_PASS, 9)
+    c.advance(0.16)  # 4 pulses at 20 Hz: the buffer is full
+    before = c.read(0.16, R.Table.INPUT, R.WINDOW_ADDRESS, 125)
+    c.advance(0.5)
+    assert c.read(0.5, R.Table.INPUT, R.WINDOW_ADDRESS, 125)[R.WINDOW_HEADER.length:] == \
+        before[R.WINDOW_HEADER.length:]
+    desc = R.PASS.decode(c.input_low(0.5)[96:128])
+    assert desc["OVERFLOW_COUNT"] == desc["PULSES_PRODUCED"] - 4 > 0
+    assert c.status_word(0.5) & R.Status.OVERFLOW
+    head = window(c, 0.5)
+    c.write(0.5, R.ACK.address, R.ACK.encode({"ACK_SEQ": head["OLDEST_SEQ"] + 3}))
+    c.advance(0.55)
+    assert window(c, 0.55)["OLDEST_SEQ"] > head["OLDEST_SEQ"] + 4  # the dropped ones are gone for good
+
+
+def test_acknowledge_is_idempotent_and_cannot_run_ahead_of_the_device():
+    c = RigController(dataclasses.replace(FAST_DEVICE, first_cycle_after_s=1e9))
+    command(c, 0.0, 1, R.Command.START_PASS, 9)
+    c.advance(0.3)
+    head = window(c, 0.3)
+    ack = R.ACK.encode({"ACK_SEQ": head["OLDEST_SEQ"] + 1})
+    c.write(0.3, R.ACK.address, ack)
+    c.write(0.3, R.ACK.address, ack)  # a retransmission releases nothing more
+    assert window(c, 0.3)["OLDEST_SEQ"] == head["OLDEST_SEQ"] + 2
+    with pytest.raises(ModbusFault) as err:
+        c.write(0.3, R.ACK.address, R.ACK.encode({"ACK_SEQ": head["NEWEST_SEQ"] + 1}))
+    assert err.value.code == ILLEGAL_VALUE
+    damaged = list(ack)
+    damaged[1] ^= 4
+    with pytest.raises(ModbusFault):
+        c.write(0.3, R.ACK.address, damaged)
+
+
+def test_a_reboot_loses_the_pass_and_changes_the_boot_id_but_not_the_cycle_counter():
+    c = RigController(dataclasses.replace(FAST_DEVICE, first_cycle_after_s=0.0))
+    c.advance(0.0)
+    counter = c.cycle_counter
+    boot = c.boot_id
+    command(c, 0.1, 1, R.Command.START_PASS, 9)
+    c.reboot(0.2)
+    assert c.booting(1.0) and not c.booting(5.3)
+    status = R.STATUS.decode(c.input_low(6.0)[32:64])
+    assert status["BOOT_ID"] != boot and status["CYCLE_COUNTER"] == counter and status["CMD_ACK_SEQ"] == 0
+    assert window(c, 6.0)["RECORDS"] == 0
+
+
+def test_the_cycle_signal_waits_for_a_pass_to_finish():
+    c = RigController(dataclasses.replace(FAST_DEVICE, first_cycle_after_s=0.5))
+    command(c, 0.0, 1, R.Command.START_PASS, 9)
+    c.advance(1.0)
+    assert c.cycle_counter == FAST_DEVICE.initial_cycle  # due, but the rig is scanning
+    c.advance(3.5)  # the 3 s pass is over
+    assert c.cycle_counter == FAST_DEVICE.initial_cycle + 1
+
+
+# ============================================================================================== recorder
+
+
+def descriptor(**kw):
+    d = {"TOKEN": 3, "CYCLE": 1, "FIRST_SEQ": 10, "PULSES_PLANNED": 3, "PULSES_PRODUCED": 3, "OVERFLOW_COUNT": 0,
+         "RANGE_WINDOW_START": 1e-8, "SAMPLES_PER_PULSE": 2, "DIRECTION": 1, "AMPLITUDE_SCALE": 1.0,
+         "HEIGHT": 0.15, "TABLE_ANGLE": 30.0, "START_TIME": 1.7e9, "PASS_STATE": 2}
+    d.update(kw)
+    return d
+
+
+RADAR_OK = {"MAX_SAMPLES_PER_PULSE": 4096, "WINDOW_REGS": 2048, "BORESIGHT_Y_SIGN": -1}
+
+
+def test_a_device_claiming_absurd_sizes_is_refused_before_anything_is_allocated():
+    with pytest.raises(DeviceRefused, match="PULSES_PLANNED"):
+        PassAssembler(descriptor(PULSES_PLANNED=10**9), RADAR_OK, Limits())
+    with pytest.raises(DeviceRefused, match="SAMPLES_PER_PULSE"):
+        PassAssembler(descriptor(SAMPLES_PER_PULSE=60000), RADAR_OK, Limits())
+    with pytest.raises(DeviceRefused, match="MiB"):
+        PassAssembler(descriptor(PULSES_PLANNED=90_000, SAMPLES_PER_PULSE=4000), {**RADAR_OK, "WINDOW_REGS": 60000},
+                      Limits())
+
+
+def test_gaps_repeats_and_extra_pulses_make_the_pass_incomplete():
+    iq = np.zeros((1, 2, 2), dtype=np.int16)
+
+    def add(asm, seq, flags=0, t=None):
+        asm.add(np.array([seq]), np.array([t if t is not None else seq * 0.05]), np.array([seq * 0.01]),
+                np.array([flags]), iq)
+
+    asm = PassAssembler(descriptor(), RADAR_OK, Limits())
+    add(asm, 10, R.RecordFlag.FIRST)
+    with pytest.raises(PassIncomplete, match="lost: seq 11-11"):
+        add(asm, 12)
+    with pytest.raises(PassIncomplete, match="repeated"):
+        add(asm, 10, R.RecordFlag.FIRST)
+    add(asm, 11)
+    add(asm, 12, R.RecordFlag.LAST)
+    with pytest.raises(PassIncomplete):
+        add(asm, 13)
+    asm.finish(descriptor())
+    with pytest.raises(PassIncomplete, match="overflow"):
+        asm.finish(descriptor(OVERFLOW_COUNT=2))
+    with pytest.raises(PassIncomplete, match="HEIGHT changed"):
+        asm.finish(descriptor(HEIGHT=0.3))
+
+
+# ============================================================================================== settings
+
+
+def test_settings_come_from_the_acquire_table_and_flags_override_them(tmp_path):
+    cfg = tmp_path / "site.toml"
+    cfg.write_text('[acquire]\nhost = "127.0.0.1"\nport = 5020\nheights_m = [0.2, 0.6]\ncycles = 3\n')
+    s = load_settings(cfg, cycles=5)
+    assert (s.port, s.heights_m, s.cycles) == (5020, (0.2, 0.6), 5)
+    cfg.write_text("[acquire]\nspeed = 3\n")
+    with pytest.raises(ConfigError, match=r"site.toml: \[acquire\] speed: unknown setting"):
+        load_settings(cfg)
+    cfg.write_text('[acquire]\nheights_m = [0.2, 0.2]\n')
+    with pytest.raises(ConfigError, match="heights"):
+        load_settings(cfg)
+
+
+# ============================================================================================== over loopback
+
+
+def test_happy_path_two_cycles_two_heights_archived_whole(tmp_path):
+    with RigServer(RigController(FAST_DEVICE), LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, cycles=2))
+    assert report.ok and not report.passes_incomplete and report.faults.total() == 0
+    assert len(report.passes_written) == 4 and len(report.cycles_complete) == 2
+    assert_archives_match_device(report, server)
+    scans = [archive.read_pass(p) for p in report.passes_written]
+    assert {s.geometry.height_m for s in scans} == {0.15, 0.30}
+    assert all(s.geometry.rotation_table_angle_deg == 30.0 for s in scans)
+    first = scans[0]
+    assert first.rig_id == "sim-rig" and first.pass_start_time.endswith("Z")
+    assert first.geometry.reference_point_m == pytest.approx((2.4 * math.tan(math.radians(30)), -2.4, 0.3))
+
+
+EXPECTED_COUNTER = {"drop": "disconnects", "missing": "no_reply", "exception": "exceptions", "corrupt": "corrupt",
+                    "reboot": "reboots", "slow": None, "overflow": None}
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_each_fault_kind_is_survived_and_nothing_incomplete_is_written(kind, tmp_path):
+    plan = parse_faults(f"every=11,kinds={kind},limit=3,slow_s=0.05")
+    with RigServer(RigController(FAST_DEVICE), LOOPBACK, 0, faults=plan) as server:
+        report = run_session(settings_for(server, tmp_path, cycles=1))
+        injected = server.faults.counts()[kind]
+    assert injected >= 1
+    assert report.ok and len(report.passes_written) == 2, report
+    assert_archives_match_device(report, server)
+    if EXPECTED_COUNTER[kind]:
+        assert getattr(report.faults, EXPECTED_COUNTER[kind]) >= 1
+    if kind in ("reboot", "overflow"):  # these always cost the pass: it is marked incomplete and run again
+        assert len(report.passes_incomplete) >= 1
+
+
+def test_a_reply_slower_than_the_timeout_counts_as_lost_and_is_recovered(tmp_path):
+    plan = parse_faults("every=11,kinds=slow,limit=2,slow_s=0.5")
+    with RigServer(RigController(FAST_DEVICE), LOOPBACK, 0, faults=plan) as server:
+        report = run_session(settings_for(server, tmp_path, cycles=1, timeout_s=0.2))
+    assert report.ok and len(report.passes_written) == 2 and report.faults.no_reply >= 1
+    assert_archives_match_device(report, server)
+
+
+def test_live_processing_publishes_retreat_and_creep_in_the_result_registers(tmp_path):
+    from pymodbus.client import ModbusTcpClient
+
+    from uwbcl.acquisition.live import LiveProcessor, processing_settings
+
+    # The second cycle signal comes as soon as the first cycle's two passes are done, however loaded the machine.
+    device = RigController(DeviceConfig(time_scale=80.0, first_cycle_after_s=30.0, cycle_interval_s=1e9))
+    processor = LiveProcessor(processing_settings("numpy", device.campaign.nominal_web_m))
+    with RigServer(device, LOOPBACK, 0) as server:
+        threading.Thread(target=signal_cycle_after_passes, args=(server, 2), daemon=True).start()
+        report = run_session(settings_for(server, tmp_path, cycles=2, timeout_s=1.0), timeout_s=60.0,
+                             processor=processor)
+        client = ModbusTcpClient(LOOPBACK, port=server.port, timeout=1.0)
+        regs = client.read_holding_registers(R.RESULT.address, count=R.RESULT.length, device_id=1).registers
+        client.close()
+    result = R.RESULT.decode(regs)
+    assert result["RESULT_SEQ"] == 1 and result["STATUS"] == R.ResultStatus.OK, report
+    k, k0 = device.cycle_index(result["CYCLE"]), device.cycle_index(result["PREVIOUS_CYCLE"])
+    truth = device.campaign.rig_position_m(k) - device.campaign.rig_position_m(k0)
+    assert result["RETREAT"] == pytest.approx(truth[0], abs=0.005)
+    assert result["CREEP"] == pytest.approx(truth[1], abs=0.005)
+    assert (tmp_path / "acquire-results.csv").read_text().count("\n") == 3  # header + 2 cycles
+    assert report.ok
+
+
+def test_sigint_mid_pass_stops_cleanly_without_a_partial_archive(tmp_path):
+    slow = dataclasses.replace(FAST_DEVICE, time_scale=2.0, first_cycle_after_s=1e6)  # a pass lasts 1.5 s
+    with RigServer(RigController(slow), LOOPBACK, 0) as server:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "uwbcl.cli", "acquire", "--host", LOOPBACK, "--port", str(server.port),
+             "--out", str(tmp_path), "--cycles", "3", "--timeout", "0.5"],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        try:
+            deadline = time.monotonic() + 30.0
+            while server.faults.requests < 3 and time.monotonic() < deadline:  # the client is waiting
+                time.sleep(0.02)
+            with server.lock:
+                server.controller.signal_cycle_now(server.now())
+            while time.monotonic() < deadline:  # wait for the second pass to be under way
+                snap = server.snapshot()
+                if len(snap["completed_passes"]) >= 1 and snap["state"] == R.State.SCANNING:
+                    break
+                time.sleep(0.02)
+            else:
+                pytest.fail("the pass never started")
+            proc.send_signal(signal.SIGINT)
+            done_at_signal = len(snap["completed_passes"])
+            output, _ = proc.communicate(timeout=20.0)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == 0, output
+    assert "stopped on request" in output
+    files = [p for p in tmp_path.rglob("*") if p.is_file()]
+    assert files and all(not p.name.startswith(".") for p in files), files
+    for p in files:
+        archive.read_pass(p)  # every file there is whole
+    assert len(files) == done_at_signal  # the pass under way when the signal came was not written
+
+
+def test_simulate_device_and_acquire_work_from_the_command_line(tmp_path):
+    dev = subprocess.Popen(
+        [sys.executable, "-m", "uwbcl.cli", "simulate-device", "--port", "0", "--time-scale", "50",
+         "--first-cycle-after", "100", "--cycle-interval", "50", "--range-samples", "32"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        line = dev.stdout.readline()
+        port = int(re.search(r"listening on 127\.0\.0\.1:(\d+)", line).group(1))
+        acq = subprocess.run(
+            [sys.executable, "-m", "uwbcl.cli", "acquire", "--host", LOOPBACK, "--port", str(port), "--out",
+             str(tmp_path), "--cycles", "1", "--heights", "0.15,0.3"],
+            capture_output=True, text=True, timeout=60, check=False)
+    finally:
+        dev.send_signal(signal.SIGTERM)
+        tail, _ = dev.communicate(timeout=10)
+    assert acq.returncode == 0, acq.stdout + acq.stderr
+    assert "2 passes written" in acq.stdout
+    assert len(archive.find_pass_files(tmp_path)) == 2
+    assert "stopped after" in tail
