@@ -1,14 +1,16 @@
 /* Azimuth stages of the modified NLCS chain (paper eqs. 12-17). Every phase function is evaluated from a
- * few scalars per range bin; work item (j, row): range bin j, azimuth sample (time or frequency) row. */
+ * few scalars per range bin; work item (j, row): range bin j, azimuth sample (time or frequency) row.
+ * Written for cplx_t (common.cl): float2 in the main program, double2 in the program that computes the
+ * exact-reference spectra (-DUWBCL_COMPLEX_DOUBLE). */
 
 /* H5 (eq. 13) and H6, the NLCS filter (eq. 15): exp(-j pi eta1 f_a) exp(j pi (Y3 f_a^3 + Y4 f_a^4)). */
-__kernel void nlcs_filter(__global float2 *restrict s, __global const real_t *restrict eta1, __global const real_t *restrict y3,
+__kernel void nlcs_filter(__global cplx_t *restrict s, __global const real_t *restrict eta1, __global const real_t *restrict y3,
                           __global const real_t *restrict y4, const int n_range, const int n_azimuth,
                           const real_t azimuth_df_hz) {
     const int j = get_global_id(0), row = get_global_id(1);
     if (j >= n_range) return;
-    const float2 v = s[row * n_range + j];
-    if (v.x == 0.0f && v.y == 0.0f) return;  /* outside the Doppler band (most of the padded spectrum) */
+    const cplx_t v = s[row * n_range + j];
+    if (v.x == 0 && v.y == 0) return;  /* outside the Doppler band (most of the padded spectrum) */
     const real_t f = signed_index(row, n_azimuth) * azimuth_df_hz;
     const real_t f2 = f * f;
     const real_t phase = UWBCL_PI * (-eta1[j] * f + f2 * f * (y3[j] + y4[j] * f));
@@ -16,7 +18,7 @@ __kernel void nlcs_filter(__global float2 *restrict s, __global const real_t *re
 }
 
 /* H7, the nonlinear chirp scaling function (eq. 15): exp(j pi (q2 t^2 + q3 t^3 + q4 t^4)), absolute t_a. */
-__kernel void nlcs_scaling(__global float2 *restrict s, __global const real_t *restrict q2, __global const real_t *restrict q3,
+__kernel void nlcs_scaling(__global cplx_t *restrict s, __global const real_t *restrict q2, __global const real_t *restrict q3,
                            __global const real_t *restrict q4, const int n_range, const int n_azimuth,
                            const real_t azimuth_dt_s) {
     const int j = get_global_id(0), row = get_global_id(1);
@@ -30,7 +32,7 @@ __kernel void nlcs_scaling(__global float2 *restrict s, __global const real_t *r
  * outside; `poly` holds degree + 1 ascending coefficients per bin. The band is given as signed frequency
  * indices [band_first, band_last] (decided on the host, so band edges that fall on a grid frequency are
  * treated exactly as the reference treats them). */
-__kernel void azimuth_compression(__global float2 *restrict s, __global const real_t *restrict poly, const int n_coeff,
+__kernel void azimuth_compression(__global cplx_t *restrict s, __global const real_t *restrict poly, const int n_coeff,
                                   __global const int *restrict band_first, __global const int *restrict band_last,
                                   const int n_range, const int n_azimuth, const real_t azimuth_df_hz,
                                   const real_t f_scale_hz) {
@@ -40,7 +42,7 @@ __kernel void azimuth_compression(__global float2 *restrict s, __global const re
     const int i = signed_index(row, n_azimuth);
     const real_t f = i * azimuth_df_hz;
     if (i < band_first[j] || i > band_last[j]) {
-        s[idx] = (float2)(0.0f, 0.0f);
+        s[idx] = (cplx_t)(0, 0);
         return;
     }
     const real_t u = f / f_scale_hz;
@@ -54,7 +56,7 @@ __kernel void azimuth_compression(__global float2 *restrict s, __global const re
  * through the whole beam (notes 7b): w(t) exp{-j 4 pi / lambda [R(t) + v s_q t]}. The exact-reference
  * azimuth compression is matched to it after H6 and H7. Two-way main-lobe beam sinc^2(D sin(psi - theta)
  * / lambda) about the slant squint theta. */
-__kernel void reference_point_response(__global float2 *restrict out, __global const real_t *restrict r_bin_m,
+__kernel void reference_point_response(__global cplx_t *restrict out, __global const real_t *restrict r_bin_m,
                                        const int n_range, const int n_azimuth, const real_t azimuth_dt_s,
                                        const real_t speed_m_s, const real_t sin_squint,
                                        const real_t wavelength_m, const real_t aperture_m) {
@@ -67,11 +69,11 @@ __kernel void reference_point_response(__global float2 *restrict out, __global c
     const real_t cos_look = sqrt(fmax(1.0 - sin_look * sin_look, 0.0));
     const real_t cos_squint = sqrt(1.0 - sin_squint * sin_squint);
     const real_t u = aperture_m * (sin_look * cos_squint - cos_look * sin_squint) / wavelength_m;
-    float beam = 0.0f;
+    cplx_real_t beam = 0;
     if (fabs(u) < 1.0) {
         const real_t x = UWBCL_PI * u;
         const real_t sinc = x == 0 ? 1.0 : sin(x) / x;
-        beam = (float)(sinc * sinc);
+        beam = (cplx_real_t)(sinc * sinc);
     }
     out[row * n_range + j] = beam * cis(-2.0 * UWBCL_TWO_PI / wavelength_m * (rng + speed_m_s * sin_squint * t));
 }

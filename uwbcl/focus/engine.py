@@ -4,7 +4,9 @@ One `FocusEngine` owns the context, the queue, the compiled program, the FFT pla
 reused across passes (buffers and plans are kept per shape, so a batch of same-sized passes allocates once).
 Coefficients are computed on the host (`coefficients.py`, a few scalars per range bin); every phase function is
 evaluated in the kernels from them (`kernels/*.cl`). Data are complex64 on the device; phase arguments are
-evaluated in float64 where the device has fp64 (docs/opencl.md, error budget). FFTs are VkFFT through pyvkfft.
+evaluated in float64 where the device has fp64 (docs/opencl.md, error budget). With fp64, the reference spectra of
+the exact-reference H8 are computed in complex128 by a second build of azimuth.cl (their band edges come from a
+hard magnitude threshold that float32 rounding can flip). FFTs are VkFFT through pyvkfft.
 
 Azimuth arrays live on the device in FFT (natural) order; the numpy reference keeps them centred. The engine
 converts at the edges only (writing the resampled track in natural order, fftshift of the read-back image).
@@ -13,6 +15,7 @@ converts at the edges only (writing the resampled track in natural order, fftshi
 from __future__ import annotations
 
 import time
+import warnings
 
 import numpy as np
 
@@ -23,6 +26,7 @@ from . import coefficients as coef
 from . import nlcs
 
 PROGRAM_FILES = ("common.cl", "range.cl", "azimuth.cl", "backprojection.cl")
+DOUBLE_PROGRAM_FILES = ("common.cl", "azimuth.cl")  # built with -DUWBCL_COMPLEX_DOUBLE: double2 azimuth kernels
 
 
 class FocusEngine:
@@ -52,9 +56,25 @@ class FocusEngine:
         source = opencl.kernel_source(*PROGRAM_FILES)
         self.program = cl.Program(self.context, source).build(options=options)
         self.kernels = {k.function_name: k for k in self.program.all_kernels()}  # fetched once
+        self._kernels_by_dtype = {np.dtype(np.complex64): self.kernels}
+        # The exact-reference spectra X_ref in complex128 where the device has fp64, complex64 otherwise.
+        self.reference_dtype = np.dtype(np.complex128 if self.fp64_phase else np.complex64)
+        if self.fp64_phase:
+            double_source = opencl.kernel_source(*DOUBLE_PROGRAM_FILES)
+            program = cl.Program(self.context, double_source).build(options=options + ["-DUWBCL_COMPLEX_DOUBLE"])
+            self._kernels_by_dtype[np.dtype(np.complex128)] = {k.function_name: k for k in program.all_kernels()}
         self._plans: dict = {}
         self._buffers: dict = {}
-        self._self_test_fft()
+        failure = self._fft_self_test_failure(np.complex64, 1e-5, axes=(0, 1))
+        if failure:
+            raise opencl.OpenClUnavailable(f"{failure}; this OpenCL runtime miscompiles it, use --backend numpy")
+        # complex128 is used along azimuth only (the reference spectra)
+        failure = self.fp64_phase and self._fft_self_test_failure(np.complex128, 1e-12, axes=(0,))
+        if failure:
+            warnings.warn(f"{failure}; the exact-reference H8 falls back to complex64 reference spectra, whose band "
+                          "edges can differ from the numpy reference by one sample (docs/opencl.md, precision)",
+                          RuntimeWarning, stacklevel=2)
+            self.reference_dtype = np.dtype(np.complex64)
         self.startup_s = time.perf_counter() - t0
 
     # ------------------------------------------------------------------------------------------ plumbing
@@ -83,16 +103,18 @@ class FocusEngine:
         return self.to_device(name, np.asarray(values, dtype=float), self.real)
 
     def fft(self, arr, axis: int, inverse: bool = False) -> None:
-        """In-place complex FFT along one axis; the inverse is normalised by 1/N like numpy."""
-        key = (arr.shape, axis)
+        """In-place complex FFT along one axis (complex64 or complex128); the inverse is normalised by 1/N like
+        numpy."""
+        key = (arr.shape, axis, arr.dtype)
         app = self._plans.get(key)
         if app is None:
-            app = self._plans[key] = self._vkfft_app(arr.shape, np.complex64, self.queue, ndim=1, axes=(axis,),
+            app = self._plans[key] = self._vkfft_app(arr.shape, arr.dtype, self.queue, ndim=1, axes=(axis,),
                                                      inplace=True, norm=1)
         (app.ifft if inverse else app.fft)(arr, arr)
 
-    def _run(self, name: str, rows: int, cols: int, *args) -> None:
-        """Launch kernel `name` on a (cols, rows) grid; Python ints become int32, floats the phase precision."""
+    def _run(self, name: str, rows: int, cols: int, *args, dtype=np.complex64) -> None:
+        """Launch kernel `name` on a (cols, rows) grid; Python ints become int32, floats the phase precision.
+        `dtype` picks the build for complex64 data (every kernel) or complex128 (the azimuth.cl kernels)."""
         conv = []
         for a in args:
             if isinstance(a, bool):
@@ -103,25 +125,28 @@ class FocusEngine:
                 conv.append(self.real(a))
             else:
                 conv.append(a.data if hasattr(a, "data") and not isinstance(a, np.ndarray) else a)
-        self.kernels[name](self.queue, (cols, rows), None, *conv)
+        self._kernels_by_dtype[np.dtype(dtype)][name](self.queue, (cols, rows), None, *conv)
 
-    def _self_test_fft(self) -> None:
-        """VkFFT is miscompiled by some OpenCL runtimes (e.g. PoCL 7.0-7.1): check it once against numpy."""
+    def _fft_self_test_failure(self, dtype, tol: float, axes: tuple[int, ...]) -> str:
+        """VkFFT is miscompiled by some OpenCL runtimes (e.g. PoCL 7.0-7.1): check it once against numpy.
+        Returns what failed, or "" when the forward and inverse transforms agree to `tol`."""
         rng = np.random.default_rng(0)
-        x = (rng.standard_normal((64, 48)) + 1j * rng.standard_normal((64, 48))).astype(np.complex64)
-        for axis in (0, 1):
+        x = (rng.standard_normal((64, 48)) + 1j * rng.standard_normal((64, 48))).astype(dtype)
+        failure = ""
+        for axis in axes:
             d = self.to_device("selftest", x)
             self.fft(d, axis)
             ref = np.fft.fft(x.astype(np.complex128), axis=axis)
             err = np.linalg.norm(d.get() - ref) / np.linalg.norm(ref)
             self.fft(d, axis, inverse=True)
             err_inv = np.linalg.norm(d.get() - x) / np.linalg.norm(x)
-            if not (err < 1e-5 and err_inv < 1e-5):
-                raise opencl.OpenClUnavailable(
-                    f"VkFFT self-test failed on {self.device.name.strip()} (axis {axis}: relative error "
-                    f"{err:.1e}/{err_inv:.1e}); this OpenCL runtime miscompiles it, use --backend numpy")
+            if not (err < tol and err_inv < tol):
+                failure = (f"VkFFT {np.dtype(dtype).name} self-test failed on {self.device.name.strip()} (axis {axis}: "
+                           f"relative error {err:.1e}/{err_inv:.1e})")
+                break
         self._plans.clear()
         self._buffers = {k: v for k, v in self._buffers.items() if k[0] != "selftest"}
+        return failure
 
     # ------------------------------------------------------------------------------------------ NLCS stages
     def range_walk_correction(self, s, x_rel_m: np.ndarray, grid: nlcs.FocusGrid) -> None:
@@ -152,12 +177,12 @@ class FocusEngine:
         eta1 = k.eta1 if with_h5 else np.zeros_like(k.eta1)
         self._run("nlcs_filter", grid.n_azimuth, grid.n_range, s, self.reals("eta1", eta1),
                   self.reals("y3", k.y3), self.reals("y4", k.y4), grid.n_range, grid.n_azimuth,
-                  1.0 / (grid.n_azimuth * grid.dt_s))
+                  1.0 / (grid.n_azimuth * grid.dt_s), dtype=s.dtype)
 
     def nlcs_scaling(self, s, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid) -> None:
         """H7 (eq. 15) in place on a range-time array."""
         self._run("nlcs_scaling", grid.n_azimuth, grid.n_range, s, self.reals("q2", k.q2), self.reals("q3", k.q3),
-                  self.reals("q4", k.q4), grid.n_range, grid.n_azimuth, grid.dt_s)
+                  self.reals("q4", k.q4), grid.n_range, grid.n_azimuth, grid.dt_s, dtype=s.dtype)
 
     def azimuth_compression(self, s, ac: nlcs.AzimuthCompression, grid: nlcs.FocusGrid) -> None:
         """H8 (eq. 17 [fix]) in place on a range-Doppler array."""
@@ -181,14 +206,18 @@ class FocusEngine:
     def exact_reference_azimuth_compression(self, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid,
                                             aperture_m: float, degree: int = 8) -> nlcs.AzimuthCompression:
         """As `nlcs.exact_reference_azimuth_compression`, with the reference spectra computed on the device."""
-        ref = self.buffer("reference", (grid.n_azimuth, grid.n_range))
+        return nlcs.fit_azimuth_compression(self.reference_spectra(k, grid, aperture_m), k, grid, degree)
+
+    def reference_spectra(self, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, aperture_m: float) -> np.ndarray:
+        """X_ref of every bin after H6/H7 (centred f_a), in `reference_dtype`: the fit picks its segment and band
+        with a hard threshold on |X_ref|, which float32 rounding can move by one sample (a 2e-3 image error)."""
+        ref = self.buffer("reference", (grid.n_azimuth, grid.n_range), self.reference_dtype)
         self._run("reference_point_response", grid.n_azimuth, grid.n_range, ref, self.reals("r_bins", k.r_m),
                   grid.n_range, grid.n_azimuth, grid.dt_s, grid.speed_m_s, grid.sin_squint, grid.wavelength_m,
-                  aperture_m)
+                  aperture_m, dtype=ref.dtype)
         self.fft(ref, 0)
         self.azimuth_nlcs_chain(ref, k, grid, with_h5=False)
-        x_ref = np.fft.fftshift(ref.get(), axes=0)
-        return nlcs.fit_azimuth_compression(x_ref, k, grid, degree)
+        return np.fft.fftshift(ref.get(), axes=0)
 
     def nlcs_focus(self, scan: ScanPass, *, ac_mode: str = "exact", grid: nlcs.FocusGrid | None = None,
                    compression: nlcs.AzimuthCompression | None = None) -> nlcs.NlcsProducts:
