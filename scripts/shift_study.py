@@ -79,20 +79,25 @@ def evaluate(out: Path, truth_csv: Path) -> dict:
     truth = {(r["rig_id"], int(r["cycle"])): np.array([float(r["rig_x_m"]), float(r["rig_y_m"]),
                                                        float(r["rig_z_m"])]) for r in read_csv(truth_csv)}
     rows = read_csv(out / "displacements.csv")
-    errs, ok = [], []
+    errs, ok, trusted = [], [], []
     cum_final = {}
+    origin: dict[tuple[str, int], int] = {}  # (rig, chain) -> the cycle its cumulative values count from
     for r in rows:
-        rig, c, c0 = r["rig_id"], int(r["cycle"]), int(r["from_cycle"])
+        rig, c, c0, chain = r["rig_id"], int(r["cycle"]), int(r["from_cycle"]), int(r["chain"])
         est = np.array([float(r["retreat_m"]), float(r["creep_m"]), float(r["vertical_m"])])
         true = truth[(rig, c)] - truth[(rig, c0)]
         errs.append(est - true)
         ok.append(r["status"] == "ok")
+        trusted.append(r["status"] in ("ok", "low_confidence"))
         cum = np.array([float(r["cumulative_retreat_m"]), float(r["cumulative_creep_m"])])
-        first = min(k[1] for k in truth if k[0] == rig)
+        if (rig, chain) not in origin:
+            origin[(rig, chain)] = min(k[1] for k in truth if k[0] == rig) if chain == 0 else c
         if np.all(np.isfinite(cum)):
-            cum_final[rig] = (c, cum - (truth[(rig, c)] - truth[(rig, first)])[:2])
+            start = origin[(rig, chain)]
+            cum_final[f"{rig} chain {chain}"] = (start, c, cum - (truth[(rig, c)] - truth[(rig, start)])[:2])
     errs = np.array(errs).reshape(-1, 3)
     ok = np.array(ok, dtype=bool)
+    trusted = np.array(trusted, dtype=bool)
     finite = np.all(np.isfinite(errs), axis=1)
 
     def rms(a):
@@ -104,12 +109,13 @@ def evaluate(out: Path, truth_csv: Path) -> dict:
     return {
         "rows": len(rows), "statuses": statuses,
         "rms_ok_mm": [1e3 * rms(errs[ok, a]) for a in range(3)],
+        "rms_trusted_mm": [1e3 * rms(errs[trusted, a]) for a in range(3)],
         "rms_all_finite_mm": [1e3 * rms(errs[finite, a]) for a in range(3)],
         "max_abs_ok_mm": [1e3 * float(np.max(np.abs(errs[ok, a]))) if ok.any() else math.nan for a in range(3)],
         "max_abs_flagged_mm": [1e3 * float(np.nanmax(np.abs(errs[~ok & finite, a])))
                                if (~ok & finite).any() else math.nan for a in range(3)],
         "unflagged_over_50mm": int(np.sum(ok & np.any(np.abs(errs[:, :2]) > 0.05, axis=1))),
-        "cumulative_drift_mm": {rig: (c, [round(1e3 * v, 2) for v in d]) for rig, (c, d) in cum_final.items()},
+        "cumulative_drift_mm": {k: (c0, c, [round(1e3 * v, 2) for v in d]) for k, (c0, c, d) in cum_final.items()},
     }
 
 
@@ -117,12 +123,13 @@ def print_eval(title: str, e: dict) -> None:
     print(f"\n== {title}: {e['rows']} displacements, statuses {e['statuses']}")
     f = lambda v: " / ".join(f"{x:.2f}" for x in v)
     print(f"  RMS error, status ok      (retreat / creep / vertical, mm): {f(e['rms_ok_mm'])}")
+    print(f"  RMS error, ok + low_conf. (retreat / creep / vertical, mm): {f(e['rms_trusted_mm'])}")
     print(f"  RMS error, every estimate (retreat / creep / vertical, mm): {f(e['rms_all_finite_mm'])}")
     print(f"  max |error|, status ok    (mm): {f(e['max_abs_ok_mm'])}")
     print(f"  max |error|, flagged      (mm): {f(e['max_abs_flagged_mm'])}")
     print(f"  unflagged rows with a retreat or creep error > 50 mm: {e['unflagged_over_50mm']}")
-    for rig, (c, d) in sorted(e["cumulative_drift_mm"].items()):
-        print(f"  {rig}: cumulative drift at cycle {c} (retreat, creep): {d[0]:+.2f}, {d[1]:+.2f} mm")
+    for rig, (c0, c, d) in sorted(e["cumulative_drift_mm"].items()):
+        print(f"  {rig}: cumulative drift over cycles {c0}-{c} (retreat, creep): {d[0]:+.2f}, {d[1]:+.2f} mm")
 
 
 def phase_clean(args, work: Path, archive_dir: Path) -> dict:
