@@ -108,7 +108,8 @@ class BatchReport:
     cycles: list[CycleResult]
     series: list[SeriesRow]
     n_passes: int
-    n_detected: int  # passes focused in this run (the rest came from the cache)
+    n_detected: int  # passes focused in this run
+    n_cached: int = 0  # passes whose detections came from the cache
 
 
 # ----------------------------------------------------------------------------------------------- per pass
@@ -497,8 +498,9 @@ def _run_pool(todo: list[tuple[Path, str, str]], settings: ProcessingSettings, j
 
 
 def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, cache: PassCache,
-               options: BatchOptions) -> tuple[list[PassRecord], list[Problem], int]:
-    """Records of every readable archive, from the cache or by focusing; problems of the others."""
+               options: BatchOptions) -> tuple[list[PassRecord], list[Problem], set[str]]:
+    """Records of every readable archive, from the cache or by focusing; problems of the others; the files
+    focused in this run."""
     records: list[PassRecord] = []
     problems: list[Problem] = []
     todo: list[tuple[Path, str, str]] = []
@@ -550,7 +552,7 @@ def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, ca
                                                 "memory)", "kind": "processing_failed"})
     finally:
         progress.close()
-    return records, problems, len(todo)
+    return records, problems, {rel for _, rel, _ in todo}
 
 
 def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings | None = None,
@@ -568,7 +570,8 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
     with _exclusive(out_dir):
         files = discover(in_dir, out_dir)
         cache = PassCache(out_dir, settings, options.cache)
-        records, problems, n_detected = detect_all(files, in_dir, settings, cache, options)
+        records, problems, focused = detect_all(files, in_dir, settings, cache, options)
+        n_detected = len(focused)
         groups, group_problems = group_cycles(records, options)
         problems += group_problems
         for p in group_problems:
@@ -588,4 +591,5 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
         problems.sort(key=lambda p: (p.file, p.kind, p.reason))
         rows = outputs.write_all(out_dir, rows_series, cycles, problems, out_opts, groups=groups, in_dir=in_dir,
                                  settings=settings)
-    return BatchReport(rows, problems, cycles, rows_series, len(files), n_detected)
+    n_cached = len(records) - sum(1 for r in records if r.file in focused)
+    return BatchReport(rows, problems, cycles, rows_series, len(files), n_detected, n_cached)

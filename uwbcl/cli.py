@@ -97,9 +97,9 @@ def _process(args: argparse.Namespace) -> int:
         print(f"uwbcl process: {exc}", file=sys.stderr)
         return 2
     flagged = sum(r["status"] != "ok" for r in report.rows)
-    print(f"{report.n_passes} passes ({report.n_detected} focused, {report.n_passes - report.n_detected} "
-          f"cached or unreadable), {len(report.cycles)} cycles located, {len(report.rows)} displacements "
-          f"({flagged} flagged) written to {Path(args.out)}")
+    print(f"{report.n_passes} passes ({report.n_detected} focused, {report.n_cached} from the cache), "
+          f"{len(report.cycles)} cycles located, {len(report.rows)} displacements ({flagged} flagged) "
+          f"written to {Path(args.out)}")
     if report.errors:
         print(f"{len(report.errors)} problems, see {Path(args.out) / 'errors.csv'}:", file=sys.stderr)
         for p in report.errors:
