@@ -332,6 +332,7 @@ class AcquisitionReport:
     cycles_complete: list[int] = dataclasses.field(default_factory=list)
     cycles_incomplete: list[int] = dataclasses.field(default_factory=list)
     cycles_missed: int = 0
+    max_backlog_pulses: int = 0  # most pulses waiting in the device buffer at a window read
     results: list[dict] = dataclasses.field(default_factory=list)
     faults: FaultCounts = dataclasses.field(default_factory=FaultCounts)
     interrupted: bool = False
@@ -578,6 +579,7 @@ class AcquisitionSession:
                 continue
             corrupt_in_a_row = 0
             now = time.monotonic()
+            self.report.max_backlog_pulses = max(self.report.max_backlog_pulses, head["NEWEST_SEQ"] - asm.last_seq)
             if n:
                 stale = asm.next_seq - head["OLDEST_SEQ"]
                 if stale > 0:  # our acknowledgement got lost on the way: these we already hold

@@ -334,7 +334,8 @@ class RigController:
 
     def _audit(self, p: _Pass) -> dict:
         """What a faithful archive of this pass must hold (scripts/acquisition_study.py checks every file)."""
-        return {"token": p.token, "cycle": p.cycle, "height_m": p.height_m, "n_pulses": len(p.times),
+        return {"token": p.token, "cycle": p.cycle, "k": p.k, "direction": p.direction, "angle_deg": p.angle_deg,
+                "height_m": p.height_m, "n_pulses": len(p.times),
                 "overflow": p.overflow, "scale": p.scale, "iq": p.iq,
                 "positions_um": np.rint(p.positions * 1e6).astype(np.int64),
                 "times_us": np.rint(p.times * 1e6).astype(np.int64)}
