@@ -66,7 +66,7 @@ def run_session(settings: AcquireSettings, timeout_s: float = 30.0, processor=No
 
 
 def settings_for(server: RigServer, out, **kw) -> AcquireSettings:
-    base = {"host": LOOPBACK, "port": server.port, "out": str(out), "cycles": 1, "timeout_s": 0.3,
+    base = {"host": LOOPBACK, "port": server.port, "out": str(out), "cycles": 1, "timeout_s": 0.5,
             "reconnect_max_s": 0.5, "stall_timeout_s": 5.0, "command_timeout_s": 10.0}
     base.update(kw)
     return AcquireSettings(**base)
@@ -325,7 +325,7 @@ def test_settings_come_from_the_acquire_table_and_flags_override_them(tmp_path):
 
 def test_happy_path_two_cycles_two_heights_archived_whole(tmp_path):
     with RigServer(RigController(FAST_DEVICE), LOOPBACK, 0) as server:
-        report = run_session(settings_for(server, tmp_path, cycles=2))
+        report = run_session(settings_for(server, tmp_path, cycles=2, timeout_s=2.0))
     assert report.ok and not report.passes_incomplete and report.faults.total() == 0
     assert len(report.passes_written) == 4 and len(report.cycles_complete) == 2
     assert_archives_match_device(report, server)
@@ -443,3 +443,30 @@ def test_simulate_device_and_acquire_work_from_the_command_line(tmp_path):
     assert "2 passes written" in acq.stdout
     assert len(archive.find_pass_files(tmp_path)) == 2
     assert "stopped after" in tail
+
+
+def test_a_cycle_the_face_moves_on_from_mid_scan_is_abandoned_and_the_new_one_scanned(tmp_path):
+    device = RigController(dataclasses.replace(FAST_DEVICE, cycle_interval_s=1e9))
+    with RigServer(device, LOOPBACK, 0) as server:
+        # the next push comes right after the first pass of the first cycle, between its two heights
+        threading.Thread(target=signal_cycle_after_passes, args=(server, 1), daemon=True).start()
+        report = run_session(settings_for(server, tmp_path, cycles=2))
+    first = FAST_DEVICE.initial_cycle + 1
+    assert report.cycles_incomplete == [first] and report.cycles_complete == [first + 1]
+    assert len(report.passes_written) == 3 and report.ok  # 1 of the abandoned cycle + 2 of the next
+    assert_archives_match_device(report, server)
+
+
+class _FutureMapController(RigController):
+    def input_low(self, now):
+        regs = super().input_low(now)
+        return R.IDENTITY.encode({**R.IDENTITY.decode(regs[:32]), "MAP_MAJOR": 2}) + regs[32:]
+
+
+def test_a_controller_with_an_unknown_map_version_or_out_of_range_heights_is_refused(tmp_path):
+    with RigServer(_FutureMapController(FAST_DEVICE), LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path), timeout_s=10.0)
+    assert "register map 2.0" in report.error and not report.ok and not report.passes_written
+    with RigServer(RigController(FAST_DEVICE), LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, heights_m=(0.15, 3.0)), timeout_s=10.0)
+    assert "MOVE_HEIGHT 3000000: outside the rig's range" in report.error and not report.ok

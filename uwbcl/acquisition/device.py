@@ -457,6 +457,15 @@ class RigController:
         self._window_cache = out
         return out
 
+    def meaningful(self, table: R.Table, address: int, count: int) -> int:
+        """How many registers from `address` on carry data a client checks (not the window's unused tail)."""
+        w0 = R.WINDOW_ADDRESS
+        if table is not R.Table.INPUT or address < w0 or self.pass_ is None:
+            return count
+        used = R.WINDOW_HEADER.length + min(len(self.buffer), self._window_capacity(self.pass_)) \
+            * self.pass_.records.shape[1]
+        return max(0, min(count, w0 + used - address))
+
     def read(self, now: float, table: R.Table, address: int, count: int) -> list[int]:
         self.advance(now)
         end = address + count
@@ -536,7 +545,7 @@ class RigServer:
         self._error: BaseException | None = None
         self._swallow = False
         self._corrupt = False
-        self._drop_on_reply = False
+        self._corrupt_span = 0
         self._exception_turn = 0
         self.requests_served = 0
         self._fault_rng = np.random.default_rng([self.faults.plan.seed, 99])
@@ -658,6 +667,8 @@ class RigServer:
             if fault == "corrupt":
                 self._corrupt = True
             table = R.Table.INPUT if func_code == 4 else R.Table.HOLDING
+            if self._corrupt and values is None:  # damage a register the client relies on, not unused window
+                self._corrupt_span = c.meaningful(table, address, count)
             try:
                 if values is not None:
                     c.write(now, address, list(values))
@@ -680,9 +691,10 @@ class RigServer:
         return data
 
     def _trace_pdu(self, sending: bool, pdu):
-        if sending and self._corrupt and getattr(pdu, "registers", None) and pdu.function_code in (3, 4):
+        if sending and self._corrupt and getattr(pdu, "registers", None) and pdu.function_code in (3, 4) \
+                and self._corrupt_span > 0:
             regs = list(pdu.registers)
-            i = int(self._fault_rng.integers(len(regs)))
+            i = int(self._fault_rng.integers(min(self._corrupt_span, len(regs))))
             regs[i] ^= 1 << int(self._fault_rng.integers(16))
             pdu.registers = regs
             self._corrupt = False
