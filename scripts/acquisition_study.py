@@ -29,7 +29,7 @@ import numpy as np
 
 from uwbcl import archive, pipeline
 from uwbcl.acquisition.client import AcquireSettings, AcquisitionSession
-from uwbcl.acquisition.device import DeviceConfig, RigController, RigServer
+from uwbcl.acquisition.device import DeviceConfig, LongwallFollower, RigController, RigServer
 from uwbcl.acquisition.faults import KINDS, parse_faults
 from uwbcl.acquisition.live import LiveProcessor, backend_available, processing_settings
 from uwbcl.acquisition.rig import WorldConfig
@@ -43,35 +43,25 @@ def finished_cycles(session: AcquisitionSession) -> int:
     return len(session.report.cycles_complete) + len(session.report.cycles_incomplete)
 
 
-class LongwallSignal(threading.Thread):
-    """The longwall control system of the study: the next cycle as soon as the rig has finished the last one
-    (once the client is listening), until `enough(session)`; then the session is stopped while it waits."""
-
-    def __init__(self, server: RigServer, session: AcquisitionSession, enough=None):
-        super().__init__(daemon=True)
-        self.server, self.session, self.enough, self.done = server, session, enough, threading.Event()
-
-    def run(self) -> None:
-        signalled = 0
-        while not self.done.is_set():
-            if self.enough is not None and self.enough(self.session):
-                self.session.stop.set()
-                return
-            if self.session.link.requests > 3 and finished_cycles(self.session) >= signalled:
-                with self.server.lock:
-                    self.server.controller.signal_cycle_now(self.server.now())
-                    self.server.controller.advance(self.server.now())
-                    signalled = self.server.controller.cycles_raised
-            time.sleep(0.05)
-
-
 def run_acquisition(server: RigServer, settings: AcquireSettings, processor=None, enough=None):
+    """The session against `server`, the next cycle signalled as soon as the last one is scanned; with
+    `enough(session)`, no more signals once it holds, and the session is stopped while it waits."""
     session = AcquisitionSession(settings, processor=processor)
-    signal = LongwallSignal(server, session, enough)
-    signal.start()
+
+    def cycles_done() -> int:  # -1: never again
+        return -1 if enough is not None and enough(session) else finished_cycles(session)
+
+    longwall = LongwallFollower(server, cycles_done, listening=lambda: session.link.requests > 3)
+    longwall.start()
+    if enough is not None:
+        def watch():
+            while not session.stop.wait(0.05):
+                if enough(session):
+                    session.stop.set()
+        threading.Thread(target=watch, daemon=True).start()
     t0, c0 = time.monotonic(), time.process_time()
     report = session.run()
-    signal.done.set()
+    longwall.done.set()
     return report, time.monotonic() - t0, time.process_time() - c0
 
 

@@ -470,3 +470,14 @@ def test_a_controller_with_an_unknown_map_version_or_out_of_range_heights_is_ref
     with RigServer(RigController(FAST_DEVICE), LOOPBACK, 0) as server:
         report = run_session(settings_for(server, tmp_path, heights_m=(0.15, 3.0)), timeout_s=10.0)
     assert "MOVE_HEIGHT 3000000: outside the rig's range" in report.error and not report.ok
+
+
+def test_the_demo_measures_retreat_and_creep_next_to_the_truth(tmp_path, capsys):
+    from uwbcl.cli import main
+
+    assert main(["demo", "--cycles", "2", "--out", str(tmp_path), "--backend", "numpy", "--time-scale", "40"]) == 0
+    out = capsys.readouterr().out
+    row = re.search(r"^\s+1002 \|\s+(\S+)\s+(\S+)\s+(\S+) \|\s+(\S+)\s+(\S+)\s+(\S+) \| ok$", out, re.M)
+    assert row, out
+    assert abs(float(row.group(3))) < 5.0 and abs(float(row.group(6))) < 5.0  # mm
+    assert len(archive.find_pass_files(tmp_path)) == 4 and (tmp_path / "truth.csv").exists()

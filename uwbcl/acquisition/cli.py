@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import logging
 import math
 import signal
@@ -141,14 +142,20 @@ def _simulate_device(args: argparse.Namespace) -> int:
     return 0
 
 
-def _install_stop_handlers(stop: threading.Event) -> None:
+@contextlib.contextmanager
+def _stop_on_signals(stop: threading.Event):
+    """SIGINT/SIGTERM set `stop` (the session finishes cleanly) while inside; the old handlers come back after."""
     def handler(signum, _frame):
         logging.getLogger("uwbcl.acquire").warning("%s received: finishing cleanly",
                                                   signal.Signals(signum).name)
         stop.set()
 
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, handler)
+    old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
 
 
 def _acquire(args: argparse.Namespace) -> int:
@@ -175,8 +182,8 @@ def _acquire(args: argparse.Namespace) -> int:
             return 2
         processor = LiveProcessor(proc_settings)
     stop = threading.Event()
-    _install_stop_handlers(stop)
-    report = AcquisitionSession(settings, stop=stop, processor=processor).run()
+    with _stop_on_signals(stop):
+        report = AcquisitionSession(settings, stop=stop, processor=processor).run()
     _print_summary(report, settings.out)
     return 0 if report.ok else 1
 
@@ -201,7 +208,7 @@ def _print_summary(report, out) -> None:
 
 def _demo(args: argparse.Namespace) -> int:
     from .client import AcquireSettings, AcquisitionSession
-    from .device import DeviceConfig, RigController, RigServer
+    from .device import DeviceConfig, LongwallFollower, RigController, RigServer
     from .faults import parse_faults
     from .live import LiveProcessor, backend_available, processing_settings
     from .rig import WorldConfig
@@ -212,8 +219,9 @@ def _demo(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="uwbcl-demo-"))
     t_start = time.monotonic()
     world = WorldConfig(scenario="paper-sim1", seed=args.seed, snr_db=args.snr_db, speed_jitter=0.05)
-    device = RigController(DeviceConfig(world=world, time_scale=args.time_scale, first_cycle_after_s=10.0,
-                                        cycle_interval_s=60.0, max_cycles=args.cycles + 1))
+    # The simulated longwall pushes as soon as the rig has scanned a cycle (not on a 45-minute clock).
+    device = RigController(DeviceConfig(world=world, time_scale=args.time_scale, first_cycle_after_s=1e9,
+                                        cycle_interval_s=1e9))
     proc = processing_settings(args.backend or "", device.campaign.nominal_web_m)
     reason = backend_available(proc)
     if reason and not args.backend:
@@ -228,15 +236,20 @@ def _demo(args: argparse.Namespace) -> int:
         print(f"uwbcl demo: {exc}", file=sys.stderr)
         return 2
     stop = threading.Event()
-    _install_stop_handlers(stop)
-    with RigServer(device, "127.0.0.1", 0, faults=plan) as server:
+    with _stop_on_signals(stop), RigServer(device, "127.0.0.1", 0, faults=plan) as server:
         print(f"simulated rig on 127.0.0.1:{server.port} (paper-sim1 plates along the roadway, SNR "
               f"{args.snr_db:g} dB, time x{args.time_scale:g}); acquiring {args.cycles} cycles at 0.15 and 0.30 m "
               f"with the {proc.backend} backend ...", flush=True)
         settings = AcquireSettings(host="127.0.0.1", port=server.port, out=str(out), cycles=args.cycles,
                                    heights_m=(0.15, 0.30), rotation_table_angle_deg=30.0, rib_distance_m=2.4,
                                    reference_height_m=0.3, timeout_s=1.0, process=True)
-        report = AcquisitionSession(settings, stop=stop, processor=LiveProcessor(proc)).run()
+        session = AcquisitionSession(settings, stop=stop, processor=LiveProcessor(proc, max_pending=args.cycles))
+        longwall = LongwallFollower(
+            server, lambda: len(session.report.cycles_complete) + len(session.report.cycles_incomplete),
+            listening=lambda: session.link.requests > 3)
+        longwall.start()
+        report = session.run()
+        longwall.done.set()
     truth_rows = _write_truth(out, device, report)
     _print_table(truth_rows)
     _print_summary(report, out)

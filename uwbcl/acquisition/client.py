@@ -317,7 +317,7 @@ class _NoReply(Exception):
     pass
 
 
-class _Corrupt(Exception):
+class _Corrupt(R.RegisterError):
     pass
 
 
@@ -379,9 +379,12 @@ class AcquisitionSession:
         except (LinkDown, DeviceRefused) as exc:
             self.report.error = str(exc)
             log.error("acquisition stopped: %s", exc)
+        except Exception as exc:  # a defect: stop with a clear line, not a traceback in the service log only
+            self.report.error = f"{type(exc).__name__}: {exc}"
+            log.exception("acquisition stopped by an unexpected error")
         finally:
             if self.processor is not None:
-                self.processor.close()
+                self.processor.close(5.0 if self.report.interrupted else 60.0)
                 self._publish_results(final=True)
             self.link.close()
         return self.report
@@ -504,6 +507,10 @@ class AcquisitionSession:
                 except FileExistsError as exc:
                     self.report.passes_failed.append(f"{name}: {exc.filename} already exists, not overwritten")
                     log.error("pass %s: %s already exists; not overwritten", name, exc.filename)
+                    break
+                except OSError as exc:  # disk full, permissions: the pass is lost to us, the service goes on
+                    self.report.passes_failed.append(f"{name}: cannot write the archive: {exc}")
+                    log.error("pass %s: cannot write the archive: %s", name, exc)
                     break
                 self.report.passes_written.append(str(path))
                 passes.append(scan)

@@ -121,7 +121,8 @@ class RigController:
         self.height_m = 0.15
         self.angle_deg = 0.0
         self.carriage_m = -self.campaign.rail_half_travel_m
-        self.completed_passes: list[dict] = []  # what each complete pass held, for the study's audit
+        # What the last complete passes held, for the audit of tests and the study (bounded: a long run).
+        self.completed_passes: collections.deque[dict] = collections.deque(maxlen=200)
         self._boot(0.0)
 
     # ------------------------------------------------------------------------------------------ lifecycle
@@ -711,3 +712,25 @@ class RigServer:
             return {"now": now, "cycle_counter": c.cycle_counter, "boots": c.boots, "state": c.state(now),
                     "buffer": len(c.buffer), "faults": self.faults.counts(), "requests": self.faults.requests,
                     "completed_passes": list(c.completed_passes), "cycle_log": list(c.cycle_log)}
+
+
+class LongwallFollower(threading.Thread):
+    """A longwall control system that pushes as soon as the rig is done: raises the next cycle signal each time
+    `cycles_done()` reaches the number of signals raised, once `listening()` is true. For the demo and the study,
+    which own both ends and should not wait out a fixed interval (or lose cycles to one) when faults slow a scan.
+    """
+
+    def __init__(self, server: RigServer, cycles_done, listening=lambda: True, period_s: float = 0.05):
+        super().__init__(name="uwbcl-longwall", daemon=True)
+        self.server, self.cycles_done, self.listening, self.period_s = server, cycles_done, listening, period_s
+        self.done = threading.Event()
+
+    def run(self) -> None:
+        while not self.done.wait(self.period_s):
+            if not self.listening():
+                continue
+            with self.server.lock:
+                c = self.server.controller
+                if self.cycles_done() >= c.cycles_raised:
+                    c.signal_cycle_now(self.server.now())
+                    c.advance(self.server.now())

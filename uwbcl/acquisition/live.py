@@ -59,7 +59,7 @@ _STATUS = {"ok": R.ResultStatus.OK, "ambiguous": R.ResultStatus.AMBIGUOUS,
 
 
 class LiveProcessor:
-    def __init__(self, settings: pipeline.ProcessingSettings, rig_id: str = "", max_pending: int = 2):
+    def __init__(self, settings: pipeline.ProcessingSettings, rig_id: str = "", max_pending: int = 8):
         self.settings = settings
         self.rig_id = rig_id
         self.results: queue.Queue = queue.Queue()
