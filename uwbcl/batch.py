@@ -24,7 +24,6 @@ import math
 import multiprocessing
 import os
 import sys
-import tempfile
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -33,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__, archive, locate, pipeline
+from .atomic import FILE_MODE, write_bytes_atomic, write_text_atomic  # noqa: F401
 from .detect import Detection
 from .displacement import (
     TRUSTED_STATUSES,
@@ -216,35 +216,6 @@ class PassCache:
         # JSON floats round-trip float64 exactly, so a cached pass gives bit-identical results downstream.
         write_text_atomic(self.dir / f"{sha}.json",
                           json.dumps({"cache_version": CACHE_VERSION, "sha256": sha, **entry}, sort_keys=True))
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    write_bytes_atomic(path, text.encode())
-
-
-def _umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-FILE_MODE = 0o666 & ~_umask()  # what open() would give; mkstemp's 0600 would hide outputs from other users
-
-
-def write_bytes_atomic(path: Path, data: bytes) -> None:
-    """Write next to the final name, fsync, rename: a reader (or a restarted run) never sees half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
-    os.fchmod(fd, FILE_MODE)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 # ----------------------------------------------------------------------------------------------- progress

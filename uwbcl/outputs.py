@@ -6,7 +6,6 @@ errors.csv: every problem; plots/ (on request): time series per rig and focused 
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import io
 import logging
@@ -17,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__, archive
-from .batch import FILE_MODE, Problem, SeriesRow, write_bytes_atomic
+from .atomic import FILE_MODE, csv_bytes, write_bytes_atomic
+from .batch import Problem, SeriesRow
 from .displacement import TRUSTED_STATUSES
 from .pipeline import CycleResult
 
@@ -100,14 +100,6 @@ def target_records(rows: list[SeriesRow], cycles: list[CycleResult]) -> list[dic
                 "x_first_m": float(first[0]), "y_first_m": float(first[1]), "z_first_m": float(first[2]),
             })
     return out
-
-
-def csv_bytes(columns, rows) -> bytes:
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=list(columns), lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    return buf.getvalue().encode()
 
 
 def _unit(name: str) -> str:

@@ -5,18 +5,15 @@ Data flows one way: archive I/O -> focusing -> detection -> 3-D location -> disp
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import logging
-import os
-import tempfile
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 
 from . import detect
+from .atomic import write_csv_atomic  # noqa: F401  (re-exported: pipeline.write_csv_atomic)
 from .displacement import AssociationSettings, Displacement, estimate_advance
 from .focus import backprojection, nlcs
 from .locate import Located, locate_plates
@@ -114,26 +111,6 @@ def displacement_rows(results: list[tuple[CycleResult, Displacement]]) -> list[d
             "vertical_spread_m": f"{d.spread_m[2]:.6f}", "status": d.status,
         })
     return rows
-
-
-def write_csv_atomic(path: Path, columns, rows) -> None:
-    """Write a CSV next to its final name and rename it into place: never a half-written output."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=list(columns), lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            f.write(buf.getvalue())
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings = ProcessingSettings(),

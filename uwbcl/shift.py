@@ -23,10 +23,8 @@ call with `first_cycle` appends the next shift to an archive tree without changi
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import datetime as dt
-import io
 import math
 from collections.abc import Iterator
 
@@ -34,6 +32,7 @@ import numpy as np
 
 from . import geometry as geo
 from .model import SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters, ScanPass
+from .atomic import csv_text, write_text_atomic
 from .simulate import rail_motion, simulate_echo
 
 SHIFT_START = dt.datetime(2026, 11, 2, 6, 0, tzinfo=dt.timezone.utc)
@@ -293,14 +292,6 @@ def plate_rows(cfg: ShiftConfig) -> list[dict]:
     return rows
 
 
-def csv_text(columns, rows) -> str:
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(columns), lineterminator="\n")
-    w.writeheader()
-    w.writerows(rows)
-    return buf.getvalue()
-
-
 def write_shift(out_dir, cfg: ShiftConfig, *, overwrite: bool = False, created_by: str = "uwbcl simulate"
                 ) -> list[str]:
     """Archive every pass of `cfg` under out_dir (archive.default_relative_path) plus truth.csv and
@@ -308,7 +299,6 @@ def write_shift(out_dir, cfg: ShiftConfig, *, overwrite: bool = False, created_b
     from pathlib import Path
 
     from . import archive
-    from .batch import write_text_atomic
 
     out = Path(out_dir)
     written = []
