@@ -477,7 +477,20 @@ def test_the_demo_measures_retreat_and_creep_next_to_the_truth(tmp_path, capsys)
 
     assert main(["demo", "--cycles", "2", "--out", str(tmp_path), "--backend", "numpy", "--time-scale", "40"]) == 0
     out = capsys.readouterr().out
-    row = re.search(r"^\s+1002 \|\s+(\S+)\s+(\S+)\s+(\S+) \|\s+(\S+)\s+(\S+)\s+(\S+) \| ok$", out, re.M)
+    row = re.search(r"^\s+1002 \|\s+(\S+)\s+(\S+)\s+(\S+) \|\s+(\S+)\s+(\S+)\s+(\S+) \| ok$", out, re.MULTILINE)
     assert row, out
     assert abs(float(row.group(3))) < 5.0 and abs(float(row.group(6))) < 5.0  # mm
     assert len(archive.find_pass_files(tmp_path)) == 4 and (tmp_path / "truth.csv").exists()
+
+
+class _FrozenHeartbeatController(RigController):
+    def input_low(self, now):
+        regs = super().input_low(now)
+        return regs[:32] + R.STATUS.encode({**R.STATUS.decode(regs[32:64]), "HEARTBEAT": 7}) + regs[64:]
+
+
+def test_a_frozen_heartbeat_is_logged_as_a_fault_and_the_link_renewed(tmp_path):
+    with RigServer(_FrozenHeartbeatController(FAST_DEVICE), LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, heartbeat_timeout_s=0.2))
+    assert report.faults.stalls >= 1 and report.faults.reconnects >= 1
+    assert report.ok and len(report.passes_written) == 2
