@@ -62,7 +62,7 @@ import scipy.fft
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from uwbcl import archive, detect, pipeline, simulate
+from uwbcl import archive, detect, opencl, pipeline, simulate
 from uwbcl.focus import nlcs
 from uwbcl.focus.scipy32 import nlcs_focus_scipy32
 from uwbcl.model import PassGeometry, RadarParameters, ScanPass
@@ -267,7 +267,7 @@ def header(engine, engine_error: str | None, fresh_cache: str | None) -> dict:
         dev = engine.device
         info["opencl"] = {
             "device": dev.name.strip(), "platform": dev.platform.name.strip(),
-            "kind": engine._cl.device_type.to_string(dev.type), "compute_units": dev.max_compute_units,
+            "kind": opencl.device_kind(engine._cl, dev.type), "compute_units": dev.max_compute_units,
             "global_memory_gib": dev.global_mem_size / 2**30, "fp64_phase": engine.fp64_phase,
             "cold_start_s": engine.startup_s,
         }

@@ -67,7 +67,8 @@ class DeviceInfo:
     fp64: bool
 
 
-def _kind(cl, device_type: int) -> str:
+def device_kind(cl, device_type: int) -> str:
+    """GPU, ACCELERATOR or CPU (PoCL reports CPU|DEFAULT, which to_string prints as 'ALL | CPU')."""
     for flag, name in ((cl.device_type.GPU, "GPU"), (cl.device_type.ACCELERATOR, "ACCELERATOR"),
                        (cl.device_type.CPU, "CPU")):
         if device_type & flag:
@@ -90,7 +91,7 @@ def list_devices() -> list[DeviceInfo]:
         for idev, d in enumerate(devices):
             out.append(DeviceInfo(
                 spec=f"{ip}:{idev}", platform=platform.name.strip(), name=d.name.strip(),
-                kind=_kind(cl, d.type), compute_units=d.max_compute_units,
+                kind=device_kind(cl, d.type), compute_units=d.max_compute_units,
                 global_memory_bytes=d.global_mem_size, fp64=bool(d.double_fp_config),
             ))
     if not out:
