@@ -144,6 +144,7 @@ class RigController:
         self.cmd_result = R.CommandResult.NONE
         self.holding = [0] * (R.RESULT.address + R.RESULT.length)
         self._window_cache = None
+        self._window_idx: list[int] = []
         self.last_busy_end = now
 
     def reboot(self, now: float) -> None:
@@ -440,22 +441,22 @@ class RigController:
 
     def window(self) -> np.ndarray:
         """The pulse window registers (header + the oldest unacknowledged records), as uint16."""
-        if self._window_cache is not None:
-            return self._window_cache
         p = self.pass_
-        out = np.zeros(self.config.window_regs, dtype=np.uint16)
-        if p is None:
-            head = R.WINDOW_HEADER.encode({"NEWEST_SEQ": self.next_seq - 1})
-        else:
-            idx = list(self.buffer)[: self._window_capacity(p)]
-            head = R.WINDOW_HEADER.encode({
-                "OLDEST_SEQ": p.first_seq + idx[0] if idx else 0, "RECORDS": len(idx),
-                "RECORD_REGS": p.records.shape[1], "NEWEST_SEQ": self.next_seq - 1, "TOKEN": p.token})
+        if self._window_cache is None:  # the records: rebuilt when acknowledged or appended to
+            out = np.zeros(self.config.window_regs, dtype=np.uint16)
+            idx = list(self.buffer)[: self._window_capacity(p)] if p is not None else []
             if idx:
                 body = p.records[idx].ravel()
                 out[R.WINDOW_HEADER.length:R.WINDOW_HEADER.length + body.size] = body
+            self._window_cache, self._window_idx = out, idx
+        out, idx = self._window_cache, self._window_idx
+        if p is None:
+            head = R.WINDOW_HEADER.encode({"NEWEST_SEQ": self.next_seq - 1})
+        else:
+            head = R.WINDOW_HEADER.encode({
+                "OLDEST_SEQ": p.first_seq + idx[0] if idx else 0, "RECORDS": len(idx),
+                "RECORD_REGS": p.records.shape[1], "NEWEST_SEQ": self.next_seq - 1, "TOKEN": p.token})
         out[:R.WINDOW_HEADER.length] = head
-        self._window_cache = out
         return out
 
     def meaningful(self, table: R.Table, address: int, count: int) -> int:
