@@ -89,3 +89,9 @@ def test_cli_refuses_a_bad_config_before_touching_anything(tmp_path, capsys):
     assert main(["process", str(tmp_path), "--out", str(out), "--config", str(path)]) == 2
     assert "site.web_depth" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_one_site_file_serves_process_and_acquire(tmp_path):
+    """`uwbcl acquire` reads the [acquire] table of the same file; `uwbcl process` leaves it to it."""
+    path = write(tmp_path, SITE + '\n[acquire]\nhost = "127.0.0.1"\nport = 5020\n')
+    assert config.load_config(path) == config.load_config(write(tmp_path, SITE))

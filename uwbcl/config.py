@@ -148,11 +148,16 @@ def _detection_schema() -> dict:
     return out
 
 
+OTHER_COMMANDS_SECTIONS = ("acquire",)
+
+
 def parse_config(data: dict[str, Any], path: str | os.PathLike[str] | None = None) -> SiteConfig:
     """A SiteConfig from the parsed TOML tables."""
     schema = dict(_SCHEMA, detection=_detection_schema())
     values: dict[str, dict[str, Any]] = {}
     for section, table in data.items():
+        if section in OTHER_COMMANDS_SECTIONS:
+            continue  # one site file serves every command; `uwbcl acquire` checks its own table
         if section not in schema:
             raise ConfigError(path, section, f"unknown section; expected one of {', '.join(sorted(schema))}")
         if not isinstance(table, dict):
