@@ -6,6 +6,7 @@ Data flows one way: archive I/O -> focusing -> detection -> 3-D location -> disp
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
 from collections import defaultdict
 from pathlib import Path
@@ -31,8 +32,8 @@ class ProcessingSettings:
     backend: str = "opencl"
     device: str | None = None  # OpenCL device spec (`uwbcl devices`); None: PYOPENCL_CTX, else GPU first
     ac_mode: str = "exact"  # NLCS azimuth compression: "exact" reference or "series" (eq. 17)
-    detection: detect.DetectionSettings = detect.DetectionSettings()
-    association: AssociationSettings = AssociationSettings()
+    detection: detect.DetectionSettings = dataclasses.field(default_factory=detect.DetectionSettings)
+    association: AssociationSettings = dataclasses.field(default_factory=AssociationSettings)
 
 
 def _focuser(settings: ProcessingSettings):
@@ -91,7 +92,7 @@ def cycle_displacements(cycles: list[CycleResult], settings: ProcessingSettings 
         by_rig[c.rig_id].append(c)
     for rig in sorted(by_rig):
         seq = sorted(by_rig[rig], key=lambda c: c.cycle)
-        for prev, cur in zip(seq, seq[1:]):
+        for prev, cur in itertools.pairwise(seq):
             out.append((cur, estimate_advance(prev.plates, cur.plates, settings.association)))
     return out
 

@@ -27,7 +27,7 @@ class Scenario:
     heights_m: tuple[float, ...]
     speed_m_s: float
     aperture_length_m: float
-    radar: RadarParameters = RadarParameters()
+    radar: RadarParameters = dataclasses.field(default_factory=RadarParameters)
     paper_rotation_table_deg: tuple[float, ...] = ()  # as printed in the paper, for comparison
 
     def targets_radar_m(self, cycle: int) -> np.ndarray:

@@ -31,8 +31,8 @@ from collections.abc import Iterator
 import numpy as np
 
 from . import geometry as geo
-from .model import SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters, ScanPass
 from .atomic import csv_text, write_text_atomic
+from .model import SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters, ScanPass
 from .simulate import rail_motion, simulate_echo
 
 SHIFT_START = dt.datetime(2026, 11, 2, 6, 0, tzinfo=dt.timezone.utc)

@@ -51,7 +51,7 @@ def range_window(radar: RadarParameters, positions_m, targets_m, height_m: float
     ranges = np.concatenate([geo.range_history_m(positions_m, t, height_m) for t in targets_m])
     r_lo = max(0.0, ranges.min() - margin_m)
     r_hi = ranges.max() + margin_m
-    n = int(math.ceil((r_hi - r_lo) / radar.range_bin_m))
+    n = math.ceil((r_hi - r_lo) / radar.range_bin_m)
     if power_of_two:
         n = 1 << (n - 1).bit_length()
     t0 = 2.0 * r_lo / SPEED_OF_LIGHT_M_S
@@ -89,7 +89,7 @@ def simulate_pass(radar: RadarParameters, geometry: PassGeometry, targets_m, *, 
     """One pass of the carriage over the nominal aperture, as the rig would record it."""
     rng = np.random.default_rng() if rng is None else rng
     # An even number of intervals (odd pulse count) centred on the nominal aperture centre.
-    n_intervals = 2 * int(round(0.5 * aperture_length_m / speed_m_s * radar.pulse_repetition_frequency_hz))
+    n_intervals = 2 * round(0.5 * aperture_length_m / speed_m_s * radar.pulse_repetition_frequency_hz)
     n_pulses = n_intervals + 1
     start = aperture_centre_m - direction * 0.5 * n_intervals * speed_m_s / radar.pulse_repetition_frequency_hz
     times, positions = rail_motion(n_pulses, radar.pulse_repetition_frequency_hz, speed_m_s, start,

@@ -97,7 +97,7 @@ def focus_grid(scan: ScanPass, azimuth_oversampling: int = 8) -> FocusGrid:
     theta_q = geo.slant_squint_rad(g.reference_point_m, x_c, g.height_m)
     tx, ty, tz = g.reference_point_m
     r_ref = math.sqrt((tx - x_c) ** 2 + ty**2 + (tz - g.height_m) ** 2)
-    n_az = 1 << int(math.ceil(math.log2(azimuth_oversampling * n_track)))
+    n_az = 1 << math.ceil(math.log2(azimuth_oversampling * n_track))
     return FocusGrid(
         aperture_centre_m=x_c, speed_m_s=speed, track_spacing_m=length / (n_track - 1), n_track=n_track,
         n_azimuth=n_az, sin_squint=math.sin(theta_q), reference_range_m=r_ref,
