@@ -291,3 +291,18 @@ def test_a_pass_run_in_the_other_direction_gives_the_same_targets_on_both_backen
     assert len(out) == len(ref) == 3
     for a, b in zip(sorted(out, key=lambda d: d.x_m), sorted(ref, key=lambda d: d.x_m)):
         assert abs(a.x_m - b.x_m) < 5e-4 and abs(a.rc_m - b.rc_m) < 5e-4
+
+
+def test_without_pyvkfft_process_says_how_to_install_it_and_exits_2(monkeypatch, tmp_path, capsys):
+    import sys
+
+    from uwbcl.cli import main
+    from uwbcl.focus import engine as engine_module
+
+    monkeypatch.setitem(sys.modules, "pyvkfft", None)
+    monkeypatch.setitem(sys.modules, "pyvkfft.opencl", None)
+    monkeypatch.setattr(engine_module, "_ENGINES", {})
+    assert main(["process", str(tmp_path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "VKFFT_BACKEND=opencl pip install pyvkfft" in err and "--backend numpy" in err
+    assert not (tmp_path / "out").exists()

@@ -39,7 +39,7 @@ class FocusEngine:
         try:
             from pyvkfft.opencl import VkFFTApp
         except ImportError as exc:
-            raise opencl.OpenClUnavailable(f"pyvkfft is not importable ({exc}); " + opencl.INSTALL_HINT) from exc
+            raise opencl.OpenClUnavailable(f"pyvkfft is not importable ({exc}); " + opencl.FFT_HINT) from exc
         self._cl = cl
         self._vkfft_app = VkFFTApp
         t0 = time.perf_counter()
