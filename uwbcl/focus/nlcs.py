@@ -123,10 +123,15 @@ def pulse_spectrum(f_r_hz, sigma_s: float) -> np.ndarray:
     return np.exp(-2.0 * (np.pi * sigma_s * np.asarray(f_r_hz)) ** 2)
 
 
-def linear_range_walk_correction(s1: np.ndarray, x_rel_m: np.ndarray, grid: FocusGrid) -> np.ndarray:
-    """H1 = exp(-j 4 pi (f_c + f_r) v sin(theta_q) t_a / c)  (eq. 4), with v t_a the logged rail position."""
+def linear_range_walk_phase(x_rel_m: np.ndarray, grid: FocusGrid) -> np.ndarray:
+    """arg H1 = -4 pi (f_c + f_r) v sin(theta_q) t_a / c  (eq. 4), with v t_a the logged rail position."""
     f = grid.carrier_frequency_hz + grid.f_range_hz
-    return s1 * np.exp(-4j * np.pi * np.outer(x_rel_m, f) * grid.sin_squint / C)
+    return -4.0 * np.pi * np.outer(x_rel_m, f) * grid.sin_squint / C
+
+
+def linear_range_walk_correction(s1: np.ndarray, x_rel_m: np.ndarray, grid: FocusGrid) -> np.ndarray:
+    """H1 (eq. 4)."""
+    return s1 * np.exp(1j * linear_range_walk_phase(x_rel_m, grid))
 
 
 def lagrange_weights(x_nodes: np.ndarray, x_out: np.ndarray, order: int = 6):
@@ -169,9 +174,10 @@ def pad_azimuth(s: np.ndarray, grid: FocusGrid) -> np.ndarray:
     return out
 
 
-def slant_squint_sine(grid: FocusGrid) -> np.ndarray:
-    """X(f_r, f_a) = sin(theta_q) + c f_a / (2 v F): the slant squint of each 2-D frequency (notes 4)."""
-    f = grid.carrier_frequency_hz + grid.f_range_hz
+def slant_squint_sine(grid: FocusGrid, f_hz=None) -> np.ndarray:
+    """X(f_r, f_a) = sin(theta_q) + c f_a / (2 v F): the slant squint of each 2-D frequency (notes 4), at the
+    absolute frequencies F = f_c + f_r (default, shape (n_azimuth, n_range)) or at the given F."""
+    f = grid.carrier_frequency_hz + grid.f_range_hz if f_hz is None else np.atleast_1d(f_hz)
     return grid.sin_squint + C * grid.f_azimuth_hz[:, None] / (2.0 * grid.speed_m_s * f[None, :])
 
 
@@ -185,7 +191,7 @@ def secondary_range_compression(s2: np.ndarray, grid: FocusGrid) -> np.ndarray:
     """H3 * H4 (eqs. 9-10 [fix]): bulk SRC with the reference's exact phase, matched filter, Doppler band mask."""
     x = slant_squint_sine(grid)
     f = grid.carrier_frequency_hz + grid.f_range_hz
-    x0 = grid.sin_squint + C * grid.f_azimuth_hz[:, None] / (2.0 * grid.speed_m_s * grid.carrier_frequency_hz)
+    x0 = slant_squint_sine(grid, grid.carrier_frequency_hz)
     phi = reference_spectrum_phase(x, f[None, :], grid)
     phi0 = reference_spectrum_phase(x0, grid.carrier_frequency_hz, grid)
     h3 = np.exp(-1j * (phi - phi0 + 4.0 * np.pi * grid.f_range_hz[None, :] * grid.reference_range_m / C))
@@ -203,16 +209,26 @@ def azimuth_compensation(s3: np.ndarray, eta1: np.ndarray, grid: FocusGrid) -> n
     return s3 * np.exp(-1j * np.pi * np.outer(grid.f_azimuth_hz, eta1))
 
 
+def nlcs_filter_phase(f_hz: np.ndarray, k: coef.NlcsCoefficients) -> np.ndarray:
+    """arg H6 = pi (Y3 f_a^3 + Y4 f_a^4)  (eq. 15), per range bin: shape (f_hz.size, n_bins)."""
+    f = np.asarray(f_hz)[:, None]
+    return np.pi * (k.y3 * f**3 + k.y4 * f**4)
+
+
 def nlcs_filter(s: np.ndarray, k: coef.NlcsCoefficients, grid: FocusGrid) -> np.ndarray:
-    """H6 = exp(j pi (Y3 f_a^3 + Y4 f_a^4))  (eq. 15), per range bin."""
-    f = grid.f_azimuth_hz[:, None]
-    return s * np.exp(1j * np.pi * (k.y3 * f**3 + k.y4 * f**4))
+    """H6 (eq. 15)."""
+    return s * np.exp(1j * nlcs_filter_phase(grid.f_azimuth_hz, k))
+
+
+def nlcs_scaling_phase(t_s: np.ndarray, k: coef.NlcsCoefficients) -> np.ndarray:
+    """arg H7 = pi (q2 t_a^2 + q3 t_a^3 + q4 t_a^4)  (eq. 15), absolute t_a, per range bin."""
+    t = np.asarray(t_s)[:, None]
+    return np.pi * (k.q2 * t**2 + k.q3 * t**3 + k.q4 * t**4)
 
 
 def nlcs_scaling(s: np.ndarray, k: coef.NlcsCoefficients, grid: FocusGrid) -> np.ndarray:
-    """H7 = exp(j pi (q2 t_a^2 + q3 t_a^3 + q4 t_a^4))  (eq. 15), absolute t_a, per range bin."""
-    t = grid.t_azimuth_s[:, None]
-    return s * np.exp(1j * np.pi * (k.q2 * t**2 + k.q3 * t**3 + k.q4 * t**4))
+    """H7 (eq. 15)."""
+    return s * np.exp(1j * nlcs_scaling_phase(grid.t_azimuth_s, k))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -267,8 +283,11 @@ def slow_time_point_response(r_bin_m, t_n_s, grid: FocusGrid, aperture_m: float,
     sin_look = (r0 * s - v * tau) / rng
     beam = geo.two_way_beam_gain(np.arcsin(sin_look), math.asin(s), aperture_m, lam)
     half_track = 0.5 * (grid.n_track - 1) * grid.dt_s
-    on_rail = (np.abs(t) <= half_track + 1e-12) if rail_only else 1.0
-    return beam * on_rail * np.exp(-4j * np.pi / lam * (rng + v * s * t))
+    gain = beam * ((np.abs(t) <= half_track + 1e-12) if rail_only else 1.0)
+    seen = gain != 0  # the main lobe covers a fraction of the padded slow time: no phase needed elsewhere
+    out = np.zeros(gain.shape, dtype=np.complex128)
+    out[seen] = gain[seen] * np.exp(-4j * np.pi / lam * (rng + v * s * t)[seen])
+    return out
 
 
 def _azimuth_nlcs_chain(rd: np.ndarray, k: coef.NlcsCoefficients, grid: FocusGrid) -> np.ndarray:

@@ -18,12 +18,10 @@ Used as the CPU baseline by `scripts/benchmark.py`; `tests/test_scipy32.py` hold
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import scipy.fft as sfft
 
-from .. import geometry as geo
 from ..model import ScanPass
 from . import coefficients as coef
 from . import nlcs
@@ -66,9 +64,8 @@ def natural_t_azimuth_s(grid: nlcs.FocusGrid) -> np.ndarray:
 def range_fft_walk_corrected(echo: np.ndarray, x_rel_m: np.ndarray, grid: nlcs.FocusGrid) -> np.ndarray:
     """Range FFT with the window's delay origin (eq. 3) and H1 (eq. 4) as one phase."""
     s = _fft(np.array(echo, dtype=np.complex64), 1)
-    f = grid.f_range_hz
-    phase = (-2.0 * np.pi * grid.range_window_start_s) * f[None, :] \
-        - (4.0 * np.pi * grid.sin_squint / C) * np.outer(x_rel_m, grid.carrier_frequency_hz + f)
+    phase = (-2.0 * np.pi * grid.range_window_start_s) * grid.f_range_hz[None, :] \
+        + nlcs.linear_range_walk_phase(x_rel_m, grid)
     s *= cis(phase)
     return s
 
@@ -91,9 +88,7 @@ def resample_padded(s: np.ndarray, x_rel_m: np.ndarray, grid: nlcs.FocusGrid) ->
 
 def doppler_band_rows(grid: nlcs.FocusGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rows (FFT order) where the band mask of eqs. (9-10) passes anything, their X(f_r, f_a) and mask."""
-    f_a = natural_f_azimuth_hz(grid)
-    big_f = grid.carrier_frequency_hz + grid.f_range_hz
-    x = grid.sin_squint + C * f_a[:, None] / (2.0 * grid.speed_m_s * big_f[None, :])
+    x = np.fft.ifftshift(nlcs.slant_squint_sine(grid), axes=0)
     lo, hi = grid.doppler_band
     mask = (x >= lo) & (x <= hi) & (np.abs(x) < 0.98)
     rows = np.flatnonzero(mask.any(axis=1))
@@ -103,9 +98,8 @@ def doppler_band_rows(grid: nlcs.FocusGrid) -> tuple[np.ndarray, np.ndarray, np.
 def secondary_range_compression_rows(s_rows: np.ndarray, rows: np.ndarray, x: np.ndarray, mask: np.ndarray,
                                      grid: nlcs.FocusGrid) -> np.ndarray:
     """H3 * mask * H4 (eqs. 9-10) with the range IFFT's delay origin (eq. 11), on the band rows only."""
-    f_a = natural_f_azimuth_hz(grid)[rows]
     f_r = grid.f_range_hz
-    x0 = grid.sin_squint + C * f_a[:, None] / (2.0 * grid.speed_m_s * grid.carrier_frequency_hz)
+    x0 = np.fft.ifftshift(nlcs.slant_squint_sine(grid, grid.carrier_frequency_hz), axes=0)[rows]
     phi = nlcs.reference_spectrum_phase(x, (grid.carrier_frequency_hz + f_r)[None, :], grid)
     phi0 = nlcs.reference_spectrum_phase(x0, grid.carrier_frequency_hz, grid)
     phase = -(phi - phi0) + (2.0 * np.pi * (grid.range_window_start_s - 2.0 * grid.reference_range_m / C)) * f_r
@@ -118,18 +112,17 @@ def secondary_range_compression_rows(s_rows: np.ndarray, rows: np.ndarray, x: np
 def azimuth_filter_rows(s_rows: np.ndarray, rows: np.ndarray, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid,
                         with_h5: bool = True) -> np.ndarray:
     """H5 (eq. 13, skipped when eta1 = 0 as under P1) and H6 (eq. 15) on the given range-Doppler rows."""
-    f = natural_f_azimuth_hz(grid)[rows][:, None]
-    phase = np.pi * (k.y3 * f**3 + k.y4 * f**4)
+    f = natural_f_azimuth_hz(grid)[rows]
+    phase = nlcs.nlcs_filter_phase(f, k)
     if with_h5 and np.any(k.eta1 != 0):
-        phase -= np.pi * f * k.eta1
+        phase -= np.pi * f[:, None] * k.eta1
     s_rows *= cis(phase, s_rows.dtype)
     return s_rows
 
 
 def nlcs_scaling(s: np.ndarray, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid) -> np.ndarray:
     """H7 (eq. 15) on a range-time array in FFT order."""
-    t = natural_t_azimuth_s(grid)[:, None]
-    s *= cis(np.pi * (k.q2 * t**2 + k.q3 * t**3 + k.q4 * t**4), s.dtype)
+    s *= cis(nlcs.nlcs_scaling_phase(natural_t_azimuth_s(grid), k), s.dtype)
     return s
 
 
@@ -144,19 +137,8 @@ def azimuth_nlcs_chain(rd_rows: np.ndarray, rows: np.ndarray, k: coef.NlcsCoeffi
 def reference_point_response(k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, aperture_m: float,
                              dtype=np.complex128) -> np.ndarray:
     """`nlcs.slow_time_point_response(r_bins, 0, grid, aperture, rail_only=False)` in FFT order."""
-    r = k.r_m[None, :]
-    t = natural_t_azimuth_s(grid)[:, None]
-    v, s, lam = grid.speed_m_s, grid.sin_squint, grid.wavelength_m
-    rng = np.sqrt(r**2 + (v * t) ** 2 - 2 * r * v * t * s)
-    sin_look = (r * s - v * t) / rng
-    # The main lobe covers a fraction of the padded slow time: evaluate only rows some bin sees (the gain is
-    # exactly zero elsewhere); |u| < 1 is the lobe test of geo.two_way_beam_gain, with sin(psi - theta_q) expanded.
-    u = aperture_m / lam * (sin_look * math.sqrt(1 - s * s) - np.sqrt(1 - sin_look**2) * s)
-    rows = np.flatnonzero((np.abs(u) < 1.0 + 1e-6).any(axis=1))
-    beam = geo.two_way_beam_gain(np.arcsin(sin_look[rows]), math.asin(s), aperture_m, lam)
-    out = np.zeros(rng.shape, dtype=dtype)
-    out[rows] = cis((-4.0 * np.pi / lam) * (rng[rows] + v * s * t[rows]), dtype) * beam
-    return out
+    response = nlcs.slow_time_point_response(k.r_m, 0.0, grid, aperture_m, rail_only=False)
+    return np.fft.ifftshift(response, axes=0).astype(dtype, copy=False)
 
 
 def exact_reference_azimuth_compression(k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, aperture_m: float
