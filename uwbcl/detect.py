@@ -58,7 +58,7 @@ def _local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float
     a, r = np.ogrid[-na:na + 1, -nr:nr + 1]
     footprint = (a * pixel_m[0] / s.separation_m) ** 2 + (r * pixel_m[1] / s.range_separation_m) ** 2 <= 1.0
     candidates = valid & (mag > threshold)
-    if footprint[na - 1:na + 2, nr - 1:nr + 2].all() and na >= 1 and nr >= 1:
+    if na >= 1 and nr >= 1 and footprint[na - 1:na + 2, nr - 1:nr + 2].all():
         # The ellipse holds the 3x3 neighbourhood, so its maxima are 3x3 maxima: test the ellipse only there
         # (the same result as the full filter, at a fraction of its cost on a mostly empty image).
         candidates &= mag == ndimage.maximum_filter(mag, size=3, mode="nearest")
