@@ -74,6 +74,28 @@ def coefficients(grid):
 
 
 # ------------------------------------------------------------------------------------------------ stages
+@pytest.mark.parametrize("dtype,tol", [(np.complex64, 1e-6), (np.complex128, 1e-14)])
+@pytest.mark.parametrize("shape", [(2, 3), (4, 5), (8, 7), (64, 33), (512, 128), (4096, 16)])
+def test_azimuth_fft_kernels_match_numpy_forward_and_inverse(engine, shape, dtype, tol):
+    if dtype == np.complex128 and np.dtype(dtype) not in engine._kernels_by_dtype:
+        pytest.skip("device without fp64")
+    x = noise(shape, shape[0]).astype(dtype)
+    d = engine.to_device("fft_test", x)
+    engine.fft(d, 0)
+    assert rel_err(d.get(), np.fft.fft(x.astype(np.complex128), axis=0)) < tol
+    engine.fft(d, 0, inverse=True)
+    assert rel_err(d.get(), x) < tol
+
+
+def test_radix_plans_multiply_to_the_length_with_an_even_pass_count_where_possible():
+    from uwbcl.focus.engine import _radix_plan
+
+    for m in range(1, 16):
+        plan = _radix_plan(1 << m)
+        assert np.prod(plan) == 1 << m and set(plan) <= {2, 4, 8}
+        assert len(plan) % 2 == 0 or m <= 2
+
+
 def test_range_fft_and_walk_correction_match_the_reference(engine, jittery_pass, grid):
     echo, x_rel = nlcs.prepare_track(jittery_pass, grid)
     x = noise(echo.shape, 1)

@@ -25,8 +25,8 @@ from . import backprojection as bp
 from . import coefficients as coef
 from . import nlcs
 
-PROGRAM_FILES = ("common.cl", "range.cl", "azimuth.cl", "backprojection.cl")
-DOUBLE_PROGRAM_FILES = ("common.cl", "azimuth.cl")  # built with -DUWBCL_COMPLEX_DOUBLE: double2 azimuth kernels
+PROGRAM_FILES = ("common.cl", "range.cl", "azimuth.cl", "fft.cl", "backprojection.cl")
+DOUBLE_PROGRAM_FILES = ("common.cl", "azimuth.cl", "fft.cl")  # built with -DUWBCL_COMPLEX_DOUBLE: double2 kernels
 
 
 class FocusEngine:
@@ -40,7 +40,10 @@ class FocusEngine:
             from pyvkfft.opencl import VkFFTApp
         except ImportError as exc:
             raise opencl.OpenClUnavailable(f"pyvkfft is not importable ({exc}); " + opencl.FFT_HINT) from exc
+        import pyopencl.array as cla
+
         self._cl = cl
+        self._cl_array = cla
         self._vkfft_app = VkFFTApp
         t0 = time.perf_counter()
         dev = device if isinstance(device, cl.Device) else opencl.select_device(device)
@@ -65,6 +68,7 @@ class FocusEngine:
             self._kernels_by_dtype[np.dtype(np.complex128)] = {k.function_name: k for k in program.all_kernels()}
         self._plans: dict = {}
         self._buffers: dict = {}
+        self._twiddles: dict = {}
         failure = self._fft_self_test_failure(np.complex64, 1e-5, axes=(0, 1))
         if failure:
             raise opencl.OpenClUnavailable(f"{failure}; this OpenCL runtime miscompiles it, use --backend numpy")
@@ -104,13 +108,41 @@ class FocusEngine:
 
     def fft(self, arr, axis: int, inverse: bool = False) -> None:
         """In-place complex FFT along one axis (complex64 or complex128); the inverse is normalised by 1/N like
-        numpy."""
+        numpy. Power-of-two azimuth (axis 0) transforms of 2-D arrays use our Stockham kernels (fft.cl), the
+        rest VkFFT."""
+        if axis == 0 and arr.ndim == 2 and _is_power_of_two(arr.shape[0]) and arr.shape[0] >= 2:
+            self.azimuth_fft(arr, inverse)
+            return
         key = (arr.shape, axis, arr.dtype)
         app = self._plans.get(key)
         if app is None:
             app = self._plans[key] = self._vkfft_app(arr.shape, arr.dtype, self.queue, ndim=1, axes=(axis,),
                                                      inplace=True, norm=1)
         (app.ifft if inverse else app.fft)(arr, arr)
+
+    def azimuth_fft(self, arr, inverse: bool = False) -> None:
+        """Stockham FFT along axis 0 (fft.cl), radix 8/4/2 passes ping-ponging through a scratch buffer; the
+        pass count is kept even so the result lands back in `arr`."""
+        n, n_cols = arr.shape
+        twiddle = self._twiddles.get((n, arr.dtype))
+        if twiddle is None:
+            table = np.exp(-2j * np.pi * np.arange(n) / n).astype(arr.dtype)
+            twiddle = self._twiddles[(n, arr.dtype)] = self._cl_array.to_device(self.queue, table)
+        scratch = self.buffer(f"fft_scratch_{np.dtype(arr.dtype).name}", arr.shape, arr.dtype)
+        real = np.float64 if arr.dtype == np.complex128 else np.float32
+        kernels = self._kernels_by_dtype[np.dtype(arr.dtype)]
+        src, dst = arr, scratch
+        radices = _radix_plan(n)
+        ns = 1
+        for i, radix in enumerate(radices):
+            scale = 1.0 / n if inverse and i == len(radices) - 1 else 1.0
+            kernels[f"azimuth_fft_radix{radix}"](self.queue, (n_cols, n // radix), None, src.data, dst.data,
+                                                 twiddle.data, np.int32(n), np.int32(n_cols), np.int32(ns),
+                                                 np.int32(inverse), real(scale))
+            ns *= radix
+            src, dst = dst, src
+        if src is not arr:  # an odd number of passes (n = 2 or 4)
+            self._cl.enqueue_copy(self.queue, arr.data, src.data)
 
     def _run(self, name: str, rows: int, cols: int, *args, dtype=np.complex64) -> None:
         """Launch kernel `name` on a (cols, rows) grid; Python ints become int32, floats the phase precision.
@@ -128,7 +160,8 @@ class FocusEngine:
         self._kernels_by_dtype[np.dtype(dtype)][name](self.queue, (cols, rows), None, *conv)
 
     def _fft_self_test_failure(self, dtype, tol: float, axes: tuple[int, ...]) -> str:
-        """VkFFT is miscompiled by some OpenCL runtimes (e.g. PoCL 7.0-7.1): check it once against numpy.
+        """VkFFT is miscompiled by some OpenCL runtimes (e.g. PoCL 7.0-7.1): check it and our own azimuth FFT
+        once against numpy.
         Returns what failed, or "" when the forward and inverse transforms agree to `tol`."""
         rng = np.random.default_rng(0)
         x = (rng.standard_normal((64, 48)) + 1j * rng.standard_normal((64, 48))).astype(dtype)
@@ -141,8 +174,9 @@ class FocusEngine:
             self.fft(d, axis, inverse=True)
             err_inv = np.linalg.norm(d.get() - x) / np.linalg.norm(x)
             if not (err < tol and err_inv < tol):
-                failure = (f"VkFFT {np.dtype(dtype).name} self-test failed on {self.device.name.strip()} (axis {axis}: "
-                           f"relative error {err:.1e}/{err_inv:.1e})")
+                which = "the Stockham azimuth FFT (fft.cl)" if axis == 0 else "VkFFT"
+                failure = (f"{which} {np.dtype(dtype).name} self-test failed on {self.device.name.strip()} "
+                           f"(axis {axis}: relative error {err:.1e}/{err_inv:.1e})")
                 break
         self._plans.clear()
         self._buffers = {k: v for k, v in self._buffers.items() if k[0] != "selftest"}
@@ -280,6 +314,21 @@ class FocusEngine:
                   grid.carrier_frequency_hz, lo, hi)
         return bp.BackprojectionProducts(image=image.get(), u_axis_m=u_axis, r_axis_m=r_axis, grid=grid,
                                          compressed=rc)
+
+
+def _is_power_of_two(n: int) -> bool:
+    return n > 0 and n & (n - 1) == 0
+
+
+def _radix_plan(n: int) -> list[int]:
+    """Radices (8, 4, 2) whose product is n, an even number of them where n allows (the ping-pong then ends
+    in the input buffer)."""
+    m = n.bit_length() - 1
+    radices = [8] * (m // 3) + ([4] if m % 3 == 2 else [2] if m % 3 == 1 else [])
+    if len(radices) % 2 and 8 in radices:
+        radices.remove(8)
+        radices += [4, 2]
+    return radices
 
 
 _ENGINES: dict = {}

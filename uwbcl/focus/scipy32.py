@@ -18,7 +18,6 @@ Used as the CPU baseline by `scripts/benchmark.py`; `tests/test_scipy32.py` hold
 
 from __future__ import annotations
 
-
 import numpy as np
 import scipy.fft as sfft
 
