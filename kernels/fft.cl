@@ -11,8 +11,8 @@
  * x[b + r n/R], multiplies by the twiddle exp(-2 pi i r (b mod ns) / (ns R)) (from a host table of
  * exp(-2 pi i k / n) in the data precision), does a length-R DFT and writes y[(b div ns) ns R + b mod ns + r ns].
  * The inverse transform is conj(FFT(conj(x))), pass by pass; `scale` (1/n on the inverse's last pass, 1
- * otherwise) gives numpy's normalisation. Written for cplx_t: compiled as float2 and, in the double program,
- * as double2. */
+ * otherwise) gives numpy's normalisation. complex64 only (cplx_t is float2 in the main program); complex128
+ * transforms use VkFFT, faster there on PoCL. */
 
 inline cplx_t conj_if(cplx_t v, const int inverse) {
     return inverse ? (cplx_t)(v.x, -v.y) : v;

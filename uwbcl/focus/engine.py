@@ -26,7 +26,7 @@ from . import coefficients as coef
 from . import nlcs
 
 PROGRAM_FILES = ("common.cl", "range.cl", "azimuth.cl", "fft.cl", "backprojection.cl")
-DOUBLE_PROGRAM_FILES = ("common.cl", "azimuth.cl", "fft.cl")  # built with -DUWBCL_COMPLEX_DOUBLE: double2 kernels
+DOUBLE_PROGRAM_FILES = ("common.cl", "azimuth.cl")  # built with -DUWBCL_COMPLEX_DOUBLE: double2 kernels
 
 
 class FocusEngine:
@@ -69,6 +69,8 @@ class FocusEngine:
         self._plans: dict = {}
         self._buffers: dict = {}
         self._twiddles: dict = {}
+        self._uploaded: dict = {}  # (name, shape, dtype) -> bytes of the last small upload
+        self._in_flight: list = []  # host arrays of uploads not yet known to be complete
         failure = self._fft_self_test_failure(np.complex64, 1e-5, axes=(0, 1))
         if failure:
             raise opencl.OpenClUnavailable(f"{failure}; this OpenCL runtime miscompiles it, use --backend numpy")
@@ -93,24 +95,41 @@ class FocusEngine:
         arr = self._buffers.get(key)
         if arr is None:
             self._buffers = {k: v for k, v in self._buffers.items() if k[0] != name}
+            self._uploaded = {k: v for k, v in self._uploaded.items() if k[0] != name}
             arr = self._buffers[key] = cla.empty(self.queue, shape, dtype)
         return arr
 
-    def to_device(self, name: str, host: np.ndarray, dtype=None):
-        host = np.ascontiguousarray(host, dtype=dtype or host.dtype)
+    def to_device(self, name: str, host: np.ndarray, dtype=None, *, constant: bool = False):
+        """Upload into the named buffer without waiting for the device: the host copy is kept alive until the
+        next read-back (`host`), which on the in-order queue means the copy is done. A `constant` buffer (one
+        no kernel writes: coefficients, positions, indices) is not uploaded again while its bytes are
+        unchanged (they repeat for every model echo of a pass)."""
+        host = np.array(host, dtype=dtype or host.dtype, order="C")  # a private copy: the caller may reuse its own
         arr = self.buffer(name, host.shape, host.dtype)
-        arr.set(host)
+        key = (name, host.shape, host.dtype)
+        data = host.tobytes() if constant else None
+        if constant and self._uploaded.get(key) == data:
+            return arr
+        arr.set(host, async_=True)
+        self._in_flight.append(host)
+        self._uploaded[key] = data
         return arr
+
+    def host(self, arr) -> np.ndarray:
+        """Blocking read-back; every upload queued before it has completed afterwards."""
+        out = arr.get()
+        self._in_flight.clear()
+        return out
 
     def reals(self, name: str, values) -> object:
         """Per-bin coefficients (or positions) in the phase precision."""
-        return self.to_device(name, np.asarray(values, dtype=float), self.real)
+        return self.to_device(name, np.asarray(values, dtype=float), self.real, constant=True)
 
     def fft(self, arr, axis: int, inverse: bool = False) -> None:
         """In-place complex FFT along one axis (complex64 or complex128); the inverse is normalised by 1/N like
-        numpy. Power-of-two azimuth (axis 0) transforms of 2-D arrays use our Stockham kernels (fft.cl), the
-        rest VkFFT."""
-        if axis == 0 and arr.ndim == 2 and _is_power_of_two(arr.shape[0]) and arr.shape[0] >= 2:
+        numpy. Power-of-two complex64 azimuth (axis 0) transforms of 2-D arrays use our Stockham kernels (fft.cl),
+        the rest VkFFT (in complex128 VkFFT measured faster than fft.cl on PoCL)."""
+        if axis == 0 and arr.ndim == 2 and arr.dtype == np.complex64 and _is_power_of_two(arr.shape[0]):
             self.azimuth_fft(arr, inverse)
             return
         key = (arr.shape, axis, arr.dtype)
@@ -129,8 +148,7 @@ class FocusEngine:
             table = np.exp(-2j * np.pi * np.arange(n) / n).astype(arr.dtype)
             twiddle = self._twiddles[(n, arr.dtype)] = self._cl_array.to_device(self.queue, table)
         scratch = self.buffer(f"fft_scratch_{np.dtype(arr.dtype).name}", arr.shape, arr.dtype)
-        real = np.float64 if arr.dtype == np.complex128 else np.float32
-        kernels = self._kernels_by_dtype[np.dtype(arr.dtype)]
+        kernels = self.kernels
         src, dst = arr, scratch
         radices = _radix_plan(n)
         ns = 1
@@ -138,7 +156,7 @@ class FocusEngine:
             scale = 1.0 / n if inverse and i == len(radices) - 1 else 1.0
             kernels[f"azimuth_fft_radix{radix}"](self.queue, (n_cols, n // radix), None, src.data, dst.data,
                                                  twiddle.data, np.int32(n), np.int32(n_cols), np.int32(ns),
-                                                 np.int32(inverse), real(scale))
+                                                 np.int32(inverse), np.float32(scale))
             ns *= radix
             src, dst = dst, src
         if src is not arr:  # an odd number of passes (n = 2 or 4)
@@ -170,9 +188,9 @@ class FocusEngine:
             d = self.to_device("selftest", x)
             self.fft(d, axis)
             ref = np.fft.fft(x.astype(np.complex128), axis=axis)
-            err = np.linalg.norm(d.get() - ref) / np.linalg.norm(ref)
+            err = np.linalg.norm(self.host(d) - ref) / np.linalg.norm(ref)
             self.fft(d, axis, inverse=True)
-            err_inv = np.linalg.norm(d.get() - x) / np.linalg.norm(x)
+            err_inv = np.linalg.norm(self.host(d) - x) / np.linalg.norm(x)
             if not (err < tol and err_inv < tol):
                 which = "the Stockham azimuth FFT (fft.cl)" if axis == 0 else "VkFFT"
                 failure = (f"{which} {np.dtype(dtype).name} self-test failed on {self.device.name.strip()} "
@@ -193,7 +211,7 @@ class FocusEngine:
         idx, w = nlcs.lagrange_weights(x_rel_m, grid.t_track_s * grid.speed_m_s)
         out = self.buffer("azimuth", (grid.n_azimuth, grid.n_range))
         self._run("resample_to_uniform_track", grid.n_azimuth, grid.n_range, s, out,
-                  self.to_device("first", idx[:, 0].astype(np.int32)), self.reals("weights", w), w.shape[1],
+                  self.to_device("first", idx[:, 0].astype(np.int32), constant=True), self.reals("weights", w), w.shape[1],
                   grid.n_track, grid.n_azimuth, grid.n_range, grid.sample_rate_hz, grid.carrier_frequency_hz,
                   grid.dt_s, float(p2_m_s2))
         return out
@@ -226,8 +244,8 @@ class FocusEngine:
         first = np.where(any_inside, np.argmax(inside, axis=0) - grid.n_azimuth // 2, 1)
         last = np.where(any_inside, grid.n_azimuth - 1 - np.argmax(inside[::-1], axis=0) - grid.n_azimuth // 2, 0)
         self._run("azimuth_compression", grid.n_azimuth, grid.n_range, s, self.reals("ac_poly", ac.poly),
-                  ac.poly.shape[1], self.to_device("ac_first", first.astype(np.int32)),
-                  self.to_device("ac_last", last.astype(np.int32)),
+                  ac.poly.shape[1], self.to_device("ac_first", first.astype(np.int32), constant=True),
+                  self.to_device("ac_last", last.astype(np.int32), constant=True),
                   grid.n_range, grid.n_azimuth, 1.0 / (grid.n_azimuth * grid.dt_s), ac.f_scale_hz)
 
     def azimuth_nlcs_chain(self, s, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, *, with_h5: bool) -> None:
@@ -251,7 +269,7 @@ class FocusEngine:
                   aperture_m, dtype=ref.dtype)
         self.fft(ref, 0)
         self.azimuth_nlcs_chain(ref, k, grid, with_h5=False)
-        return np.fft.fftshift(ref.get(), axes=0)
+        return np.fft.fftshift(self.host(ref), axes=0)
 
     def nlcs_focus(self, scan: ScanPass, *, ac_mode: str = "exact", grid: nlcs.FocusGrid | None = None,
                    compression: nlcs.AzimuthCompression | None = None) -> nlcs.NlcsProducts:
@@ -281,7 +299,7 @@ class FocusEngine:
         self.azimuth_nlcs_chain(s, k, grid, with_h5=True)
         self.azimuth_compression(s, ac, grid)
         self.fft(s, 0, inverse=True)
-        image = np.fft.fftshift(s.get(), axes=0)
+        image = np.fft.fftshift(self.host(s), axes=0)
         return nlcs.NlcsProducts(image=image, grid=grid, coefficients=k, compression=ac, aperture_m=aperture)
 
     # ------------------------------------------------------------------------------------------ backprojection
@@ -296,7 +314,7 @@ class FocusEngine:
         self._run("pulse_compression_upsample", echo.shape[0], n_fine, s, fine, grid.n_range, n_fine,
                   grid.sample_rate_hz, grid.pulse_sigma_s)
         self.fft(fine, 1, inverse=True)
-        return fine, bp.RangeCompressed(fine.get(), x_rel, grid.range_window_start_s,
+        return fine, bp.RangeCompressed(self.host(fine), x_rel, grid.range_window_start_s,
                                         1.0 / (grid.sample_rate_hz * upsample))
 
     def backprojection_focus(self, scan: ScanPass, *, pixel_m: float = 0.01, grid: nlcs.FocusGrid | None = None,
@@ -307,12 +325,12 @@ class FocusEngine:
         u_axis, r_axis = bp.image_axes(grid, pixel_m, range_margin_m)
         image = self.buffer("bp_image", (u_axis.size, r_axis.size))
         lo, hi = grid.doppler_band
-        x_rel = self.to_device("x_rel_f32", rc.x_rel_m, np.float32)
+        x_rel = self.to_device("x_rel_f32", rc.x_rel_m, np.float32, constant=True)
         self._run("backproject", u_axis.size, r_axis.size, fine, x_rel, image,
                   rc.data.shape[0], rc.data.shape[1], rc.t0_s, rc.dt_s, u_axis.size, r_axis.size,
                   float(u_axis[0]), pixel_m, float(r_axis[0]), pixel_m, grid.sin_squint,
                   grid.carrier_frequency_hz, lo, hi)
-        return bp.BackprojectionProducts(image=image.get(), u_axis_m=u_axis, r_axis_m=r_axis, grid=grid,
+        return bp.BackprojectionProducts(image=self.host(image), u_axis_m=u_axis, r_axis_m=r_axis, grid=grid,
                                          compressed=rc)
 
 
