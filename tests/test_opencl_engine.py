@@ -223,6 +223,21 @@ def test_nlcs_image_of_random_echo_matches_the_reference(engine, jittery_pass):
     assert rel_err(engine.nlcs_focus(scan).image, nlcs.nlcs_focus(scan).image) < CHAIN_TOL
 
 
+@pytest.mark.parametrize("rows", [(-300, 200), (5, 300), (-400, -10)])
+def test_model_spectra_equal_the_2d_spectrum_of_the_focused_image(engine, jittery_pass, grid, rows):
+    """Detection's neighbour models need only the band rows of fft2(image): the engine gets them without the
+    last azimuth IFFT, from the range-Doppler array."""
+    products = nlcs.nlcs_focus(jittery_pass, grid=grid)
+    echo, x_rel = nlcs.prepare_track(jittery_pass, grid)
+    signed = np.arange(*rows)
+    ref = (np.fft.fft2(products.image) / products.image.size)[signed % grid.n_azimuth]
+    out = engine.nlcs_model_spectra(products, x_rel, np.stack([echo, 2j * echo]), signed)
+    assert out.shape == (2,) + ref.shape
+    assert rel_err(out[0], ref) < CHAIN_TOL and rel_err(out[1], 2j * ref) < CHAIN_TOL
+    with pytest.raises(ValueError, match="contiguous"):
+        engine.nlcs_model_spectra(products, x_rel, echo[None], signed[::2])
+
+
 def test_backprojection_image_matches_the_reference(engine, jittery_pass):
     ref = bp.backprojection_focus(jittery_pass)
     out = engine.backprojection_focus(jittery_pass)

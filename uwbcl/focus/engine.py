@@ -289,18 +289,43 @@ class FocusEngine:
             ac = self.exact_reference_azimuth_compression(k, grid, aperture)
         else:
             ac = nlcs.series_azimuth_compression(k, grid)
+        s = self._compressed_spectrum(echo, x_rel, grid, k, ac, float(p2[0]))
+        self.fft(s, 0, inverse=True)
+        image = np.fft.fftshift(self.host(s), axes=0)
+        return nlcs.NlcsProducts(image=image, grid=grid, coefficients=k, compression=ac, aperture_m=aperture)
+
+    def _compressed_spectrum(self, echo: np.ndarray, x_rel: np.ndarray, grid: nlcs.FocusGrid,
+                             k: coef.NlcsCoefficients, ac: nlcs.AzimuthCompression, p2: float):
+        """echo -> the range-Doppler array after H8 (device, FFT order): the chain up to its last IFFT."""
         s = self.to_device("echo", echo, np.complex64)
         self.fft(s, 1)
         self.range_walk_correction(s, x_rel, grid)
-        s = self.resample_to_uniform_track(s, x_rel, grid, float(p2[0]))
+        s = self.resample_to_uniform_track(s, x_rel, grid, p2)
         self.fft(s, 0)
         self.secondary_range_compression(s, grid)
         self.fft(s, 1, inverse=True)
         self.azimuth_nlcs_chain(s, k, grid, with_h5=True)
         self.azimuth_compression(s, ac, grid)
-        self.fft(s, 0, inverse=True)
-        image = np.fft.fftshift(self.host(s), axes=0)
-        return nlcs.NlcsProducts(image=image, grid=grid, coefficients=k, compression=ac, aperture_m=aperture)
+        return s
+
+    def nlcs_model_spectra(self, products: nlcs.NlcsProducts, x_rel_m: np.ndarray, echoes,
+                           rows: np.ndarray) -> np.ndarray:
+        """Rows `rows` (signed azimuth frequency indices, contiguous) of fft2(image) / (n m) for the image each
+        echo (pulses at x_rel_m, increasing) would focus to with the products' chain and H8: what detection's
+        neighbour cancellation needs (`detect.image_spectrum_rows`), without the last IFFT or the image."""
+        grid, k, ac = products.grid, products.coefficients, products.compression
+        p2 = coef.enlcs_coefficient(grid.range_bins_m, grid.speed_m_s, grid.sin_squint)
+        n = grid.n_azimuth
+        lo, hi = int(rows[0]), int(rows[-1])
+        if not np.array_equal(rows, np.arange(lo, hi + 1)) or not -n // 2 <= lo <= hi < n // 2:
+            raise ValueError("rows must be contiguous signed azimuth indices in [-n/2, n/2)")
+        # signed rows lo..hi in FFT order: the negative ones at the end of the axis, then 0..hi
+        segments = ([(n + lo, n + min(hi, -1) + 1)] if lo < 0 else []) + ([(max(lo, 0), hi + 1)] if hi >= 0 else [])
+        out = []
+        for echo in echoes:
+            s = self._compressed_spectrum(echo, x_rel_m, grid, k, ac, float(p2[0]))
+            out.append(np.concatenate([self.host(s[a:b]) for a, b in segments]))
+        return nlcs.spectrum_rows_from_range_doppler(np.array(out), rows, grid)
 
     # ------------------------------------------------------------------------------------------ backprojection
     def range_compress(self, scan: ScanPass, grid: nlcs.FocusGrid, upsample: int = 16):

@@ -35,6 +35,14 @@ def az_ifft(x: np.ndarray) -> np.ndarray:
     return np.fft.fftshift(np.fft.ifft(np.fft.ifftshift(x, axes=0), axis=0), axes=0)
 
 
+def spectrum_rows_from_range_doppler(y_rows: np.ndarray, rows: np.ndarray, grid: FocusGrid) -> np.ndarray:
+    """fft2(image) / (n m) at the signed azimuth frequency indices `rows`, for the image az_ifft(Y), from those
+    rows of Y (shape (..., rows.size, n_range)): detection's band-limited interpolation needs only these, and
+    the azimuth IFFT then FFT cancel but for fft(fftshift(z)) = (-1)^k fft(z) (n even)."""
+    sign = np.where(np.asarray(rows) % 2 == 0, 1.0, -1.0)[:, None]
+    return np.fft.fft(y_rows, axis=-1) * (sign / (grid.n_azimuth * grid.n_range))
+
+
 # --------------------------------------------------------------------------------------------- the grid
 @dataclasses.dataclass(frozen=True)
 class FocusGrid:
