@@ -1,7 +1,5 @@
 /* Azimuth stages of the modified NLCS chain (paper eqs. 12-17). Every phase function is evaluated from a
- * few scalars per range bin; work item (j, row): range bin j, azimuth sample (time or frequency) row.
- * Written for cplx_t (common.cl): float2 in the main program, double2 in the program that computes the
- * exact-reference spectra (-DUWBCL_COMPLEX_DOUBLE). */
+ * few scalars per range bin; work item (j, row): range bin j, azimuth sample (time or frequency) row. */
 
 /* H5 (eq. 13) and H6, the NLCS filter (eq. 15): exp(-j pi eta1 f_a) exp(j pi (Y3 f_a^3 + Y4 f_a^4)). */
 __kernel void nlcs_filter(__global cplx_t *restrict s, __global const real_t *restrict eta1, __global const real_t *restrict y3,
@@ -69,11 +67,11 @@ __kernel void reference_point_response(__global cplx_t *restrict out, __global c
     const real_t cos_look = sqrt(fmax(1.0 - sin_look * sin_look, 0.0));
     const real_t cos_squint = sqrt(1.0 - sin_squint * sin_squint);
     const real_t u = aperture_m * (sin_look * cos_squint - cos_look * sin_squint) / wavelength_m;
-    cplx_real_t beam = 0;
-    if (fabs(u) < 1.0) {
-        const real_t x = UWBCL_PI * u;
-        const real_t sinc = x == 0 ? 1.0 : sin(x) / x;
-        beam = (cplx_real_t)(sinc * sinc);
+    if (fabs(u) >= 1.0) {  /* outside the main lobe, most of the padded slow time: no phase needed */
+        out[row * n_range + j] = (cplx_t)(0, 0);
+        return;
     }
-    out[row * n_range + j] = beam * cis(-2.0 * UWBCL_TWO_PI / wavelength_m * (rng + speed_m_s * sin_squint * t));
+    const real_t x = UWBCL_PI * u;
+    const real_t sinc = x == 0 ? 1.0 : sin(x) / x;
+    out[row * n_range + j] = (float)(sinc * sinc) * cis(-2.0 * UWBCL_TWO_PI / wavelength_m * (rng + speed_m_s * sin_squint * t));
 }

@@ -5,10 +5,6 @@
  * only then handed to float trigonometry: arguments reach ~1e3 rad (4 pi R / lambda), where float32
  * arithmetic alone would leave 1e-4 rad errors.
  *
- * Kernels written for cplx_t (azimuth.cl) compile twice: as float2 in the main program and, with
- * -DUWBCL_COMPLEX_DOUBLE, as double2 with double trigonometry for the exact-reference H8, whose hard
- * magnitude threshold float32 rounding of the reference spectrum can flip (docs/opencl.md, precision).
- *
  * Azimuth axes are stored in FFT (natural) order: element k is signed index k (k < N/2) or k - N (k >= N/2),
  * for time and frequency alike. The host's centred arrays are fftshift of these.
  */
@@ -19,16 +15,8 @@ typedef double real_t;
 typedef float real_t;
 #endif
 
-#ifdef UWBCL_COMPLEX_DOUBLE
-#ifndef UWBCL_FP64
-#error "UWBCL_COMPLEX_DOUBLE needs UWBCL_FP64"
-#endif
-typedef double2 cplx_t;
-typedef double cplx_real_t;
-#else
 typedef float2 cplx_t;
 typedef float cplx_real_t;
-#endif
 
 #define UWBCL_PI 3.14159265358979323846
 #define UWBCL_TWO_PI 6.28318530717958647692
@@ -42,15 +30,10 @@ inline cplx_t cmul(cplx_t a, cplx_t b) {
 
 /* exp(i phase). The argument is reduced to [-pi, pi] first, where the native (fast) sine and cosine are
  * accurate to a few 1e-7 on the devices we know (PoCL, NVIDIA); the full-range sincos is several times
- * slower on PoCL, where it is not vectorised. In double mode the double sine and cosine reduce the
- * argument themselves (native_ functions are float only). */
+ * slower on PoCL, where it is not vectorised. */
 inline cplx_t cis(real_t phase) {
-#ifdef UWBCL_COMPLEX_DOUBLE
-    return (cplx_t)(cos(phase), sin(phase));
-#else
     const float reduced = (float)(phase - (real_t)UWBCL_TWO_PI * rint(phase * (real_t)UWBCL_INV_TWO_PI));
     return (float2)(native_cos(reduced), native_sin(reduced));
-#endif
 }
 
 /* exp(i phase) in float throughout, for arguments small enough (|phase| < ~1e3) that float rounding of the

@@ -14,8 +14,8 @@ converts at the edges only (writing the resampled track in natural order, fftshi
 
 from __future__ import annotations
 
+import dataclasses
 import time
-import warnings
 
 import numpy as np
 
@@ -26,7 +26,9 @@ from . import coefficients as coef
 from . import nlcs
 
 PROGRAM_FILES = ("common.cl", "range.cl", "azimuth.cl", "fft.cl", "backprojection.cl")
-DOUBLE_PROGRAM_FILES = ("common.cl", "azimuth.cl")  # built with -DUWBCL_COMPLEX_DOUBLE: double2 kernels
+# |X_ref| closer than this fraction of its bin's peak to the H8 fit's threshold counts as undecided in
+# complex64 (measured complex64 error on PoCL: 3e-7 of the peak); such bins are recomputed in float64.
+REFERENCE_EDGE_MARGIN = 3e-6
 
 
 class FocusEngine:
@@ -59,13 +61,6 @@ class FocusEngine:
         source = opencl.kernel_source(*PROGRAM_FILES)
         self.program = cl.Program(self.context, source).build(options=options)
         self.kernels = {k.function_name: k for k in self.program.all_kernels()}  # fetched once
-        self._kernels_by_dtype = {np.dtype(np.complex64): self.kernels}
-        # The exact-reference spectra X_ref in complex128 where the device has fp64, complex64 otherwise.
-        self.reference_dtype = np.dtype(np.complex128 if self.fp64_phase else np.complex64)
-        if self.fp64_phase:
-            double_source = opencl.kernel_source(*DOUBLE_PROGRAM_FILES)
-            program = cl.Program(self.context, double_source).build(options=options + ["-DUWBCL_COMPLEX_DOUBLE"])
-            self._kernels_by_dtype[np.dtype(np.complex128)] = {k.function_name: k for k in program.all_kernels()}
         self._plans: dict = {}
         self._buffers: dict = {}
         self._twiddles: dict = {}
@@ -74,13 +69,6 @@ class FocusEngine:
         failure = self._fft_self_test_failure(np.complex64, 1e-5, axes=(0, 1))
         if failure:
             raise opencl.OpenClUnavailable(f"{failure}; this OpenCL runtime miscompiles it, use --backend numpy")
-        # complex128 is used along azimuth only (the reference spectra)
-        failure = self.fp64_phase and self._fft_self_test_failure(np.complex128, 1e-12, axes=(0,))
-        if failure:
-            warnings.warn(f"{failure}; the exact-reference H8 falls back to complex64 reference spectra, whose band "
-                          "edges can differ from the numpy reference by one sample (docs/opencl.md, precision)",
-                          RuntimeWarning, stacklevel=2)
-            self.reference_dtype = np.dtype(np.complex64)
         self.startup_s = time.perf_counter() - t0
 
     # ------------------------------------------------------------------------------------------ plumbing
@@ -162,9 +150,8 @@ class FocusEngine:
         if src is not arr:  # an odd number of passes (n = 2 or 4)
             self._cl.enqueue_copy(self.queue, arr.data, src.data)
 
-    def _run(self, name: str, rows: int, cols: int, *args, dtype=np.complex64) -> None:
-        """Launch kernel `name` on a (cols, rows) grid; Python ints become int32, floats the phase precision.
-        `dtype` picks the build for complex64 data (every kernel) or complex128 (the azimuth.cl kernels)."""
+    def _run(self, name: str, rows: int, cols: int, *args) -> None:
+        """Launch kernel `name` on a (cols, rows) grid; Python ints become int32, floats the phase precision."""
         conv = []
         for a in args:
             if isinstance(a, bool):
@@ -175,7 +162,7 @@ class FocusEngine:
                 conv.append(self.real(a))
             else:
                 conv.append(a.data if hasattr(a, "data") and not isinstance(a, np.ndarray) else a)
-        self._kernels_by_dtype[np.dtype(dtype)][name](self.queue, (cols, rows), None, *conv)
+        self.kernels[name](self.queue, (cols, rows), None, *conv)
 
     def _fft_self_test_failure(self, dtype, tol: float, axes: tuple[int, ...]) -> str:
         """VkFFT is miscompiled by some OpenCL runtimes (e.g. PoCL 7.0-7.1): check it and our own azimuth FFT
@@ -229,12 +216,12 @@ class FocusEngine:
         eta1 = k.eta1 if with_h5 else np.zeros_like(k.eta1)
         self._run("nlcs_filter", grid.n_azimuth, grid.n_range, s, self.reals("eta1", eta1),
                   self.reals("y3", k.y3), self.reals("y4", k.y4), grid.n_range, grid.n_azimuth,
-                  1.0 / (grid.n_azimuth * grid.dt_s), dtype=s.dtype)
+                  1.0 / (grid.n_azimuth * grid.dt_s))
 
     def nlcs_scaling(self, s, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid) -> None:
         """H7 (eq. 15) in place on a range-time array."""
         self._run("nlcs_scaling", grid.n_azimuth, grid.n_range, s, self.reals("q2", k.q2), self.reals("q3", k.q3),
-                  self.reals("q4", k.q4), grid.n_range, grid.n_azimuth, grid.dt_s, dtype=s.dtype)
+                  self.reals("q4", k.q4), grid.n_range, grid.n_azimuth, grid.dt_s)
 
     def azimuth_compression(self, s, ac: nlcs.AzimuthCompression, grid: nlcs.FocusGrid) -> None:
         """H8 (eq. 17 [fix]) in place on a range-Doppler array."""
@@ -261,15 +248,23 @@ class FocusEngine:
         return nlcs.fit_azimuth_compression(self.reference_spectra(k, grid, aperture_m), k, grid, degree)
 
     def reference_spectra(self, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, aperture_m: float) -> np.ndarray:
-        """X_ref of every bin after H6/H7 (centred f_a), in `reference_dtype`: the fit picks its segment and band
-        with a hard threshold on |X_ref|, which float32 rounding can move by one sample (a 2e-3 image error)."""
-        ref = self.buffer("reference", (grid.n_azimuth, grid.n_range), self.reference_dtype)
+        """X_ref of every bin after H6/H7 (centred f_a, complex128), computed in complex64 on the device.
+
+        The fit picks each bin's segment and band with a hard threshold on |X_ref|, which float32 rounding can
+        move by one sample (an image error of 2e-3): the few bins with a band edge within rounding of the
+        threshold are recomputed on the host in float64, so the fit decides exactly as the reference does."""
+        ref = self.buffer("reference", (grid.n_azimuth, grid.n_range))
         self._run("reference_point_response", grid.n_azimuth, grid.n_range, ref, self.reals("r_bins", k.r_m),
                   grid.n_range, grid.n_azimuth, grid.dt_s, grid.speed_m_s, grid.sin_squint, grid.wavelength_m,
-                  aperture_m, dtype=ref.dtype)
+                  aperture_m)
         self.fft(ref, 0)
         self.azimuth_nlcs_chain(ref, k, grid, with_h5=False)
-        return np.fft.fftshift(self.host(ref), axes=0)
+        x_ref = np.fft.fftshift(self.host(ref), axes=0).astype(np.complex128)
+        undecided = np.flatnonzero(undecided_band_edges(np.abs(x_ref), grid, REFERENCE_EDGE_MARGIN))
+        if undecided.size:
+            kb = dataclasses.replace(k, **{f.name: getattr(k, f.name)[undecided] for f in dataclasses.fields(k)})
+            x_ref[:, undecided] = nlcs.reference_spectra(kb, grid, aperture_m)
+        return x_ref
 
     def nlcs_focus(self, scan: ScanPass, *, ac_mode: str = "exact", grid: nlcs.FocusGrid | None = None,
                    compression: nlcs.AzimuthCompression | None = None) -> nlcs.NlcsProducts:
@@ -357,6 +352,26 @@ class FocusEngine:
                   grid.carrier_frequency_hz, lo, hi)
         return bp.BackprojectionProducts(image=self.host(image), u_axis_m=u_axis, r_axis_m=r_axis, grid=grid,
                                          compressed=rc)
+
+
+def undecided_band_edges(mag: np.ndarray, grid: nlcs.FocusGrid, margin: float) -> np.ndarray:
+    """Bins (columns of |X_ref|) whose H8 segment ends, as `nlcs.fit_azimuth_compression` picks them, could move if
+    every magnitude moved by up to `margin` times the bin's peak."""
+    peak = mag.max(axis=0)
+    threshold = nlcs.STRONG_REFERENCE_FRACTION * peak
+    f_lo, f_hi = nlcs.doppler_band_hz(grid)
+    f = grid.f_azimuth_hz[:, None]
+    window = (f >= f_lo) & (f <= f_hi)
+    surely = window & (mag > threshold + margin * peak)
+    maybe = window & (mag > threshold - margin * peak)
+
+    def ends(strong):
+        first = np.argmax(strong, axis=0)
+        last = strong.shape[0] - 1 - np.argmax(strong[::-1], axis=0)
+        return np.where(strong.any(axis=0), first, -1), np.where(strong.any(axis=0), last, -1)
+
+    (a0, a1), (b0, b1) = ends(surely), ends(maybe)
+    return (a0 != b0) | (a1 != b1)
 
 
 def _is_power_of_two(n: int) -> bool:

@@ -303,6 +303,18 @@ def _azimuth_nlcs_chain(rd: np.ndarray, k: coef.NlcsCoefficients, grid: FocusGri
     return az_fft(nlcs_scaling(az_ifft(nlcs_filter(rd, k, grid)), k, grid))
 
 
+def reference_spectra(k: coef.NlcsCoefficients, grid: FocusGrid, aperture_m: float) -> np.ndarray:
+    """X_ref: the t_n = 0 reference target of each bin of `k` after H6/H7, centred f_a (notes 7b).
+    The reference sees the whole beam (no rail ends): its spectrum is then smooth, and the fit is of the
+    stationary-phase law rather than of the Gibbs ripple of one particular truncation."""
+    ref = az_fft(slow_time_point_response(k.r_m, 0.0, grid, aperture_m, rail_only=False))
+    return _azimuth_nlcs_chain(ref, k, grid)
+
+
+# The H8 fit keeps the part of each bin's band where |X_ref| exceeds this fraction of its peak.
+STRONG_REFERENCE_FRACTION = 1e-2
+
+
 def exact_reference_azimuth_compression(k: coef.NlcsCoefficients, grid: FocusGrid, aperture_m: float,
                                         degree: int = 8) -> AzimuthCompression:
     """H8 matched to the simulated t_n = 0 reference of each bin after H6/H7 (notes 7b, "exact-reference AC"),
