@@ -68,3 +68,15 @@ def test_cis_is_accurate_for_phases_of_hundreds_of_radians():
 def test_unknown_azimuth_compression_mode_is_refused(noisy_pass):
     with pytest.raises(ValueError, match="azimuth compression mode 'poly'"):
         nlcs_focus_scipy32(noisy_pass, ac_mode="poly")
+
+
+def test_model_spectra_equal_the_band_rows_of_the_image_spectrum(noisy_pass):
+    from uwbcl.focus.scipy32 import nlcs_model_spectra
+
+    products = nlcs.nlcs_focus(noisy_pass)
+    grid = products.grid
+    echo, x_rel = nlcs.prepare_track(noisy_pass, grid)
+    rows = np.arange(-grid.n_azimuth // 8, grid.n_azimuth // 16)
+    ref = (np.fft.fft2(products.image) / products.image.size)[rows % grid.n_azimuth]
+    out = nlcs_model_spectra(products, x_rel, echo[None], rows)
+    assert out.shape == (1,) + ref.shape and _rel_err(out[0], ref) <= CHAIN_TOL

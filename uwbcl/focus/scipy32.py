@@ -163,6 +163,17 @@ def azimuth_compression(s: np.ndarray, ac: nlcs.AzimuthCompression, grid: nlcs.F
     return out
 
 
+def _compressed_spectrum(echo: np.ndarray, x_rel: np.ndarray, grid: nlcs.FocusGrid, k: coef.NlcsCoefficients,
+                         ac: nlcs.AzimuthCompression) -> np.ndarray:
+    """echo -> the range-Doppler array after H8 (FFT order): the chain up to its last IFFT."""
+    s = range_fft_walk_corrected(echo, x_rel, grid)
+    s = _fft(resample_padded(s, x_rel, grid), 0)
+    rows, x, mask = doppler_band_rows(grid)
+    s_rows = secondary_range_compression_rows(s[rows], rows, x, mask, grid)
+    s = azimuth_nlcs_chain(_ifft(s_rows, 1), rows, k, grid, with_h5=True)
+    return azimuth_compression(s, ac, grid)
+
+
 def nlcs_focus_scipy32(scan: ScanPass, ac_mode: str = "exact", grid: nlcs.FocusGrid | None = None
                        ) -> nlcs.NlcsProducts:
     """Focus one pass with the modified NLCS chain in float32 (same products as `nlcs.nlcs_focus`)."""
@@ -171,13 +182,17 @@ def nlcs_focus_scipy32(scan: ScanPass, ac_mode: str = "exact", grid: nlcs.FocusG
     grid = nlcs.focus_grid(scan) if grid is None else grid
     echo, x_rel = nlcs.prepare_track(scan, grid)
     k = coef.nlcs_coefficients(grid.range_bins_m, grid.speed_m_s, grid.sin_squint, grid.wavelength_m)
-    s = range_fft_walk_corrected(echo, x_rel, grid)
-    s = _fft(resample_padded(s, x_rel, grid), 0)
-    rows, x, mask = doppler_band_rows(grid)
-    s_rows = secondary_range_compression_rows(s[rows], rows, x, mask, grid)
-    s = azimuth_nlcs_chain(_ifft(s_rows, 1), rows, k, grid, with_h5=True)
     aperture = scan.radar.antenna_aperture_m
     ac = (exact_reference_azimuth_compression(k, grid, aperture) if ac_mode == "exact"
           else nlcs.series_azimuth_compression(k, grid))
-    image = np.fft.fftshift(_ifft(azimuth_compression(s, ac, grid), 0), axes=0)
+    image = np.fft.fftshift(_ifft(_compressed_spectrum(echo, x_rel, grid, k, ac), 0), axes=0)
     return nlcs.NlcsProducts(image=image, grid=grid, coefficients=k, compression=ac, aperture_m=aperture)
+
+
+def nlcs_model_spectra(products: nlcs.NlcsProducts, x_rel_m: np.ndarray, echoes, rows: np.ndarray) -> np.ndarray:
+    """As `FocusEngine.nlcs_model_spectra`: rows `rows` (signed azimuth indices) of fft2(image) / (n m) of each
+    model echo's image, from the range-Doppler array after H8 (no last IFFT)."""
+    grid, k, ac = products.grid, products.coefficients, products.compression
+    y = np.array([_compressed_spectrum(e, x_rel_m, grid, k, ac)[np.asarray(rows) % grid.n_azimuth]
+                  for e in echoes])
+    return nlcs.spectrum_rows_from_range_doppler(y, rows, grid)
