@@ -408,3 +408,25 @@ def nlcs_focus(scan: ScanPass, *, ac_mode: str = "exact", grid: FocusGrid | None
         raise ValueError(f"unknown azimuth compression mode {ac_mode!r} (exact|series)")
     image = az_ifft(azimuth_compression(s, ac, grid))
     return NlcsProducts(image=image, grid=grid, coefficients=k, compression=ac, aperture_m=aperture)
+
+
+def nlcs_model_spectra(products: NlcsProducts, x_rel_m: np.ndarray, echoes, rows: np.ndarray) -> np.ndarray:
+    """Rows `rows` (signed azimuth indices) of fft2(image) / (n m) of the image each echo (pulses at x_rel_m,
+    increasing) focuses to with the products' chain and H8: detection's neighbour models (float64 reference of
+    `FocusEngine.nlcs_model_spectra`). The stages after the resampling multiply by filters that depend on the
+    grid only, so they are computed once for all echoes; the last azimuth IFFT is not needed."""
+    grid, k = products.grid, products.coefficients
+    ones = np.ones((grid.n_azimuth, grid.n_range), dtype=np.complex128)
+    src = secondary_range_compression(ones, grid)
+    h5h6 = nlcs_filter(azimuth_compensation(ones, k.eta1, grid), k, grid)
+    h7 = nlcs_scaling(ones, k, grid)
+    centred_rows = grid.n_azimuth // 2 + np.asarray(rows)
+    h8 = products.compression.filter(grid.f_azimuth_hz[centred_rows])
+    p2 = coef.enlcs_coefficient(grid.range_bins_m, grid.speed_m_s, grid.sin_squint)
+    out = []
+    for echo in echoes:
+        s = linear_range_walk_correction(range_fft(echo, grid), x_rel_m, grid)
+        s = extended_nlcs(resample_to_uniform_track(s, x_rel_m, grid), p2, grid)
+        s = range_ifft(az_fft(pad_azimuth(s, grid)) * src, grid) * h5h6
+        out.append(az_fft(az_ifft(s) * h7)[centred_rows] * h8)
+    return spectrum_rows_from_range_doppler(np.array(out), rows, grid)
