@@ -307,12 +307,13 @@ def _assert_same_compression(got, want, grid):
 
 @pytest.mark.parametrize("scenario", [PAPER_SIM1, PAPER_SIM2], ids=lambda s: s.name)
 @pytest.mark.parametrize("which", [0, 3])
-def test_the_vectorised_h8_fit_is_the_per_bin_fit_on_the_paper_reference_spectra(scenario, which):
+@pytest.mark.parametrize("dtype", [np.complex128, np.complex64])  # complex64: engines without fp64
+def test_the_vectorised_h8_fit_is_the_per_bin_fit_on_the_paper_reference_spectra(scenario, which, dtype):
     scan = scenario.simulate(snr_db=10.0, speed_jitter=0.1, seed=0)[which]
     grid, k = _grid_and_coefficients(scan)
     ref = nlcs.az_fft(nlcs.slow_time_point_response(k.r_m, 0.0, grid, scan.radar.antenna_aperture_m,
                                                     rail_only=False))
-    x_ref = nlcs._azimuth_nlcs_chain(ref, k, grid)
+    x_ref = nlcs._azimuth_nlcs_chain(ref, k, grid).astype(dtype)
     want = _fit_azimuth_compression_loop(x_ref, k, grid)
     assert (want.f_lo_hz > nlcs.doppler_band_hz(grid)[0]).all()  # every bin fitted: the paper's case
     _assert_same_compression(nlcs.fit_azimuth_compression(x_ref, k, grid), want, grid)
@@ -340,9 +341,10 @@ def _synthetic_reference_spectra(grid, n, seed=0):
     return mag * np.exp(1j * phase)
 
 
-def test_the_vectorised_h8_fit_is_the_per_bin_fit_on_synthetic_spectra_with_every_kind_of_band():
+@pytest.mark.parametrize("dtype", [np.complex128, np.complex64])
+def test_the_vectorised_h8_fit_is_the_per_bin_fit_on_synthetic_spectra_with_every_kind_of_band(dtype):
     grid, k = _grid_and_coefficients(PAPER_SIM1.simulate()[0])
-    x_ref = _synthetic_reference_spectra(grid, k.r_m.size)
+    x_ref = _synthetic_reference_spectra(grid, k.r_m.size).astype(dtype)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", np.exceptions.RankWarning)  # case 6, in both
         want = _fit_azimuth_compression_loop(x_ref, k, grid)
@@ -360,11 +362,20 @@ def test_the_vectorised_h8_fit_is_the_per_bin_fit_on_synthetic_spectra_with_ever
     assert ((want.f_hi_hz - want.f_lo_hz)[case == 6] < 8.5 * (f[1] - f[0])).all()  # < 9 samples
 
 
-def test_the_fast_unwrap_is_np_unwrap_bit_for_bit():
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_the_fast_unwrap_is_np_unwrap_of_each_column_from_its_start_bit_for_bit(dtype):
     rng = np.random.default_rng(1)
     p = rng.uniform(-np.pi, np.pi, (500, 7))
     p[:8, 0] = [0.0, np.pi, 0.0, -np.pi, np.pi, -np.pi, 0.0, np.pi]  # steps of exactly +-pi, both signs
     p[::3, 1] = np.pi
     p[100, 2] = np.nan
     p[:, 3] = np.angle(np.exp(1j * 40 * np.linspace(-1, 1, 500) ** 2))  # a smooth phase wrapped many times
-    np.testing.assert_array_equal(nlcs._unwrap_axis0(p), np.unwrap(p, axis=0))
+    p[:, 4] = np.cumsum(rng.uniform(-3, 3, 500))
+    p = p.astype(dtype)
+    np.testing.assert_array_equal(nlcs._unwrap_from(p, np.zeros(7, dtype=int)), np.unwrap(p, axis=0))
+    start = np.array([0, 5, 150, 37, 250, 499, 1])
+    got = nlcs._unwrap_from(p, start)
+    assert got.dtype == dtype
+    for j, s in enumerate(start):
+        np.testing.assert_array_equal(got[s:, j], np.unwrap(p[s:, j]))
+        np.testing.assert_array_equal(got[:s, j], p[:s, j])

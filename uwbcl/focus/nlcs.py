@@ -306,18 +306,19 @@ def exact_reference_azimuth_compression(k: coef.NlcsCoefficients, grid: FocusGri
     return fit_azimuth_compression(_azimuth_nlcs_chain(ref, k, grid), k, grid, degree)
 
 
-def _unwrap_axis0(p: np.ndarray) -> np.ndarray:
-    """np.unwrap(p, axis=0), bit for bit: the same arithmetic, but the mod 2 pi (most of np.unwrap's time) only on
-    the steps np.unwrap corrects, |dp| >= pi (its default discont and period)."""
+def _unwrap_from(p: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """Column j of p unwrapped from row start[j] on, bit for bit np.unwrap(p[start[j]:, j]); rows above start[j]
+    are left as they are. np.unwrap's arithmetic (its default discont and period), but the mod 2 pi, most of
+    its time, only on the steps it corrects (|dp| >= pi)."""
     dd = np.diff(p, axis=0)
-    jump = ~(np.abs(dd) < np.pi)
+    jump = ~(np.abs(dd) < np.pi) & (np.arange(1, p.shape[0])[:, None] > start)
     d = dd[jump]
     ddmod = np.mod(d + np.pi, 2 * np.pi) - np.pi
     ddmod[(ddmod == -np.pi) & (d > 0)] = np.pi
     correction = np.zeros_like(dd)
     correction[jump] = ddmod - d
     out = p.copy()
-    out[1:] = p[1:] + correction.cumsum(axis=0)
+    out[1:] = p[1:] + correction.cumsum(axis=0)  # zeros before start[j] keep the segment's partial sums exact
     return out
 
 
@@ -329,7 +330,7 @@ def fit_azimuth_compression(x_ref: np.ndarray, k: coef.NlcsCoefficients, grid: F
     # Vectorised over the bins because every backend calls this once per pass and a loop of np.unwrap + polyfit
     # per bin cost ~25 ms at 128 bins. Per bin it is the loop that tests/test_nlcs.py keeps as the
     # specification: the strong segment [lo, hi] (|X| > 1e-2 max|X| within [f_lo, f_hi]) must contain f_a = 0,
-    # else the series H8 stays; the phase is unwrapped along the segment and referred to f_a = 0, and fitted
+    # else the series H8 stays; the phase is np.unwrap'ed along the segment and referred to f_a = 0, and fitted
     # by polyfit's weighted least squares (polyfit's w = sqrt|X| multiplies the residuals: weights |X|).
     f = grid.f_azimuth_hz
     f_scale = 0.5 / grid.dt_s
@@ -354,31 +355,32 @@ def fit_azimuth_compression(x_ref: np.ndarray, k: coef.NlcsCoefficients, grid: F
         return AzimuthCompression(poly=poly, f_scale_hz=f_scale, f_lo_hz=f_lo, f_hi_hz=f_hi)
     lo, hi = lo[bins], hi[bins]
     f_lo[bins], f_hi[bins] = f[lo], f[hi]
-    rows = slice(lo.min(), hi.max() + 1)  # the union of the segments; a bin's rows outside its own weigh 0
+    # All bins on the union of their segments, a bin's rows outside its own with weight 0. The unwrap starts at
+    # each bin's lo: unwrapping from the union's first row instead would only add a multiple of 2 pi, which
+    # the reference to f_a = 0 removes, but with rounding (float32 X_ref: ~1e-5 rad).
+    rows = slice(lo.min(), hi.max() + 1)
     cols = slice(None) if bins.size == n else bins
-    # Unwrapping the whole run of rows unwraps each segment: np.unwrap adds to sample i the cumulative sum of
-    # per-step corrections, each a function of one pair of neighbours, so inside [lo, hi] it differs from the
-    # segment's own unwrap by the corrections of the steps before lo only, a constant (a multiple of 2 pi)
-    # that referring the phase to f_a = 0 (inside the segment) removes.
-    phase = _unwrap_axis0(np.angle(x_ref[rows, cols]))
+    phase = _unwrap_from(np.angle(x_ref[rows, cols]), lo - rows.start)
     phase -= phase[i0 - rows.start]
     r = np.arange(rows.start, rows.stop)[:, None]
-    wt = np.where((r >= lo) & (r <= hi), mag[rows, cols], 0.0)  # (rows, bins): polyfit's w**2
-    # Normal equations for all bins at once, G = V^T diag(wt) V from one matmul, scaled to unit diagonal (as
+    w = np.where((r >= lo) & (r <= hi), np.sqrt(mag[rows, cols]), 0.0)  # polyfit's w, in X_ref's precision
+    b = (w * phase).astype(np.float64)  # polyfit's right-hand side, rounded as polyfit rounds it
+    w = w.astype(np.float64)
+    # Normal equations for all bins at once, G = V^T diag(w^2) V from one matmul, scaled to unit diagonal (as
     # polyfit scales its columns), then one step of iterative refinement. The scaled weighted Vandermonde has
     # condition ~150 on the paper passes (G: ~2e4); the H8 phase then agrees with polyfit's (SVD) to ~1e-12 rad
     # over the band, as a batched Householder QR's did at ~3x the time. Bins with cond G > 1e10 go to polyfit.
     m = degree + 1
     v = np.polynomial.polynomial.polyvander(f[rows] / f_scale, degree)
-    g = (wt.T @ (v[:, :, None] * v[:, None, :]).reshape(-1, m * m)).reshape(-1, m, m)
+    g = ((w * w).T @ (v[:, :, None] * v[:, None, :]).reshape(-1, m * m)).reshape(-1, m, m)
     s = np.sqrt(np.diagonal(g, axis1=1, axis2=2))
     s = np.where(s > 0, s, 1.0)
     gs = g / s[:, :, None] / s[:, None, :]
     eig = np.linalg.eigvalsh(gs)
     ok = eig[:, 0] > 1e-10 * eig[:, -1]
     gs[~ok] = np.eye(m)  # solved harmlessly, then replaced
-    c = np.linalg.solve(gs, ((wt * phase).T @ v / s)[:, :, None])[:, :, 0] / s
-    c += np.linalg.solve(gs, ((wt * (phase - v @ c.T)).T @ v / s)[:, :, None])[:, :, 0] / s
+    c = np.linalg.solve(gs, ((w * b).T @ v / s)[:, :, None])[:, :, 0] / s
+    c += np.linalg.solve(gs, ((w * (b - w * (v @ c.T))).T @ v / s)[:, :, None])[:, :, 0] / s
     poly[bins] = c
     for i in np.flatnonzero(~ok):  # (nearly) rank deficient, e.g. fewer samples than coefficients
         seg = slice(lo[i] - rows.start, hi[i] + 1 - rows.start)
