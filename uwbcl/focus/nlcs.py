@@ -357,7 +357,7 @@ def fit_azimuth_compression(x_ref: np.ndarray, k: coef.NlcsCoefficients, grid: F
     f_lo[bins], f_hi[bins] = f[lo], f[hi]
     # All bins on the union of their segments, a bin's rows outside its own with weight 0. The unwrap starts at
     # each bin's lo: unwrapping from the union's first row instead would only add a multiple of 2 pi, which
-    # the reference to f_a = 0 removes, but with rounding (float32 X_ref: ~1e-5 rad).
+    # the reference to f_a = 0 removes, but with rounding (complex64 X_ref: ~3e-5 rad on the paper passes).
     rows = slice(lo.min(), hi.max() + 1)
     cols = slice(None) if bins.size == n else bins
     phase = _unwrap_from(np.angle(x_ref[rows, cols]), lo - rows.start)
