@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from uwbcl.focus import coefficients as coef
 from uwbcl.focus import nlcs
 from uwbcl.model import SPEED_OF_LIGHT_M_S as C
 from uwbcl.model import PassGeometry, RadarParameters
-from uwbcl.scenarios import PAPER_SIM1
+from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2
 
 RADAR = RadarParameters()
 H = 0.15
@@ -256,3 +257,125 @@ def test_without_azimuth_compression_the_target_is_not_focused(centre_pass, cent
     # measured: 0.27 of the focused peak and a 1.0 m wide response (vs 0.07 m focused)
     assert peak_ratio < 0.5
     assert width > 0.5
+
+
+# --------------------------------------------------------------------------------------------- H8 fit
+def _fit_azimuth_compression_loop(x_ref, k, grid, degree=8):
+    """The specification of nlcs.fit_azimuth_compression: one bin at a time, np.unwrap and polyfit on the bin's
+    own strong segment (the implementation before it was vectorised; that one raised on a bin with no strong
+    sample, here such a bin keeps the series like one whose segment misses f_a = 0)."""
+    f = grid.f_azimuth_hz
+    f_scale = 0.5 / grid.dt_s
+    n = k.r_m.size
+    series = nlcs.series_azimuth_compression(k, grid)
+    poly = np.zeros((n, degree + 1))
+    f_lo, f_hi = series.f_lo_hz.copy(), series.f_hi_hz.copy()
+    mag = np.abs(x_ref)
+    i0 = grid.n_azimuth // 2
+    for j in range(n):
+        strong = (mag[:, j] > 1e-2 * mag[:, j].max()) & (f >= f_lo[j]) & (f <= f_hi[j])
+        sel = np.flatnonzero(strong)
+        if sel.size == 0 or not sel[0] <= i0 <= sel[-1]:
+            poly[j, :5] = series.poly[j]
+            continue
+        lo, hi = sel[0], sel[-1]
+        seg = slice(lo, hi + 1)
+        phase = np.unwrap(np.angle(x_ref[seg, j]))
+        phase -= phase[i0 - lo]
+        poly[j] = np.polynomial.polynomial.polyfit(f[seg] / f_scale, phase, degree, w=np.sqrt(mag[seg, j]))
+        f_lo[j], f_hi[j] = f[lo], f[hi]
+    return nlcs.AzimuthCompression(poly=poly, f_scale_hz=f_scale, f_lo_hz=f_lo, f_hi_hz=f_hi)
+
+
+def _grid_and_coefficients(scan):
+    grid = nlcs.focus_grid(scan)
+    return grid, coef.nlcs_coefficients(grid.range_bins_m, grid.speed_m_s, grid.sin_squint, grid.wavelength_m)
+
+
+def _assert_same_compression(got, want, grid):
+    """Same bands bit for bit, the same series rows, and the fitted H8 phase within 1e-9 rad over each band."""
+    assert got.f_scale_hz == want.f_scale_hz
+    np.testing.assert_array_equal(got.f_lo_hz, want.f_lo_hz)
+    np.testing.assert_array_equal(got.f_hi_hz, want.f_hi_hz)
+    series = (want.poly[:, 5:] == 0).all(axis=1) & (want.f_lo_hz == nlcs.doppler_band_hz(grid)[0])
+    np.testing.assert_array_equal(got.poly[series], want.poly[series])
+    f = grid.f_azimuth_hz
+    inside = (f[:, None] >= want.f_lo_hz) & (f[:, None] <= want.f_hi_hz)
+    # measured: < 1e-12 rad on the paper passes and on the synthetic spectra
+    assert np.abs(np.where(inside, got.phase(f) - want.phase(f), 0.0)).max() < 1e-9
+
+
+@pytest.mark.parametrize("scenario", [PAPER_SIM1, PAPER_SIM2], ids=lambda s: s.name)
+@pytest.mark.parametrize("which", [0, 3])
+@pytest.mark.parametrize("dtype", [np.complex128, np.complex64])  # complex64: engines without fp64
+def test_the_vectorised_h8_fit_is_the_per_bin_fit_on_the_paper_reference_spectra(scenario, which, dtype):
+    scan = scenario.simulate(snr_db=10.0, speed_jitter=0.1, seed=0)[which]
+    grid, k = _grid_and_coefficients(scan)
+    ref = nlcs.az_fft(nlcs.slow_time_point_response(k.r_m, 0.0, grid, scan.radar.antenna_aperture_m,
+                                                    rail_only=False))
+    x_ref = nlcs._azimuth_nlcs_chain(ref, k, grid).astype(dtype)
+    want = _fit_azimuth_compression_loop(x_ref, k, grid)
+    assert (want.f_lo_hz > nlcs.doppler_band_hz(grid)[0]).all()  # every bin fitted: the paper's case
+    _assert_same_compression(nlcs.fit_azimuth_compression(x_ref, k, grid), want, grid)
+
+
+def _synthetic_reference_spectra(grid, n, seed=0):
+    """Gaussian |X| with a noisy polynomial phase (many wraps), the bump chosen per bin (j mod 8) so that the
+    strong segment: 0 spans the whole band, 1/2 misses f_a = 0 above/below (series kept), 3/4 touches the
+    lower/upper band edge, 5 is two bumps with a weak stretch (holding f_a = 0) between them, 6 has fewer samples
+    than coefficients (polyfit's rank-deficient solution), 7 is a shifted noisy bump; bin 7 is all zero."""
+    rng = np.random.default_rng(seed)
+    f = grid.f_azimuth_hz[:, None]
+    case = np.arange(n) % 8
+    bump = {0: (0.0, 3.0), 1: (1.0, 0.2), 2: (-1.0, 0.2), 3: (-1.5, 0.6), 4: (1.2, 0.5), 6: (0.0, 0.004),
+            7: (0.3, 0.8)}
+    centre = np.array([bump.get(c, (0.0, 1.0))[0] for c in case])
+    width = np.array([bump.get(c, (0.0, 1.0))[1] for c in case])
+    mag = np.exp(-0.5 * ((f - centre) / width) ** 2)
+    two = case == 5
+    mag[:, two] = (np.exp(-0.5 * ((f + 0.8) / 0.15) ** 2) + np.exp(-0.5 * ((f - 0.6) / 0.15) ** 2) + 1e-4)
+    mag *= np.abs(1 + 0.05 * rng.standard_normal(mag.shape))
+    mag[:, 7] = 0.0
+    phase = (rng.uniform(-30, 30, n) * f**2 + rng.uniform(-10, 10, n) * f**3 + rng.uniform(-np.pi, np.pi, n)
+             + 0.05 * rng.standard_normal(mag.shape))
+    return mag * np.exp(1j * phase)
+
+
+@pytest.mark.parametrize("dtype", [np.complex128, np.complex64])
+def test_the_vectorised_h8_fit_is_the_per_bin_fit_on_synthetic_spectra_with_every_kind_of_band(dtype):
+    grid, k = _grid_and_coefficients(PAPER_SIM1.simulate()[0])
+    x_ref = _synthetic_reference_spectra(grid, k.r_m.size).astype(dtype)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", np.exceptions.RankWarning)  # case 6, in both
+        want = _fit_azimuth_compression_loop(x_ref, k, grid)
+        got = nlcs.fit_azimuth_compression(x_ref, k, grid)
+    _assert_same_compression(got, want, grid)
+    # the synthetic spectra do reach every branch
+    f, band = grid.f_azimuth_hz, nlcs.doppler_band_hz(grid)
+    case = np.arange(k.r_m.size) % 8
+    series = want.f_lo_hz == band[0]
+    assert series[(case == 1) | (case == 2)].all() and series[7]
+    assert not series[(case == 0) | (case == 3) | (case == 4) | (case == 5) | (case == 6)].any()
+    edge_lo, edge_hi = f[f >= band[0]][0], f[f <= band[1]][-1]
+    assert (want.f_lo_hz[case == 0] == edge_lo).all() and (want.f_hi_hz[case == 0] == edge_hi).all()
+    assert (want.f_lo_hz[case == 3] == edge_lo).all() and (want.f_hi_hz[case == 4] == edge_hi).all()
+    assert ((want.f_hi_hz - want.f_lo_hz)[case == 6] < 8.5 * (f[1] - f[0])).all()  # < 9 samples
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_the_fast_unwrap_is_np_unwrap_of_each_column_from_its_start_bit_for_bit(dtype):
+    rng = np.random.default_rng(1)
+    p = rng.uniform(-np.pi, np.pi, (500, 7))
+    p[:8, 0] = [0.0, np.pi, 0.0, -np.pi, np.pi, -np.pi, 0.0, np.pi]  # steps of exactly +-pi, both signs
+    p[::3, 1] = np.pi
+    p[100, 2] = np.nan
+    p[:, 3] = np.angle(np.exp(1j * 40 * np.linspace(-1, 1, 500) ** 2))  # a smooth phase wrapped many times
+    p[:, 4] = np.cumsum(rng.uniform(-3, 3, 500))
+    p = p.astype(dtype)
+    np.testing.assert_array_equal(nlcs._unwrap_from(p, np.zeros(7, dtype=int)), np.unwrap(p, axis=0))
+    start = np.array([0, 5, 150, 37, 250, 499, 1])
+    got = nlcs._unwrap_from(p, start)
+    assert got.dtype == dtype
+    for j, s in enumerate(start):
+        np.testing.assert_array_equal(got[s:, j], np.unwrap(p[s:, j]))
+        np.testing.assert_array_equal(got[:s, j], p[:s, j])
