@@ -349,8 +349,8 @@ def fit_azimuth_compression(x_ref: np.ndarray, k: coef.NlcsCoefficients, grid: F
     computes X_ref on the device."""
     # Vectorised over the bins because every backend calls this once per pass and a loop of np.unwrap + polyfit
     # per bin cost ~25 ms at 128 bins. Per bin it is the loop that tests/test_nlcs.py keeps as the
-    # specification: the strong segment [lo, hi] (|X| > 1e-2 max|X| within [f_lo, f_hi]) must contain f_a = 0,
-    # else the series H8 stays; the phase is np.unwrap'ed along the segment and referred to f_a = 0, and fitted
+    # specification: the strong segment [lo, hi] (|X| > STRONG_REFERENCE_FRACTION max|X| within [f_lo, f_hi])
+    # must contain f_a = 0, else the series H8 stays; the phase is np.unwrap'ed along the segment and referred to f_a = 0, and fitted
     # by polyfit's weighted least squares (polyfit's w = sqrt|X| multiplies the residuals: weights |X|).
     f = grid.f_azimuth_hz
     f_scale = 0.5 / grid.dt_s
@@ -362,7 +362,8 @@ def fit_azimuth_compression(x_ref: np.ndarray, k: coef.NlcsCoefficients, grid: F
     i0 = grid.n_azimuth // 2
     band = np.flatnonzero((f >= f_lo.min()) & (f <= f_hi.max()))  # f increases: one run of rows
     b0 = band[0] if band.size else 0
-    strong = (mag[b0:b0 + band.size] > 1e-2 * mag.max(axis=0)) & (f[band, None] >= f_lo) & (f[band, None] <= f_hi)
+    strong = ((mag[b0:b0 + band.size] > STRONG_REFERENCE_FRACTION * mag.max(axis=0))
+              & (f[band, None] >= f_lo) & (f[band, None] <= f_hi))
     fitted = strong.any(axis=0)  # a bin without strong samples keeps the series too (the loop raised)
     lo = hi = np.zeros(n, dtype=int)
     if fitted.any():
