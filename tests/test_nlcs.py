@@ -276,7 +276,7 @@ def _fit_azimuth_compression_loop(x_ref, k, grid, degree=8):
         strong = (mag[:, j] > 1e-2 * mag[:, j].max()) & (f >= f_lo[j]) & (f <= f_hi[j])
         sel = np.flatnonzero(strong)
         if sel.size == 0 or not sel[0] <= i0 <= sel[-1]:
-            poly[j, :5] = series.poly[j]
+            poly[j, :5] = series.poly[j] * f_scale ** np.arange(5)
             continue
         lo, hi = sel[0], sel[-1]
         seg = slice(lo, hi + 1)
@@ -379,3 +379,15 @@ def test_the_fast_unwrap_is_np_unwrap_of_each_column_from_its_start_bit_for_bit(
     for j, s in enumerate(start):
         np.testing.assert_array_equal(got[s:, j], np.unwrap(p[s:, j]))
         np.testing.assert_array_equal(got[:s, j], p[:s, j])
+
+
+def test_a_bin_whose_strong_segment_misses_zero_doppler_keeps_the_series_phase_law():
+    scan = PAPER_SIM1.simulate(seed=0)[0]
+    grid = nlcs.focus_grid(scan)
+    k = coef.nlcs_coefficients(grid.range_bins_m, grid.speed_m_s, grid.sin_squint, grid.wavelength_m)
+    x_ref = nlcs.reference_spectra(k, grid, scan.radar.antenna_aperture_m)
+    x_ref[: grid.n_azimuth // 2 + 1, 7] = 0  # bin 7: nothing strong at or below f_a = 0
+    ac = nlcs.fit_azimuth_compression(x_ref, k, grid)
+    series = nlcs.series_azimuth_compression(k, grid)
+    f = grid.f_azimuth_hz
+    np.testing.assert_allclose(ac.phase(f)[:, 7], series.phase(f)[:, 7], rtol=1e-9, atol=1e-9)

@@ -370,7 +370,7 @@ def fit_azimuth_compression(x_ref: np.ndarray, k: coef.NlcsCoefficients, grid: F
         lo = b0 + np.argmax(strong, axis=0)
         hi = b0 + band.size - 1 - np.argmax(strong[::-1], axis=0)
         fitted &= (lo <= i0) & (i0 <= hi)
-    poly[~fitted, :5] = series.poly[~fitted]
+    poly[~fitted, :5] = series.poly[~fitted] * f_scale ** np.arange(5)  # series powers of f_a -> of f_a / f_scale
     bins = np.flatnonzero(fitted)
     if bins.size == 0:
         return AzimuthCompression(poly=poly, f_scale_hz=f_scale, f_lo_hz=f_lo, f_hi_hz=f_hi)
