@@ -245,25 +245,26 @@ def _calibration_spectra(products: nlcs.NlcsProducts, r_m: np.ndarray, t_n_s: np
     f = np.fft.ifftshift(grid.f_azimuth_hz)
     band = (f >= ac.f_lo_hz.min()) & (f <= ac.f_hi_hz.max())
     ones = np.ones((n, bins_used.size), dtype=np.complex128)
-    h6 = np.fft.ifftshift(nlcs.nlcs_filter(ones, k, grid), axes=0)[:, bin_of_r, None]
-    h7 = np.fft.ifftshift(nlcs.nlcs_scaling(ones, k, grid), axes=0)[:, bin_of_r, None]
-    h8 = np.zeros((n, bins_used.size), dtype=np.complex128)
-    h8[band] = ac.filter(f[band])
+    h6 = np.fft.ifftshift(nlcs.nlcs_filter(ones, k, grid), axes=0).T[bin_of_r, None]
+    h7 = np.fft.ifftshift(nlcs.nlcs_scaling(ones, k, grid), axes=0).T[bin_of_r, None]
+    h8 = np.zeros((bins_used.size, n), dtype=np.complex128)
+    h8[:, band] = ac.filter(f[band]).T
     # the response on a grid of the rail's n_track (odd) + 1 rows: its t_a are the same integers times dt
     half = (grid.n_track + 1) // 2
     rail = nlcs.slow_time_point_response(np.repeat(r_m, t_n_s.size), np.tile(t_n_s, r_m.size),
                                          dataclasses.replace(grid, n_azimuth=2 * half), products.aperture_m)
-    s = np.zeros((n, r_m.size * t_n_s.size), dtype=np.complex128)
-    s[:half], s[n - half:] = rail[half:], rail[:half]  # ifftshift of the zero-padded response
-    by_range = s.reshape(n, r_m.size, t_n_s.size)  # a view: the in-place products below act on s
-    np.fft.fft(s, axis=0, out=s)
+    # one contiguous row per target (the FFTs are faster along rows), then r-major
+    s = np.zeros((r_m.size * t_n_s.size, n), dtype=np.complex128)
+    s[:, :half], s[:, n - half:] = rail[half:].T, rail[:half].T  # ifftshift of the zero-padded response
+    by_range = s.reshape(r_m.size, t_n_s.size, n)  # a view: the in-place products below act on s
+    np.fft.fft(s, axis=1, out=s)
     by_range *= h6
-    np.fft.ifft(s, axis=0, out=s)
+    np.fft.ifft(s, axis=1, out=s)
     by_range *= h7
-    np.fft.fft(s, axis=0, out=s)
-    by_range *= h8[:, bin_of_r, None]
-    coarse = np.fft.ifftshift(grid.t_azimuth_s)[np.argmax(np.abs(np.fft.ifft(s, axis=0)), axis=0)]
-    return f[band], s[band], coarse
+    np.fft.fft(s, axis=1, out=s)
+    by_range *= h8[bin_of_r, None]
+    coarse = np.fft.ifftshift(grid.t_azimuth_s)[np.argmax(np.abs(np.fft.ifft(s, axis=1)), axis=1)]
+    return f[band], s[:, band].T, coarse
 
 
 def focus_position(products: nlcs.NlcsProducts, r_m, t_n_s: np.ndarray) -> np.ndarray:
