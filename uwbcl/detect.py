@@ -75,25 +75,89 @@ def _local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float
     return idx[order], floor
 
 
-def _trig_evaluator(image: np.ndarray, azimuth_band: tuple[float, float] | None = None):
-    """Band-limited (trigonometric) interpolation of a 2-D image at fractional indices.
+@dataclasses.dataclass(frozen=True, eq=False)
+class TrigInterpolant:
+    """Band-limited (trigonometric) interpolation of a 2-D image at fractional indices (a, b):
 
-    `azimuth_band` = (lo, hi) in cycles per sample: the image's azimuth spectrum is zero outside it (the NLCS
-    azimuth compression zeroes it), so only those spectral rows enter the sums; they hold rounding noise only.
+        V(a, b) = sum_k sum_l coeffs[k, l] exp(2 pi i (ka_k a + kb_l b)),
+
+    the inverse DFT evaluated off the grid. `coeffs` is the image's 2-D DFT / (n m) on the kept azimuth rows,
+    `ka` their frequencies (np.fft.fftfreq(n)[rows]) and `kb` np.fft.fftfreq(m), in cycles per sample. Built from
+    an image (`from_image`) or from spectra computed elsewhere (e.g. on an OpenCL device): nothing here needs the
+    image itself.
     """
-    n, m = image.shape
-    spec = (np.fft.fft2(image) / (n * m)).astype(np.complex128)  # once, not per evaluation
-    ka = np.fft.fftfreq(n)
-    if azimuth_band is not None:
-        rows = (ka >= azimuth_band[0]) & (ka <= azimuth_band[1])
-        spec, ka = spec[rows], ka[rows]
-    ka = ka * 2j * np.pi
-    kb = np.fft.fftfreq(m) * 2j * np.pi
 
-    def value(a: float, b: float) -> complex:
-        return np.exp(ka * a) @ (spec @ np.exp(kb * b))
+    coeffs: np.ndarray  # (rows, m) complex
+    ka: np.ndarray  # (rows,)
+    kb: np.ndarray  # (m,)
 
-    return value
+    @classmethod
+    def from_image(cls, image: np.ndarray, azimuth_band: tuple[float, float] | None = None) -> TrigInterpolant:
+        """`azimuth_band` = (lo, hi) in cycles per sample: the image's azimuth spectrum is zero outside it (the
+        NLCS azimuth compression zeroes it), so only those spectral rows are kept; the others hold rounding
+        noise only."""
+        n, m = image.shape
+        spec = np.fft.fft2(image) / (n * m)
+        ka = np.fft.fftfreq(n)
+        if azimuth_band is not None:
+            rows = (ka >= azimuth_band[0]) & (ka <= azimuth_band[1])
+            spec, ka = spec[rows], ka[rows]
+        return cls(np.ascontiguousarray(spec, dtype=np.complex128), ka, np.fft.fftfreq(m))
+
+    def value(self, a: float, b: float) -> complex:
+        return complex(np.exp(2j * np.pi * self.ka * a) @ (self.coeffs @ np.exp(2j * np.pi * self.kb * b)))
+
+    def _local(self, a: float, b: float) -> tuple[complex, float, np.ndarray, np.ndarray]:
+        """V, g = |V|^2 and the gradient and Hessian of g at (a, b). The derivatives of V are the same sums with
+        coeffs[k, l] (2 pi i ka_k)^p (2 pi i kb_l)^q: one mat-mul of coeffs with e_b, w_b e_b, w_b^2 e_b, then
+        one 3 x 3 contraction with e_a, w_a e_a, w_a^2 e_a gives d^(p+q) V / da^p db^q for p, q <= 2."""
+        wa, wb = 2j * np.pi * self.ka, 2j * np.pi * self.kb
+        eb = np.exp(wb * b)
+        ea = np.exp(wa * a)
+        u = self.coeffs @ np.stack([eb, wb * eb, wb * wb * eb], axis=1)  # (rows, 3)
+        d = np.stack([ea, wa * ea, wa * wa * ea]) @ u  # d[p, q] = d^p/da^p d^q/db^q V
+        v = d[0, 0]
+        dv = np.array([d[1, 0], d[0, 1]])
+        ddv = np.array([[d[2, 0], d[1, 1]], [d[1, 1], d[0, 2]]])
+        # g = V V*: dg = 2 Re(V* dV), d2g = 2 Re(dV* dV^T + V* d2V)
+        grad = 2.0 * (v.conjugate() * dv).real
+        hess = 2.0 * (np.outer(dv.conjugate(), dv) + v.conjugate() * ddv).real
+        return complex(v), float(abs(v) ** 2), grad, hess
+
+    def maximise(self, a0: float, b0: float, step: float = 0.5, tol: float = 1e-6, max_iter: int = 20
+                 ) -> tuple[float, float, complex]:
+        """Sub-cell maximum of |V|^2 near (a0, b0) by Newton's method with the analytic gradient and Hessian.
+
+        Trust region of radius <= `step` cells: a Newton step where the Hessian is negative definite, a damped
+        steepest-ascent step elsewhere; a step that lowers |V|^2 is retried at half the radius. Stops after a
+        step shorter than `tol` cells. Returns (a, b, V(a, b)).
+        """
+        x = np.array([a0, b0], dtype=float)
+        v, g, grad, hess = self._local(*x)
+        radius = step
+        for _ in range(max_iter):
+            det = hess[0, 0] * hess[1, 1] - hess[0, 1] ** 2
+            if hess[0, 0] < 0 and det > 0:  # negative definite
+                s = np.array([hess[0, 1] * grad[1] - hess[1, 1] * grad[0],
+                              hess[0, 1] * grad[0] - hess[0, 0] * grad[1]]) / det  # -H^-1 grad
+            else:
+                norm = np.hypot(*grad)
+                s = grad * (radius / norm) if norm > 0 else np.zeros(2)
+            length = float(np.hypot(*s))
+            if length > radius:
+                s, length = s * (radius / length), radius
+            if length < tol:  # converged: take the last, tiny step (its error is of order length^2)
+                x += s
+                v = self.value(*x)
+                break
+            v1, g1, grad1, hess1 = self._local(*(x + s))
+            if g1 < g * (1.0 - 1e-13):  # worse beyond rounding: shrink the region and retry
+                radius = 0.5 * length
+                continue
+            x += s
+            v, g, grad, hess = v1, g1, grad1, hess1
+            radius = min(step, 2.0 * radius)
+        return float(x[0]), float(x[1]), v
 
 
 def _nlcs_band(products: nlcs.NlcsProducts) -> tuple[float, float]:
@@ -104,7 +168,8 @@ def _nlcs_band(products: nlcs.NlcsProducts) -> tuple[float, float]:
 
 
 def _maximise(value, a0: float, b0: float, step: float = 0.5) -> tuple[float, float, complex]:
-    """Sub-cell maximum of |value| near the fractional index (a0, b0)."""
+    """Sub-cell maximum of |value| near the fractional index (a0, b0), derivative-free (Nelder-Mead): for the
+    backprojection sum, which has no spectral form (the NLCS image uses `TrigInterpolant.maximise`)."""
     res = optimize.minimize(lambda p: -abs(value(p[0], p[1])) ** 2, x0=[a0, b0], method="Nelder-Mead",
                             options={"xatol": 1e-4, "fatol": 1e-12, "initial_simplex":
                                      [[a0, b0], [a0 + step, b0], [a0, b0 + step]]})
@@ -113,45 +178,122 @@ def _maximise(value, a0: float, b0: float, step: float = 0.5) -> tuple[float, fl
 
 
 # --------------------------------------------------------------------------------------------- NLCS
-def _bin(obj, j: int):
-    """The dataclass with every per-bin array narrowed to bin j (kept 1-D for broadcasting)."""
-    return dataclasses.replace(obj, **{f.name: getattr(obj, f.name)[j:j + 1] for f in dataclasses.fields(obj)
+def _bins(obj, j: np.ndarray):
+    """The dataclass with every per-bin array narrowed to the bins j (one column per entry, for broadcasting)."""
+    return dataclasses.replace(obj, **{f.name: getattr(obj, f.name)[j] for f in dataclasses.fields(obj)
                                        if isinstance(getattr(obj, f.name), np.ndarray)})
 
 
-def focus_position(products: nlcs.NlcsProducts, r_m: float, t_n_s: np.ndarray) -> np.ndarray:
-    """t_f(t_n): where the azimuth chain of the bin nearest r focuses targets at t_n (calibrated by simulation)."""
+def _peak_times(f_hz: np.ndarray, y: np.ndarray, t0_s: np.ndarray, dt_s: float, tol_s: float = 1e-10,
+                max_iter: int = 30, order: int = 32) -> np.ndarray:
+    """Per column c of y (rows at azimuth frequencies f_hz, |f dt| <= 1/2), the t in [t0_c - dt, t0_c + dt] that
+    maximises g(t) = |Y(t)|^2, Y(t) = sum_f exp(2 pi i f t) y_f, by Newton's method on all columns at once.
+
+    About t0 (the coarse maximum), Y(t0 + x dt) = sum_p m_p x^p / p! with m_p = sum_f (2 pi i f dt)^p y_f
+    exp(2 pi i f t0): for |x| <= 1 the series' tail beyond `order` is below pi^(order+1) / (order+1)! < 1e-20
+    of sum |y_f|, so after one pass over y (the m_p) each Newton step costs a few small polynomials. Steps are
+    at most dt / 2, a damped ascent step where g is not concave, and a step that lowers g is retried at half
+    its length; stops once every step is shorter than tol_s."""
+    p = np.arange(order + 3)
+    powers = np.empty((p.size, f_hz.size), dtype=np.complex128)  # (2 pi i f dt)^p
+    powers[0] = 1.0
+    for k in p[1:]:
+        np.multiply(powers[k - 1], 2j * np.pi * dt_s * f_hz, out=powers[k])
+    m = powers @ (y * np.exp(2j * np.pi * np.outer(f_hz, t0_s)))  # m_q = dt^q Y^(q)(t0), one row per q
+    inv_factorial = 1.0 / np.cumprod(np.maximum(p[:order + 1], 1)).astype(float)
+
+    def local(x):  # g and its first two derivatives in x = (t - t0) / dt
+        series = x[None, :] ** p[:order + 1, None] * inv_factorial[:, None]
+        y0, y1, y2 = ((m[q:q + order + 1] * series).sum(axis=0) for q in range(3))
+        return np.abs(y0) ** 2, 2.0 * (y0.conj() * y1).real, 2.0 * (np.abs(y1) ** 2 + (y0.conj() * y2).real)
+
+    x = np.zeros(np.shape(t0_s))
+    g, dg, ddg = local(x)
+    radius = np.full(x.shape, 0.5)
+    for _ in range(max_iter):
+        concave = ddg < 0
+        newton = -dg / np.where(concave, ddg, -1.0)
+        step = np.clip(np.where(concave, newton, np.sign(dg) * radius), -radius, radius)
+        step = np.clip(x + step, -1.0, 1.0) - x
+        active = np.abs(step) >= tol_s / dt_s
+        if not active.any():
+            break
+        g1, dg1, ddg1 = local(x + step)
+        ok = active & (g1 >= g * (1.0 - 1e-13))  # not worse beyond rounding
+        x = np.where(ok, x + step, x)
+        g, dg, ddg = np.where(ok, g1, g), np.where(ok, dg1, dg), np.where(ok, ddg1, ddg)
+        radius = np.where(ok, np.minimum(0.5, 2.0 * radius), np.where(active, 0.5 * np.abs(step), radius))
+    return t0_s + x * dt_s
+
+
+def _calibration_spectra(products: nlcs.NlcsProducts, r_m: np.ndarray, t_n_s: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Focused azimuth spectra of simulated targets at every (r, t_n) (columns r-major), each through the azimuth
+    chain of the bin nearest its r: (f, y, coarse) with y on the rows f where H8 is not zero and the coarse t_f
+    (grid maximum) of each column.
+
+    The chain of `nlcs.slow_time_point_response` (rail only), `nlcs._azimuth_nlcs_chain` and
+    `nlcs.azimuth_compression`, with the same numbers, arranged for speed: the point response is evaluated on
+    the rail's rows alone (the rest are zero), the FFTs run in their own (unshifted) order and in place, and H6,
+    H7, H8 are computed once per bin (H8 on its band only)."""
     grid = products.grid
+    n = grid.n_azimuth
     bins = grid.range_bins_m
-    j = int(np.clip(np.rint((r_m - bins[0]) / (bins[1] - bins[0])), 0, bins.size - 1))
-    k = _bin(products.coefficients, j)
-    ac = _bin(products.compression, j)
-    rd = nlcs.az_fft(nlcs.slow_time_point_response(r_m, t_n_s, grid, products.aperture_m))
-    y = nlcs.azimuth_compression(nlcs._azimuth_nlcs_chain(rd, k, grid), ac, grid)
-    t_grid = grid.t_azimuth_s
-    coarse = np.argmax(np.abs(nlcs.az_ifft(y)), axis=0)
-    band = (grid.f_azimuth_hz >= ac.f_lo_hz[0]) & (grid.f_azimuth_hz <= ac.f_hi_hz[0])  # H8 is zero elsewhere
-    f, y = grid.f_azimuth_hz[band], y[band]
-    out = np.empty(y.shape[1])
-    for i in range(y.shape[1]):
-        col = y[:, i]
-        res = optimize.minimize_scalar(lambda t, col=col: -abs(np.exp(2j * np.pi * f * t) @ col),
-                                       bounds=(t_grid[coarse[i]] - grid.dt_s, t_grid[coarse[i]] + grid.dt_s),
-                                       method="bounded", options={"xatol": 1e-7})
-        out[i] = res.x
-    return out
+    j = np.clip(np.rint((r_m - bins[0]) / (bins[1] - bins[0])), 0, bins.size - 1).astype(int)
+    bins_used, bin_of_r = np.unique(j, return_inverse=True)
+    k, ac = _bins(products.coefficients, bins_used), _bins(products.compression, bins_used)
+    f = np.fft.ifftshift(grid.f_azimuth_hz)
+    band = (f >= ac.f_lo_hz.min()) & (f <= ac.f_hi_hz.max())
+    ones = np.ones((n, bins_used.size), dtype=np.complex128)
+    h6 = np.fft.ifftshift(nlcs.nlcs_filter(ones, k, grid), axes=0).T[bin_of_r, None]
+    h7 = np.fft.ifftshift(nlcs.nlcs_scaling(ones, k, grid), axes=0).T[bin_of_r, None]
+    h8 = np.zeros((bins_used.size, n), dtype=np.complex128)
+    h8[:, band] = ac.filter(f[band]).T
+    # the response on a grid of the rail's n_track (odd) + 1 rows: its t_a are the same integers times dt
+    half = (grid.n_track + 1) // 2
+    rail = nlcs.slow_time_point_response(np.repeat(r_m, t_n_s.size), np.tile(t_n_s, r_m.size),
+                                         dataclasses.replace(grid, n_azimuth=2 * half), products.aperture_m)
+    # one contiguous row per target (the FFTs are faster along rows), then r-major
+    s = np.zeros((r_m.size * t_n_s.size, n), dtype=np.complex128)
+    s[:, :half], s[:, n - half:] = rail[half:].T, rail[:half].T  # ifftshift of the zero-padded response
+    by_range = s.reshape(r_m.size, t_n_s.size, n)  # a view: the in-place products below act on s
+    np.fft.fft(s, axis=1, out=s)
+    by_range *= h6
+    np.fft.ifft(s, axis=1, out=s)
+    by_range *= h7
+    np.fft.fft(s, axis=1, out=s)
+    by_range *= h8[bin_of_r, None]
+    coarse = np.fft.ifftshift(grid.t_azimuth_s)[np.argmax(np.abs(np.fft.ifft(s, axis=1)), axis=1)]
+    return f[band], s[:, band].T, coarse
 
 
-def invert_focus_position(products: nlcs.NlcsProducts, r_m: float, t_f_s: float, degree: int = 5) -> float:
-    """t_n from the focused t_f: fit t_n(t_f) through simulated targets across the aperture."""
-    fit = products.focus_calibration.get((r_m, degree))
-    if fit is None:
+def focus_position(products: nlcs.NlcsProducts, r_m, t_n_s: np.ndarray) -> np.ndarray:
+    """t_f(t_n): where the azimuth chain of the bin nearest r focuses targets at t_n (calibrated by simulation).
+
+    `r_m` a float: one t_f per t_n. An array of ranges: one row of t_f per range, all simulated at once."""
+    r = np.atleast_1d(np.asarray(r_m, dtype=float))
+    t_n = np.asarray(t_n_s, dtype=float).ravel()
+    f, y, coarse = _calibration_spectra(products, r, t_n)
+    t_f = _peak_times(f, y, coarse, products.grid.dt_s).reshape(r.size, t_n.size)
+    return t_f if np.ndim(r_m) else t_f[0]
+
+
+def invert_focus_position(products: nlcs.NlcsProducts, r_m, t_f_s, degree: int = 5):
+    """t_n from the focused t_f: fit t_n(t_f) through simulated targets across the aperture, per range (cached
+    in products.focus_calibration). Arrays of (r, t_f) give an array of t_n; the missing fits are simulated
+    together."""
+    cache = products.focus_calibration
+    r = [float(x) for x in np.atleast_1d(r_m)]
+    missing = list(dict.fromkeys(x for x in r if (x, degree) not in cache))
+    if missing:
         grid = products.grid
         half = 0.5 * (grid.n_track - 1) * grid.dt_s
         t_n = np.linspace(-half, half, 13)
-        t_f = focus_position(products, r_m, t_n)
-        fit = products.focus_calibration[(r_m, degree)] = np.polynomial.polynomial.polyfit(t_f, t_n, degree)
-    return float(np.polynomial.polynomial.polyval(t_f_s, fit))
+        for x, t_f in zip(missing, focus_position(products, np.array(missing), t_n)):
+            cache[(x, degree)] = np.polynomial.polynomial.polyfit(t_f, t_n, degree)
+    t_f = np.broadcast_to(np.asarray(t_f_s, dtype=float), (len(r),))
+    out = np.array([np.polynomial.polynomial.polyval(t, cache[(x, degree)]) for x, t in zip(r, t_f)])
+    return out if np.ndim(r_m) or np.ndim(t_f_s) else float(out[0])
 
 
 def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = DetectionSettings(),
@@ -168,26 +310,27 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     valid = np.zeros(mag.shape, dtype=bool)
     valid[np.abs(t) <= half, 2:-2] = True
     peaks, floor = _local_peaks(mag, valid, (grid.track_spacing_m, dr), settings)
-    value = _trig_evaluator(products.image, _nlcs_band(products))
-    cells = [_maximise(value, float(i), float(j)) for i, j in peaks]
+    interpolant = TrigInterpolant.from_image(products.image, _nlcs_band(products))
+    cells = [interpolant.maximise(float(i), float(j)) for i, j in peaks]
     if settings.neighbour_cancellation_passes > 0 and len(cells) > 1 and scan is not None:
         cells = cancel_neighbours_nlcs(products, scan, cells, settings.neighbour_cancellation_passes,
                                        settings.neighbour_cancellation_tol_m, settings.neighbour_gain_degree,
                                        focuser)
-    out = []
-    for a, b, val in cells:
-        t_f, r, t_n = _nlcs_peak_time(products, a, b)
-        r0 = r - grid.speed_m_s * grid.sin_squint * t_n  # eq. (19) [fix]: r_LC = r_LRCM - v sin(theta_q) t_nc
-        out.append(_detection(grid, t_n, r0, grid.speed_m_s * t_f, r, abs(val), floor))
-    return out
+    if not cells:
+        return []
+    t_f, r, t_n = _nlcs_peak_times(products, [c[0] for c in cells], [c[1] for c in cells])
+    r0 = r - grid.speed_m_s * grid.sin_squint * t_n  # eq. (19) [fix]: r_LC = r_LRCM - v sin(theta_q) t_nc
+    return [_detection(grid, float(t_n[i]), float(r0[i]), grid.speed_m_s * float(t_f[i]), float(r[i]), abs(val),
+                       floor) for i, (_, _, val) in enumerate(cells)]
 
 
-def _nlcs_peak_time(products: nlcs.NlcsProducts, a: float, b: float) -> tuple[float, float, float]:
-    """(t_f, r_LRCM, t_n) of a peak at fractional image indices (a, b)."""
+def _nlcs_peak_times(products: nlcs.NlcsProducts, a: np.ndarray, b: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t_f, r_LRCM, t_n) of peaks at fractional image indices (a, b)."""
     grid = products.grid
-    t_f = (a - grid.n_azimuth // 2) * grid.dt_s
-    r = grid.range_bins_m[0] + b * (grid.range_bins_m[1] - grid.range_bins_m[0])
-    return t_f, r, invert_focus_position(products, r, t_f)
+    t_f = (np.asarray(a, dtype=float) - grid.n_azimuth // 2) * grid.dt_s
+    r = grid.range_bins_m[0] + np.asarray(b, dtype=float) * (grid.range_bins_m[1] - grid.range_bins_m[0])
+    return t_f, r, np.atleast_1d(invert_focus_position(products, r, t_f))
 
 
 def nlcs_model_chain(products: nlcs.NlcsProducts, x_rel_m: np.ndarray):
@@ -239,15 +382,14 @@ def cancel_neighbours_nlcs(products: nlcs.NlcsProducts, scan: ScanPass, cells: l
     dr = grid.range_bins_m[1] - grid.range_bins_m[0]
     for _ in range(passes):
         at = np.array([(a, b) for a, b, _ in cells])
-        peaks = [_nlcs_peak_time(products, a, b) for a, b in at]
-        u = [grid.speed_m_s * t_n for _, _, t_n in peaks]
-        r = [r_lrcm for _, r_lrcm, _ in peaks]
+        _, r, t_n = _nlcs_peak_times(products, at[:, 0], at[:, 1])
+        u = grid.speed_m_s * t_n
         echoes = [bp.point_target_echo(grid, rc.x_rel_m, rc.t_s, u[j], r[j]) for j in range(len(at))]
         gains = fit_pulse_gains(rc.data, rc.x_rel_m, echoes, degree)
         images = [focus(g[:, None] * bp.point_target_echo(grid, rc.x_rel_m, rc.t_s, u[j], r[j], matched=False)[0])
                   for j, g in enumerate(gains)]
         residual = products.image - sum(images)
-        cells = [_maximise(_trig_evaluator(residual + images[i], band), at[i, 0], at[i, 1], step=0.2)
+        cells = [TrigInterpolant.from_image(residual + images[i], band).maximise(at[i, 0], at[i, 1], step=0.2)
                  for i in range(len(at))]
         moved = np.hypot((np.array([c[0] for c in cells]) - at[:, 0]) * grid.track_spacing_m,
                          (np.array([c[1] for c in cells]) - at[:, 1]) * dr)
