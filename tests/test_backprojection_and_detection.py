@@ -227,10 +227,15 @@ def test_with_neighbour_cancellation_backprojection_locates_two_stacked_plates_t
     assert np.abs(without - truth).max() > 0.3e-3
 
 
-def test_the_nlcs_model_chain_is_nlcs_focus():
-    """Neighbour models are focused by `detect.nlcs_model_chain`: it must stay the chain of `nlcs.nlcs_focus`."""
+def test_neighbour_models_are_focused_by_the_chain_of_nlcs_focus():
+    """Neighbour models are focused by `nlcs.nlcs_model_spectra`: the band rows of fft2 of the image
+    `nlcs.nlcs_focus` makes of the same echo, which detection refines on."""
     scan = _stacked_pass(STACKED)
     products = nlcs.nlcs_focus(scan)
     echo, x_rel = nlcs.prepare_track(scan, products.grid)
-    image = detect.nlcs_model_chain(products, x_rel)(echo)
-    np.testing.assert_allclose(image, products.image, rtol=0, atol=1e-12 * np.abs(products.image).max())
+    rows = detect._band_rows(products)
+    spectra = nlcs.nlcs_model_spectra(products, x_rel, echo[None], rows)[0]
+    want = np.fft.fft2(products.image)[rows % products.grid.n_azimuth] / products.image.size
+    np.testing.assert_allclose(spectra, want, rtol=0, atol=1e-12 * np.abs(want).max())
+    np.testing.assert_allclose(detect.image_spectrum_rows(products.image, rows), want, rtol=0,
+                               atol=1e-12 * np.abs(want).max())

@@ -17,7 +17,6 @@ import numpy as np
 from scipy import ndimage, optimize
 
 from .focus import backprojection as bp
-from .focus import coefficients as coef
 from .focus import nlcs
 from .model import ScanPass
 
@@ -160,6 +159,27 @@ class TrigInterpolant:
         return float(x[0]), float(x[1]), v
 
 
+def _band_rows(products: nlcs.NlcsProducts) -> np.ndarray:
+    """Signed azimuth frequency indices, ascending, of the rows `TrigInterpolant.from_image` keeps for this image."""
+    n = products.grid.n_azimuth
+    ka = np.fft.fftfreq(n)
+    lo, hi = _nlcs_band(products)
+    natural = np.flatnonzero((ka >= lo) & (ka <= hi))
+    return np.sort(np.where(natural < (n + 1) // 2, natural, natural - n))
+
+
+def _interpolant(products: nlcs.NlcsProducts, rows: np.ndarray, coeffs: np.ndarray) -> TrigInterpolant:
+    """The interpolant of spectral rows `coeffs` (fft2 / (n m) at the signed rows `rows`)."""
+    n, m = products.grid.n_azimuth, products.grid.n_range
+    return TrigInterpolant(np.ascontiguousarray(coeffs, dtype=np.complex128), rows * (1.0 / n), np.fft.fftfreq(m))
+
+
+def image_spectrum_rows(image: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """fft2(image) / (n m) at the signed azimuth rows `rows` (the range FFT only on those rows)."""
+    n, m = image.shape
+    return np.fft.fft(np.fft.fft(image, axis=0)[rows % n], axis=1) / (n * m)
+
+
 def _nlcs_band(products: nlcs.NlcsProducts) -> tuple[float, float]:
     """The union of the per-bin H8 bands, in cycles per azimuth sample, with a one-sample margin."""
     grid, ac = products.grid, products.compression
@@ -300,8 +320,8 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
                 scan: ScanPass | None = None, focuser=None) -> list[Detection]:
     """Point targets of an NLCS image. With the pass's echo (`scan`), the peaks are re-refined with the
     neighbours' modelled responses removed (`cancel_neighbours_nlcs`); without it, on the image alone.
-    `focuser` (an object with `nlcs_focus`, e.g. the OpenCL engine) focuses the modelled echoes; by default the
-    numpy chain does."""
+    `focuser` (an object with `nlcs_model_spectra`: the OpenCL engine, `uwbcl.focus.scipy32`) focuses the
+    modelled echoes; by default the numpy chain (`nlcs.nlcs_model_spectra`) does."""
     grid = products.grid
     mag = np.abs(products.image)
     t = grid.t_azimuth_s
@@ -310,12 +330,14 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     valid = np.zeros(mag.shape, dtype=bool)
     valid[np.abs(t) <= half, 2:-2] = True
     peaks, floor = _local_peaks(mag, valid, (grid.track_spacing_m, dr), settings)
-    interpolant = TrigInterpolant.from_image(products.image, _nlcs_band(products))
+    rows = _band_rows(products)
+    spectrum = image_spectrum_rows(products.image, rows)
+    interpolant = _interpolant(products, rows, spectrum)
     cells = [interpolant.maximise(float(i), float(j)) for i, j in peaks]
     if settings.neighbour_cancellation_passes > 0 and len(cells) > 1 and scan is not None:
         cells = cancel_neighbours_nlcs(products, scan, cells, settings.neighbour_cancellation_passes,
                                        settings.neighbour_cancellation_tol_m, settings.neighbour_gain_degree,
-                                       focuser)
+                                       focuser, (rows, spectrum))
     if not cells:
         return []
     t_f, r, t_n = _nlcs_peak_times(products, [c[0] for c in cells], [c[1] for c in cells])
@@ -333,52 +355,21 @@ def _nlcs_peak_times(products: nlcs.NlcsProducts, a: np.ndarray, b: np.ndarray
     return t_f, r, np.atleast_1d(invert_focus_position(products, r, t_f))
 
 
-def nlcs_model_chain(products: nlcs.NlcsProducts, x_rel_m: np.ndarray):
-    """echo -> NLCS image: the linear chain of `nlcs.nlcs_focus` for this pass (pulses at x_rel_m), reusing the
-    products' coefficients and azimuth compression. The stages after the resampling multiply by filters that
-    depend on the grid only, so they are computed once here (applied to ones) and each model costs 6 FFTs."""
-    grid, k = products.grid, products.coefficients
-    ones = np.ones((grid.n_azimuth, grid.n_range), dtype=np.complex128)
-    src = nlcs.secondary_range_compression(ones, grid)
-    h5h6 = nlcs.nlcs_filter(nlcs.azimuth_compensation(ones, k.eta1, grid), k, grid)
-    h7 = nlcs.nlcs_scaling(ones, k, grid)
-    h8 = products.compression.filter(grid.f_azimuth_hz)
-    p2 = coef.enlcs_coefficient(grid.range_bins_m, grid.speed_m_s, grid.sin_squint)
-
-    def focus(echo: np.ndarray) -> np.ndarray:
-        s = nlcs.linear_range_walk_correction(nlcs.range_fft(echo, grid), x_rel_m, grid)
-        s = nlcs.extended_nlcs(nlcs.resample_to_uniform_track(s, x_rel_m, grid), p2, grid)
-        s = nlcs.range_ifft(nlcs.az_fft(nlcs.pad_azimuth(s, grid)) * src, grid) * h5h6
-        return nlcs.az_ifft(nlcs.az_fft(nlcs.az_ifft(s) * h7) * h8)
-
-    return focus
-
-
-def _focuser_model_chain(products: nlcs.NlcsProducts, scan: ScanPass, x_rel_m: np.ndarray, focuser):
-    """echo (pulses at x_rel_m, increasing) -> NLCS image, through `focuser` with the products' own H8."""
-    grid = products.grid
-    order = np.argsort(scan.pulse_position_m)
-    model = dataclasses.replace(scan, pulse_position_m=grid.aperture_centre_m + x_rel_m,
-                                pulse_time_s=scan.pulse_time_s[order])
-
-    def focus(echo: np.ndarray) -> np.ndarray:
-        return focuser.nlcs_focus(dataclasses.replace(model, echo=echo), grid=grid,
-                                  compression=products.compression).image
-
-    return focus
-
-
 def cancel_neighbours_nlcs(products: nlcs.NlcsProducts, scan: ScanPass, cells: list[tuple[float, float, complex]],
-                           passes: int, tol_m: float, degree: int, focuser=None
+                           passes: int, tol_m: float, degree: int, focuser=None,
+                           spectrum: tuple[np.ndarray, np.ndarray] | None = None
                            ) -> list[tuple[float, float, complex]]:
     """`cancel_neighbours_bp` for the NLCS image: each target's echo is modelled at its current position with
-    gains fitted to the pass's range-compressed echo, focused by the same chain (`nlcs_model_chain`), and each
-    peak is re-refined on the image minus the other targets' modelled images."""
+    gains fitted to the pass's range-compressed echo and focused by the pass's own chain and H8; each peak is
+    re-refined on the image minus the other targets' modelled images. The refinement only needs the band rows
+    of each image's 2-D spectrum, which `focuser.nlcs_model_spectra` gives without the last azimuth IFFT;
+    `spectrum` = (signed rows, fft2(image) / (n m) on them) of the pass's image, if already computed."""
     grid = products.grid
+    focuser = nlcs if focuser is None else focuser
+    rows, image_spectrum = spectrum if spectrum is not None else (_band_rows(products), None)
+    if image_spectrum is None:
+        image_spectrum = image_spectrum_rows(products.image, rows)
     rc = bp.range_compress(scan, grid, upsample=1)  # the gain fit needs no upsampling; same delays as the echo
-    focus = (nlcs_model_chain(products, rc.x_rel_m) if focuser is None or focuser is nlcs
-             else _focuser_model_chain(products, scan, rc.x_rel_m, focuser))
-    band = _nlcs_band(products)
     dr = grid.range_bins_m[1] - grid.range_bins_m[0]
     for _ in range(passes):
         at = np.array([(a, b) for a, b, _ in cells])
@@ -386,10 +377,11 @@ def cancel_neighbours_nlcs(products: nlcs.NlcsProducts, scan: ScanPass, cells: l
         u = grid.speed_m_s * t_n
         echoes = [bp.point_target_echo(grid, rc.x_rel_m, rc.t_s, u[j], r[j]) for j in range(len(at))]
         gains = fit_pulse_gains(rc.data, rc.x_rel_m, echoes, degree)
-        images = [focus(g[:, None] * bp.point_target_echo(grid, rc.x_rel_m, rc.t_s, u[j], r[j], matched=False)[0])
-                  for j, g in enumerate(gains)]
-        residual = products.image - sum(images)
-        cells = [TrigInterpolant.from_image(residual + images[i], band).maximise(at[i, 0], at[i, 1], step=0.2)
+        raw = np.array([g[:, None] * bp.point_target_echo(grid, rc.x_rel_m, rc.t_s, u[j], r[j], matched=False)[0]
+                        for j, g in enumerate(gains)])
+        models = focuser.nlcs_model_spectra(products, rc.x_rel_m, raw, rows)
+        residual = image_spectrum - models.sum(axis=0)
+        cells = [_interpolant(products, rows, residual + models[i]).maximise(at[i, 0], at[i, 1], step=0.2)
                  for i in range(len(at))]
         moved = np.hypot((np.array([c[0] for c in cells]) - at[:, 0]) * grid.track_spacing_m,
                          (np.array([c[1] for c in cells]) - at[:, 1]) * dr)
