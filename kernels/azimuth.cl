@@ -1,15 +1,17 @@
 /* Azimuth stages of the modified NLCS chain (paper eqs. 12-17). Every phase function is evaluated from a
  * few scalars per range bin; work item (j, row): range bin j, azimuth sample (time or frequency) row. */
 
-/* H5 (eq. 13) and H6, the NLCS filter (eq. 15): exp(-j pi eta1 f_a) exp(j pi (Y3 f_a^3 + Y4 f_a^4)). */
+/* H5 (eq. 13) and H6, the NLCS filter (eq. 15): exp(-j pi eta1 f_a) exp(j pi (Y3 f_a^3 + Y4 f_a^4)).
+ * Row `row` holds FFT-order azimuth frequency (row + row_origin) mod n_azimuth: row_origin 0 for a whole
+ * spectrum, the first row's index for a band of rows (common.cl, azimuth_index). */
 __kernel void nlcs_filter(__global cplx_t *restrict s, __global const real_t *restrict eta1, __global const real_t *restrict y3,
                           __global const real_t *restrict y4, const int n_range, const int n_azimuth,
-                          const real_t azimuth_df_hz) {
+                          const real_t azimuth_df_hz, const int row_origin) {
     const int j = get_global_id(0), row = get_global_id(1);
     if (j >= n_range) return;
     const cplx_t v = s[row * n_range + j];
     if (v.x == 0 && v.y == 0) return;  /* outside the Doppler band (most of the padded spectrum) */
-    const real_t f = signed_index(row, n_azimuth) * azimuth_df_hz;
+    const real_t f = azimuth_index(row, row_origin, n_azimuth) * azimuth_df_hz;
     const real_t f2 = f * f;
     const real_t phase = UWBCL_PI * (-eta1[j] * f + f2 * f * (y3[j] + y4[j] * f));
     s[row * n_range + j] = cmul(v, cis(phase));
@@ -33,11 +35,11 @@ __kernel void nlcs_scaling(__global cplx_t *restrict s, __global const real_t *r
 __kernel void azimuth_compression(__global cplx_t *restrict s, __global const real_t *restrict poly, const int n_coeff,
                                   __global const int *restrict band_first, __global const int *restrict band_last,
                                   const int n_range, const int n_azimuth, const real_t azimuth_df_hz,
-                                  const real_t f_scale_hz) {
+                                  const real_t f_scale_hz, const int row_origin) {
     const int j = get_global_id(0), row = get_global_id(1);
     if (j >= n_range) return;
     const int idx = row * n_range + j;
-    const int i = signed_index(row, n_azimuth);
+    const int i = azimuth_index(row, row_origin, n_azimuth);
     const real_t f = i * azimuth_df_hz;
     if (i < band_first[j] || i > band_last[j]) {
         s[idx] = (cplx_t)(0, 0);

@@ -47,3 +47,9 @@ inline float2 cis_f(float phase) {
 inline int signed_index(int k, int n) {
     return k < (n + 1) / 2 ? k : k - n;
 }
+
+/* Signed azimuth index of row `row` of an array whose row 0 is FFT-order position row_origin (0 for a whole
+ * axis; the first row's position for a band of rows). */
+inline int azimuth_index(int row, int row_origin, int n) {
+    return signed_index((row + row_origin) % n, n);
+}

@@ -42,17 +42,18 @@ __kernel void resample_to_uniform_track(__global const float2 *restrict s, __glo
 
 /* eqs. (9) [fix] - (11): H3 (bulk SRC with the reference target's exact 2-D spectrum phase), the beam's
  * Doppler-band mask, H4 (matched filter of the Gaussian pulse) and the delay origin of the range IFFT,
- * in one pass over the 2-D spectrum. Work item (k, row): range frequency k, azimuth frequency row. */
+ * in one pass over the 2-D spectrum. Work item (k, row): range frequency k, azimuth frequency row (+ row_origin,
+ * as in azimuth.cl). */
 __kernel void secondary_range_compression(__global float2 *restrict s, const int n_range, const int n_azimuth,
                                           const real_t sample_rate_hz, const real_t window_start_s,
                                           const real_t carrier_hz, const real_t azimuth_df_hz,
                                           const real_t speed_m_s, const real_t sin_squint,
                                           const real_t reference_range_m, const real_t pulse_sigma_s,
-                                          const real_t band_lo, const real_t band_hi) {
+                                          const real_t band_lo, const real_t band_hi, const int row_origin) {
     const int k = get_global_id(0), row = get_global_id(1);
     if (k >= n_range) return;
     const real_t f_r = signed_index(k, n_range) * sample_rate_hz / n_range;
-    const real_t f_a = signed_index(row, n_azimuth) * azimuth_df_hz;
+    const real_t f_a = azimuth_index(row, row_origin, n_azimuth) * azimuth_df_hz;
     const real_t cos_squint = sqrt(1.0 - sin_squint * sin_squint);
     const real_t x = sin_squint + UWBCL_C * f_a / (2.0 * speed_m_s * (carrier_hz + f_r));
     const real_t x0 = sin_squint + UWBCL_C * f_a / (2.0 * speed_m_s * carrier_hz);
@@ -70,4 +71,32 @@ __kernel void secondary_range_compression(__global float2 *restrict s, const int
     const real_t a = UWBCL_PI * pulse_sigma_s * f_r;
     const float h4 = (float)exp(-2.0 * a * a);
     s[idx] = h4 * cmul(s[idx], cis(phase));
+}
+
+/* Gather a band of azimuth rows: out[r] = full[(r + row_origin) mod n_azimuth] * filter[r]. The engine keeps a
+ * pass's grid-only filters (SRC, H5/H6, H8 on their bands of rows) as tables computed once by the kernels above
+ * from their scalars, and applies them to every echo of the pass (the image and detection's models). */
+__kernel void gather_rows(__global const float2 *restrict full, __global float2 *restrict out,
+                          __global const float2 *restrict filter, const int row_origin, const int n_azimuth,
+                          const int n_range) {
+    const int k = get_global_id(0), r = get_global_id(1);
+    if (k >= n_range) return;
+    const int row = (r + row_origin) % n_azimuth;
+    out[r * n_range + k] = cmul(full[row * n_range + k], filter[r * n_range + k]);
+}
+
+/* The inverse of gather_rows without a filter: band rows back into a whole spectrum, zero elsewhere. */
+__kernel void scatter_rows(__global const float2 *restrict band, __global float2 *restrict full,
+                           const int row_origin, const int n_rows, const int n_azimuth, const int n_range) {
+    const int k = get_global_id(0), row = get_global_id(1);
+    if (k >= n_range) return;
+    const int r = (row - row_origin + n_azimuth) % n_azimuth;
+    full[row * n_range + k] = r < n_rows ? band[r * n_range + k] : (float2)(0.0f, 0.0f);
+}
+
+/* s *= filter, elementwise (a table made by the kernels above). */
+__kernel void apply_filter(__global float2 *restrict s, __global const float2 *restrict filter, const int n_range) {
+    const int k = get_global_id(0), row = get_global_id(1);
+    if (k >= n_range) return;
+    s[row * n_range + k] = cmul(s[row * n_range + k], filter[row * n_range + k]);
 }

@@ -65,6 +65,8 @@ class FocusEngine:
         self._buffers: dict = {}
         self._twiddles: dict = {}
         self._uploaded: dict = {}  # (name, shape, dtype) -> bytes of the last small upload
+        self._filters: _PassFilters | None = None  # the last grid's filter tables
+        self._h8_tables: dict = {}  # name -> (compression, grid, (first, last row), table)
         self._in_flight: list = []  # host arrays of uploads not yet known to be complete
         failure = self._fft_self_test_failure(np.complex64, 1e-5, axes=(0, 1))
         if failure:
@@ -203,37 +205,47 @@ class FocusEngine:
                   grid.dt_s, float(p2_m_s2))
         return out
 
-    def secondary_range_compression(self, s, grid: nlcs.FocusGrid) -> None:
-        """H3 * band mask * H4 and the range IFFT's delay origin (eqs. 9-11), in place on the 2-D spectrum."""
+    @staticmethod
+    def _row_origin(grid: nlcs.FocusGrid, first_row: int | None) -> int:
+        """FFT-order position of row 0 of an array of azimuth rows starting at signed index first_row (None: a
+        whole spectrum in FFT order)."""
+        return 0 if first_row is None else int(first_row) % grid.n_azimuth
+
+    def secondary_range_compression(self, s, grid: nlcs.FocusGrid, first_row: int | None = None) -> None:
+        """H3 * band mask * H4 and the range IFFT's delay origin (eqs. 9-11), in place on the 2-D spectrum (or on
+        its rows from signed azimuth index first_row on)."""
         lo, hi = grid.doppler_band
-        self._run("secondary_range_compression", grid.n_azimuth, grid.n_range, s, grid.n_range, grid.n_azimuth,
+        self._run("secondary_range_compression", s.shape[0], grid.n_range, s, grid.n_range, grid.n_azimuth,
                   grid.sample_rate_hz, grid.range_window_start_s, grid.carrier_frequency_hz,
                   1.0 / (grid.n_azimuth * grid.dt_s), grid.speed_m_s, grid.sin_squint, grid.reference_range_m,
-                  grid.pulse_sigma_s, lo, hi)
+                  grid.pulse_sigma_s, lo, hi, self._row_origin(grid, first_row))
 
-    def nlcs_filter(self, s, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, *, with_h5: bool = True) -> None:
-        """H5 (eq. 13) and H6 (eq. 15) in place on a range-Doppler array."""
+    def nlcs_filter(self, s, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, *, with_h5: bool = True,
+                    first_row: int | None = None) -> None:
+        """H5 (eq. 13) and H6 (eq. 15) in place on a range-Doppler array (or band of rows)."""
         eta1 = k.eta1 if with_h5 else np.zeros_like(k.eta1)
-        self._run("nlcs_filter", grid.n_azimuth, grid.n_range, s, self.reals("eta1", eta1),
+        self._run("nlcs_filter", s.shape[0], grid.n_range, s, self.reals("eta1", eta1),
                   self.reals("y3", k.y3), self.reals("y4", k.y4), grid.n_range, grid.n_azimuth,
-                  1.0 / (grid.n_azimuth * grid.dt_s))
+                  1.0 / (grid.n_azimuth * grid.dt_s), self._row_origin(grid, first_row))
 
     def nlcs_scaling(self, s, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid) -> None:
         """H7 (eq. 15) in place on a range-time array."""
         self._run("nlcs_scaling", grid.n_azimuth, grid.n_range, s, self.reals("q2", k.q2), self.reals("q3", k.q3),
                   self.reals("q4", k.q4), grid.n_range, grid.n_azimuth, grid.dt_s)
 
-    def azimuth_compression(self, s, ac: nlcs.AzimuthCompression, grid: nlcs.FocusGrid) -> None:
-        """H8 (eq. 17 [fix]) in place on a range-Doppler array."""
+    def azimuth_compression(self, s, ac: nlcs.AzimuthCompression, grid: nlcs.FocusGrid,
+                            first_row: int | None = None) -> None:
+        """H8 (eq. 17 [fix]) in place on a range-Doppler array (or band of rows)."""
         f = grid.f_azimuth_hz[:, None]
         inside = (f >= ac.f_lo_hz[None, :]) & (f <= ac.f_hi_hz[None, :])  # the reference's own test
         any_inside = inside.any(axis=0)
         first = np.where(any_inside, np.argmax(inside, axis=0) - grid.n_azimuth // 2, 1)
         last = np.where(any_inside, grid.n_azimuth - 1 - np.argmax(inside[::-1], axis=0) - grid.n_azimuth // 2, 0)
-        self._run("azimuth_compression", grid.n_azimuth, grid.n_range, s, self.reals("ac_poly", ac.poly),
+        self._run("azimuth_compression", s.shape[0], grid.n_range, s, self.reals("ac_poly", ac.poly),
                   ac.poly.shape[1], self.to_device("ac_first", first.astype(np.int32), constant=True),
                   self.to_device("ac_last", last.astype(np.int32), constant=True),
-                  grid.n_range, grid.n_azimuth, 1.0 / (grid.n_azimuth * grid.dt_s), ac.f_scale_hz)
+                  grid.n_range, grid.n_azimuth, 1.0 / (grid.n_azimuth * grid.dt_s), ac.f_scale_hz,
+                  self._row_origin(grid, first_row))
 
     def azimuth_nlcs_chain(self, s, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, *, with_h5: bool) -> None:
         """H5/H6 -> azimuth IFFT -> H7 -> azimuth FFT, in place on a range-Doppler array."""
@@ -258,7 +270,10 @@ class FocusEngine:
                   grid.n_range, grid.n_azimuth, grid.dt_s, grid.speed_m_s, grid.sin_squint, grid.wavelength_m,
                   aperture_m)
         self.fft(ref, 0)
-        self.azimuth_nlcs_chain(ref, k, grid, with_h5=False)
+        self.nlcs_filter(ref, k, grid, with_h5=False)
+        self.fft(ref, 0, inverse=True)
+        self._run("apply_filter", grid.n_azimuth, grid.n_range, ref, self._pass_filters(grid, k).h7, grid.n_range)
+        self.fft(ref, 0)
         x_ref = np.fft.fftshift(self.host(ref), axes=0).astype(np.complex128)
         undecided = np.flatnonzero(undecided_band_edges(np.abs(x_ref), grid, REFERENCE_EDGE_MARGIN))
         if undecided.size:
@@ -284,23 +299,69 @@ class FocusEngine:
             ac = self.exact_reference_azimuth_compression(k, grid, aperture)
         else:
             ac = nlcs.series_azimuth_compression(k, grid)
-        s = self._compressed_spectrum(echo, x_rel, grid, k, ac, float(p2[0]))
+        s = self._nlcs_spectrum(echo, x_rel, grid, k, float(p2[0]))
+        lo, hi = _compression_rows(ac, grid)
+        band = self.buffer("h8_rows", (hi - lo + 1, grid.n_range))
+        self._run("gather_rows", band.shape[0], grid.n_range, s, band, self._h8_table(ac, grid, lo, hi, "h8_image"),
+                  self._row_origin(grid, lo), grid.n_azimuth, grid.n_range)
+        self._run("scatter_rows", grid.n_azimuth, grid.n_range, band, s, self._row_origin(grid, lo), band.shape[0],
+                  grid.n_azimuth, grid.n_range)
         self.fft(s, 0, inverse=True)
         image = np.fft.fftshift(self.host(s), axes=0)
         return nlcs.NlcsProducts(image=image, grid=grid, coefficients=k, compression=ac, aperture_m=aperture)
 
-    def _compressed_spectrum(self, echo: np.ndarray, x_rel: np.ndarray, grid: nlcs.FocusGrid,
-                             k: coef.NlcsCoefficients, ac: nlcs.AzimuthCompression, p2: float):
-        """echo -> the range-Doppler array after H8 (device, FFT order): the chain up to its last IFFT."""
+    def _pass_filters(self, grid: nlcs.FocusGrid, k: coef.NlcsCoefficients) -> _PassFilters:
+        """The grid-only filters of the chain as device tables, made once per grid by the stage kernels (from
+        their scalars, applied to ones) and then applied to every echo of the pass: the image's and detection's
+        neighbour models'. SRC and H5/H6 live on the Doppler band's rows only (the band mask zeroes the rest),
+        padded to a multiple of 128 rows so the band's range IFFT plan is reused across passes."""
+        if self._filters is not None and self._filters.grid == grid:
+            return self._filters
+        first, count = _doppler_band_rows(grid)
+        count = min(-(-count // 128) * 128, grid.n_azimuth)
+        src = self.buffer("filter_src", (count, grid.n_range))
+        src.fill(1)
+        self.secondary_range_compression(src, grid, first)
+        h5h6 = self.buffer("filter_h5h6", (count, grid.n_range))
+        h5h6.fill(1)
+        self.nlcs_filter(h5h6, k, grid, with_h5=True, first_row=first)
+        h7 = self.buffer("filter_h7", (grid.n_azimuth, grid.n_range))
+        h7.fill(1)
+        self.nlcs_scaling(h7, k, grid)
+        self._filters = _PassFilters(grid, first, src, h5h6, h7)
+        return self._filters
+
+    def _h8_table(self, ac: nlcs.AzimuthCompression, grid: nlcs.FocusGrid, lo: int, hi: int, name: str):
+        """H8 on the signed azimuth rows lo..hi as a device table (zero outside each bin's band), kept under
+        `name` while the compression and rows stay the same."""
+        cached = self._h8_tables.get(name)
+        if cached is not None and cached[0] is ac and cached[1:3] == (grid, (lo, hi)):
+            return cached[3]
+        table = self.buffer(f"filter_{name}", (hi - lo + 1, grid.n_range))
+        table.fill(1)
+        self.azimuth_compression(table, ac, grid, first_row=lo)
+        self._h8_tables[name] = (ac, grid, (lo, hi), table)
+        return table
+
+    def _nlcs_spectrum(self, echo: np.ndarray, x_rel: np.ndarray, grid: nlcs.FocusGrid, k: coef.NlcsCoefficients,
+                       p2: float):
+        """echo -> the range-Doppler array before H8 (device, whole spectrum in FFT order)."""
+        f = self._pass_filters(grid, k)
         s = self.to_device("echo", echo, np.complex64)
         self.fft(s, 1)
         self.range_walk_correction(s, x_rel, grid)
         s = self.resample_to_uniform_track(s, x_rel, grid, p2)
         self.fft(s, 0)
-        self.secondary_range_compression(s, grid)
-        self.fft(s, 1, inverse=True)
-        self.azimuth_nlcs_chain(s, k, grid, with_h5=True)
-        self.azimuth_compression(s, ac, grid)
+        origin = self._row_origin(grid, f.first_row)
+        band = self.buffer("doppler_rows", f.src.shape)
+        self._run("gather_rows", band.shape[0], grid.n_range, s, band, f.src, origin, grid.n_azimuth, grid.n_range)
+        self.fft(band, 1, inverse=True)
+        self._run("apply_filter", band.shape[0], grid.n_range, band, f.h5h6, grid.n_range)
+        self._run("scatter_rows", grid.n_azimuth, grid.n_range, band, s, origin, band.shape[0], grid.n_azimuth,
+                  grid.n_range)
+        self.fft(s, 0, inverse=True)
+        self._run("apply_filter", grid.n_azimuth, grid.n_range, s, f.h7, grid.n_range)
+        self.fft(s, 0)
         return s
 
     def nlcs_model_spectra(self, products: nlcs.NlcsProducts, x_rel_m: np.ndarray, echoes,
@@ -314,12 +375,14 @@ class FocusEngine:
         lo, hi = int(rows[0]), int(rows[-1])
         if not np.array_equal(rows, np.arange(lo, hi + 1)) or not -n // 2 <= lo <= hi < n // 2:
             raise ValueError("rows must be contiguous signed azimuth indices in [-n/2, n/2)")
-        # signed rows lo..hi in FFT order: the negative ones at the end of the axis, then 0..hi
-        segments = ([(n + lo, n + min(hi, -1) + 1)] if lo < 0 else []) + ([(max(lo, 0), hi + 1)] if hi >= 0 else [])
+        h8 = self._h8_table(ac, grid, lo, hi, "h8_models")
+        band = self.buffer("model_rows", h8.shape)
         out = []
         for echo in echoes:
-            s = self._compressed_spectrum(echo, x_rel_m, grid, k, ac, float(p2[0]))
-            out.append(np.concatenate([self.host(s[a:b]) for a, b in segments]))
+            s = self._nlcs_spectrum(echo, x_rel_m, grid, k, float(p2[0]))
+            self._run("gather_rows", band.shape[0], grid.n_range, s, band, h8, self._row_origin(grid, lo),
+                      grid.n_azimuth, grid.n_range)
+            out.append(self.host(band))
         return nlcs.spectrum_rows_from_range_doppler(np.array(out), rows, grid)
 
     # ------------------------------------------------------------------------------------------ backprojection
@@ -352,6 +415,34 @@ class FocusEngine:
                   grid.carrier_frequency_hz, lo, hi)
         return bp.BackprojectionProducts(image=self.host(image), u_axis_m=u_axis, r_axis_m=r_axis, grid=grid,
                                          compressed=rc)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _PassFilters:
+    grid: nlcs.FocusGrid
+    first_row: int  # signed azimuth index of row 0 of `src` and `h5h6`
+    src: object  # H3 * mask * H4 * delay origin, (band rows, n_range)
+    h5h6: object  # (band rows, n_range)
+    h7: object  # (n_azimuth, n_range), FFT order
+
+
+def _doppler_band_rows(grid: nlcs.FocusGrid) -> tuple[int, int]:
+    """(first signed azimuth index, count) of the rows where the band mask of eqs. (9-10) passes anything."""
+    x = nlcs.slant_squint_sine(grid)
+    lo, hi = grid.doppler_band
+    rows = np.flatnonzero(((x >= lo) & (x <= hi) & (np.abs(x) < 0.98)).any(axis=1))
+    if rows.size == 0:
+        return 0, 1
+    return int(rows[0]) - grid.n_azimuth // 2, int(rows[-1] - rows[0]) + 1
+
+
+def _compression_rows(ac: nlcs.AzimuthCompression, grid: nlcs.FocusGrid) -> tuple[int, int]:
+    """Signed azimuth indices of the first and last row where some bin's H8 is not zero."""
+    f = grid.f_azimuth_hz
+    inside = np.flatnonzero((f >= ac.f_lo_hz.min()) & (f <= ac.f_hi_hz.max()))
+    if inside.size == 0:
+        return 0, 0
+    return int(inside[0]) - grid.n_azimuth // 2, int(inside[-1]) - grid.n_azimuth // 2
 
 
 def undecided_band_edges(mag: np.ndarray, grid: nlcs.FocusGrid, margin: float) -> np.ndarray:
