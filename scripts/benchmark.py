@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Benchmark: the numpy reference, a float32 scipy.fft chain and the OpenCL engine, on the same inputs, in one run.
 
-Legs (all focus with modified NLCS and exact-reference azimuth compression; what follows focusing is shared code):
+Legs (all focus with modified NLCS and exact-reference azimuth compression; each focuses detection's neighbour
+models with its own chain (`nlcs_model_spectra`), as `uwbcl process` does; the rest of detection is shared code):
   numpy    the float64 reference, `--backend numpy` (uwbcl.focus.nlcs.nlcs_focus)
   scipy32  uwbcl.focus.scipy32.nlcs_focus_scipy32: complex64 data, float64 phases, scipy.fft on all cores; what a
            careful CPU user would write instead of the engine
@@ -63,7 +64,7 @@ import scipy.fft
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from uwbcl import archive, detect, opencl, pipeline, simulate
-from uwbcl.focus import nlcs
+from uwbcl.focus import nlcs, scipy32
 from uwbcl.focus.scipy32 import nlcs_focus_scipy32
 from uwbcl.model import PassGeometry, RadarParameters, ScanPass
 from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2
@@ -141,18 +142,19 @@ class Leg:
     name: str
     focus: Callable[[ScanPass], nlcs.NlcsProducts]
     fft_probe: Callable[[FftClock], contextlib.AbstractContextManager]  # times every FFT call inside
+    models: object  # focuses detection's neighbour models (`nlcs_model_spectra`), as the leg's backend would
 
 
 def make_legs(names: list[str], engine) -> list[Leg]:
     legs = {
         "numpy": Leg("numpy", lambda s: nlcs.nlcs_focus(s, ac_mode="exact"),
-                     lambda c: patched(np.fft, ("fft", "ifft"), c)),
+                     lambda c: patched(np.fft, ("fft", "ifft"), c), nlcs),
         "scipy32": Leg("scipy32", lambda s: nlcs_focus_scipy32(s, ac_mode="exact"),
-                       lambda c: patched(scipy.fft, ("fft", "ifft"), c)),
+                       lambda c: patched(scipy.fft, ("fft", "ifft"), c), scipy32),
     }
     if engine is not None:
         legs["opencl"] = Leg("opencl", lambda s: engine.nlcs_focus(s, ac_mode="exact"),
-                             lambda c: patched(engine, ("fft",), c, engine.queue.finish))
+                             lambda c: patched(engine, ("fft",), c, engine.queue.finish), engine)
     return [legs[n] for n in names if n in legs]
 
 
@@ -213,7 +215,7 @@ def run_batch(leg: Leg, files: list[Path], out_csv: Path, settings: pipeline.Pro
         with clock("focus"):
             products = leg.focus(scan)
         with clock("detect"):  # as pipeline.detect_pass: the echo lets detection model the neighbours
-            found = detect.detect_nlcs(products, settings.detection, scan)
+            found = detect.detect_nlcs(products, settings.detection, scan, leg.models)
         shapes[scan.echo.shape] += 1
         n_det += len(found)
         by_cycle[(scan.rig_id, scan.cycle)].append((scan, found))
@@ -411,7 +413,7 @@ def benchmark_batch(args, legs: list[Leg], workdir: Path, failures: list[str]) -
         images = []
         for scan in warm_scans:  # warm-up: plans, kernels, caches
             products = leg.focus(scan)
-            detect.detect_nlcs(products, settings.detection, scan)
+            detect.detect_nlcs(products, settings.detection, scan, leg.models)
             images.append(products.image)
         agreement[leg.name] = max(rel_err(im, ref) for im, ref in zip(images, reference))
 

@@ -239,3 +239,23 @@ def test_neighbour_models_are_focused_by_the_chain_of_nlcs_focus():
     np.testing.assert_allclose(spectra, want, rtol=0, atol=1e-12 * np.abs(want).max())
     np.testing.assert_allclose(detect.image_spectrum_rows(products.image, rows), want, rtol=0,
                                atol=1e-12 * np.abs(want).max())
+
+
+def test_nlcs_peaks_searched_on_the_rail_rows_are_those_of_the_whole_image(monkeypatch):
+    """detect_nlcs crops the padded image to the rail's rows plus the separation ellipse's reach: the peaks and
+    the noise floor must be those the whole image gives."""
+    scan = PAPER_SIM1.simulate(snr_db=10, speed_jitter=0.1, seed=5)[1]
+    products = nlcs.nlcs_focus(scan)
+    g, s = products.grid, detect.DetectionSettings()
+    mag = np.abs(products.image)
+    valid = np.zeros(mag.shape, dtype=bool)
+    valid[np.abs(g.t_azimuth_s) <= 0.5 * (g.n_track - 1) * g.dt_s, 2:-2] = True
+    want = detect._local_peaks(mag, valid, (g.track_spacing_m, g.range_bins_m[1] - g.range_bins_m[0]), s)
+    seen = []
+    original = detect._local_peaks
+    monkeypatch.setattr(detect, "_local_peaks", lambda *a: seen.append(original(*a)) or seen[-1])
+    detect.detect_nlcs(products, s)
+    (peaks, floor), = seen
+    assert floor == want[1] and len(want[0]) == 3
+    top = int(np.flatnonzero(valid.any(axis=1))[0]) - int(s.separation_m / g.track_spacing_m) - 2
+    np.testing.assert_array_equal(peaks + (top, 0), want[0])

@@ -161,11 +161,7 @@ class TrigInterpolant:
 
 def _band_rows(products: nlcs.NlcsProducts) -> np.ndarray:
     """Signed azimuth frequency indices, ascending, of the rows `TrigInterpolant.from_image` keeps for this image."""
-    n = products.grid.n_azimuth
-    ka = np.fft.fftfreq(n)
-    lo, hi = _nlcs_band(products)
-    natural = np.flatnonzero((ka >= lo) & (ka <= hi))
-    return np.sort(np.where(natural < (n + 1) // 2, natural, natural - n))
+    return nlcs.spectrum_rows(products.grid, products.compression)
 
 
 def _interpolant(products: nlcs.NlcsProducts, rows: np.ndarray, coeffs: np.ndarray) -> TrigInterpolant:
@@ -323,15 +319,21 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     `focuser` (an object with `nlcs_model_spectra`: the OpenCL engine, `uwbcl.focus.scipy32`) focuses the
     modelled echoes; by default the numpy chain (`nlcs.nlcs_model_spectra`) does."""
     grid = products.grid
-    mag = np.abs(products.image)
     t = grid.t_azimuth_s
     half = 0.5 * (grid.n_track - 1) * grid.dt_s
     dr = grid.range_bins_m[1] - grid.range_bins_m[0]
+    # Peaks are sought along the rail only (a few hundred of the padded rows): crop to those rows plus the
+    # separation ellipse's reach, beyond which the crop's edges cannot change any test.
+    on_rail = np.flatnonzero(np.abs(t) <= half)
+    reach = int(settings.separation_m / grid.track_spacing_m) + 2
+    top, bottom = max(on_rail[0] - reach, 0), min(on_rail[-1] + reach + 1, grid.n_azimuth)
+    mag = np.abs(products.image[top:bottom])
     valid = np.zeros(mag.shape, dtype=bool)
-    valid[np.abs(t) <= half, 2:-2] = True
+    valid[on_rail - top, 2:-2] = True
     peaks, floor = _local_peaks(mag, valid, (grid.track_spacing_m, dr), settings)
+    peaks = peaks + (top, 0)
     rows = _band_rows(products)
-    spectrum = image_spectrum_rows(products.image, rows)
+    spectrum = products.spectrum if products.spectrum is not None else image_spectrum_rows(products.image, rows)
     interpolant = _interpolant(products, rows, spectrum)
     cells = [interpolant.maximise(float(i), float(j)) for i, j in peaks]
     if settings.neighbour_cancellation_passes > 0 and len(cells) > 1 and scan is not None:

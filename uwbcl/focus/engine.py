@@ -300,15 +300,20 @@ class FocusEngine:
         else:
             ac = nlcs.series_azimuth_compression(k, grid)
         s = self._nlcs_spectrum(echo, x_rel, grid, k, float(p2[0]))
-        lo, hi = _compression_rows(ac, grid)
-        band = self.buffer("h8_rows", (hi - lo + 1, grid.n_range))
-        self._run("gather_rows", band.shape[0], grid.n_range, s, band, self._h8_table(ac, grid, lo, hi, "h8_image"),
-                  self._row_origin(grid, lo), grid.n_azimuth, grid.n_range)
-        self._run("scatter_rows", grid.n_azimuth, grid.n_range, band, s, self._row_origin(grid, lo), band.shape[0],
-                  grid.n_azimuth, grid.n_range)
+        # H8 on the rows that hold the image's spectrum (zero elsewhere); those rows are also read back, so
+        # detection needs no 2-D FFT of the image
+        rows = nlcs.spectrum_rows(grid, ac)
+        band = self.buffer("h8_rows", (rows.size, grid.n_range))
+        origin = self._row_origin(grid, rows[0])
+        self._run("gather_rows", band.shape[0], grid.n_range, s, band,
+                  self._h8_table(ac, grid, int(rows[0]), int(rows[-1]), "h8"), origin, grid.n_azimuth, grid.n_range)
+        self._run("scatter_rows", grid.n_azimuth, grid.n_range, band, s, origin, band.shape[0], grid.n_azimuth,
+                  grid.n_range)
+        spectrum = nlcs.spectrum_rows_from_range_doppler(self.host(band), rows, grid)
         self.fft(s, 0, inverse=True)
         image = np.fft.fftshift(self.host(s), axes=0)
-        return nlcs.NlcsProducts(image=image, grid=grid, coefficients=k, compression=ac, aperture_m=aperture)
+        return nlcs.NlcsProducts(image=image, grid=grid, coefficients=k, compression=ac, aperture_m=aperture,
+                                 spectrum=spectrum)
 
     def _pass_filters(self, grid: nlcs.FocusGrid, k: coef.NlcsCoefficients) -> _PassFilters:
         """The grid-only filters of the chain as device tables, made once per grid by the stage kernels (from
@@ -375,7 +380,7 @@ class FocusEngine:
         lo, hi = int(rows[0]), int(rows[-1])
         if not np.array_equal(rows, np.arange(lo, hi + 1)) or not -n // 2 <= lo <= hi < n // 2:
             raise ValueError("rows must be contiguous signed azimuth indices in [-n/2, n/2)")
-        h8 = self._h8_table(ac, grid, lo, hi, "h8_models")
+        h8 = self._h8_table(ac, grid, lo, hi, "h8")
         band = self.buffer("model_rows", h8.shape)
         out = []
         for echo in echoes:
@@ -434,15 +439,6 @@ def _doppler_band_rows(grid: nlcs.FocusGrid) -> tuple[int, int]:
     if rows.size == 0:
         return 0, 1
     return int(rows[0]) - grid.n_azimuth // 2, int(rows[-1] - rows[0]) + 1
-
-
-def _compression_rows(ac: nlcs.AzimuthCompression, grid: nlcs.FocusGrid) -> tuple[int, int]:
-    """Signed azimuth indices of the first and last row where some bin's H8 is not zero."""
-    f = grid.f_azimuth_hz
-    inside = np.flatnonzero((f >= ac.f_lo_hz.min()) & (f <= ac.f_hi_hz.max()))
-    if inside.size == 0:
-        return 0, 0
-    return int(inside[0]) - grid.n_azimuth // 2, int(inside[-1]) - grid.n_azimuth // 2
 
 
 def undecided_band_edges(mag: np.ndarray, grid: nlcs.FocusGrid, margin: float) -> np.ndarray:

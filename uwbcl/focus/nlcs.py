@@ -425,8 +425,22 @@ class NlcsProducts:
     coefficients: coef.NlcsCoefficients
     compression: AzimuthCompression
     aperture_m: float
+    # fft2(image) / (n m) on the rows `spectrum_rows(grid, compression)`, where the focuser had it at hand
+    # (detection interpolates the image from it); None: detection computes it from the image
+    spectrum: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
     # detection's t_n(t_f) calibration fits, keyed by range (they depend on the grid only, not on the image)
     focus_calibration: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
+
+
+def spectrum_rows(grid: FocusGrid, ac: AzimuthCompression) -> np.ndarray:
+    """Signed azimuth frequency indices, ascending, of the rows that hold a focused image's 2-D spectrum: the
+    union of the per-bin H8 bands with one row of margin (what detection's band-limited interpolation sums)."""
+    n = grid.n_azimuth
+    ka = np.fft.fftfreq(n)
+    lo = float(ac.f_lo_hz.min()) * grid.dt_s - 1.0 / n
+    hi = float(ac.f_hi_hz.max()) * grid.dt_s + 1.0 / n
+    natural = np.flatnonzero((ka >= lo) & (ka <= hi))
+    return np.sort(np.where(natural < (n + 1) // 2, natural, natural - n))
 
 
 def prepare_track(scan: ScanPass, grid: FocusGrid) -> tuple[np.ndarray, np.ndarray]:
@@ -460,8 +474,10 @@ def nlcs_focus(scan: ScanPass, *, ac_mode: str = "exact", grid: FocusGrid | None
         ac = series_azimuth_compression(k, grid)
     else:
         raise ValueError(f"unknown azimuth compression mode {ac_mode!r} (exact|series)")
-    image = az_ifft(azimuth_compression(s, ac, grid))
-    return NlcsProducts(image=image, grid=grid, coefficients=k, compression=ac, aperture_m=aperture)
+    s = azimuth_compression(s, ac, grid)
+    rows = spectrum_rows(grid, ac)
+    return NlcsProducts(image=az_ifft(s), grid=grid, coefficients=k, compression=ac, aperture_m=aperture,
+                        spectrum=spectrum_rows_from_range_doppler(s[grid.n_azimuth // 2 + rows], rows, grid))
 
 
 def nlcs_model_spectra(products: NlcsProducts, x_rel_m: np.ndarray, echoes, rows: np.ndarray) -> np.ndarray:
