@@ -117,9 +117,10 @@ class FocusEngine:
 
     def fft(self, arr, axis: int, inverse: bool = False) -> None:
         """In-place complex FFT along one axis (complex64 or complex128); the inverse is normalised by 1/N like
-        numpy. Power-of-two complex64 azimuth (axis 0) transforms of 2-D arrays use our Stockham kernels (fft.cl),
-        the rest VkFFT (in complex128 VkFFT measured faster than fft.cl on PoCL)."""
-        if axis == 0 and arr.ndim == 2 and arr.dtype == np.complex64 and _is_power_of_two(arr.shape[0]):
+        numpy. Power-of-two complex64 azimuth (axis 0) transforms of 2-D arrays with a multiple of 4 columns use
+        our Stockham kernels (fft.cl), the rest VkFFT."""
+        if (axis == 0 and arr.ndim == 2 and arr.dtype == np.complex64 and _is_power_of_two(arr.shape[0])
+                and arr.shape[1] % 4 == 0):
             self.azimuth_fft(arr, inverse)
             return
         key = (arr.shape, axis, arr.dtype)
@@ -144,7 +145,7 @@ class FocusEngine:
         ns = 1
         for i, radix in enumerate(radices):
             scale = 1.0 / n if inverse and i == len(radices) - 1 else 1.0
-            kernels[f"azimuth_fft_radix{radix}"](self.queue, (n_cols, n // radix), None, src.data, dst.data,
+            kernels[f"azimuth_fft_radix{radix}"](self.queue, (n_cols // 4, n // radix), None, src.data, dst.data,
                                                  twiddle.data, np.int32(n), np.int32(n_cols), np.int32(ns),
                                                  np.int32(inverse), np.float32(scale))
             ns *= radix
