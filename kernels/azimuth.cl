@@ -2,30 +2,35 @@
  * few scalars per range bin; work item (j, row): range bin j, azimuth sample (time or frequency) row. */
 
 /* H5 (eq. 13) and H6, the NLCS filter (eq. 15): exp(-j pi eta1 f_a) exp(j pi (Y3 f_a^3 + Y4 f_a^4)).
- * Row `row` holds FFT-order azimuth frequency (row + row_origin) mod n_azimuth: row_origin 0 for a whole
- * spectrum, the first row's index for a band of rows (common.cl, azimuth_index). */
-__kernel void nlcs_filter(__global cplx_t *restrict s, __global const real_t *restrict eta1, __global const real_t *restrict y3,
-                          __global const real_t *restrict y4, const int n_range, const int n_azimuth,
-                          const real_t azimuth_df_hz, const int row_origin) {
-    const int j = get_global_id(0), row = get_global_id(1);
+ * Work item (q, row): range bins 4q..4q+3 (common.cl, c4). Row `row` holds FFT-order azimuth frequency
+ * (row + row_origin) mod n_azimuth: row_origin 0 for a whole spectrum, the first row's index for a band of rows
+ * (common.cl, azimuth_index). */
+__kernel void nlcs_filter(__global float2 *restrict s, __global const real_t *restrict eta1,
+                          __global const real_t *restrict y3, __global const real_t *restrict y4, const int n_range,
+                          const int n_azimuth, const real_t azimuth_df_hz, const int row_origin) {
+    const int j = 4 * get_global_id(0), row = get_global_id(1);
     if (j >= n_range) return;
-    const cplx_t v = s[row * n_range + j];
-    if (v.x == 0 && v.y == 0) return;  /* outside the Doppler band (most of the padded spectrum) */
+    __global float2 *line = s + row * n_range;
+    const c4 v = c4_load_lanes(line, j, n_range);
+    if (all(v.re == 0.0f) && all(v.im == 0.0f)) return;  /* outside the Doppler band (most of a padded spectrum) */
     const real_t f = azimuth_index(row, row_origin, n_azimuth) * azimuth_df_hz;
-    const real_t f2 = f * f;
-    const real_t phase = UWBCL_PI * (-eta1[j] * f + f2 * f * (y3[j] + y4[j] * f));
-    s[row * n_range + j] = cmul(v, cis(phase));
+    const real4_t phase = UWBCL_PI * f * (f * f * (real4_load(y3, j, n_range) + real4_load(y4, j, n_range) * f)
+                                          - real4_load(eta1, j, n_range));
+    c4_store_lanes(line, j, n_range, c4_mul(v, cis4(phase)));
 }
 
-/* H7, the nonlinear chirp scaling function (eq. 15): exp(j pi (q2 t^2 + q3 t^3 + q4 t^4)), absolute t_a. */
-__kernel void nlcs_scaling(__global cplx_t *restrict s, __global const real_t *restrict q2, __global const real_t *restrict q3,
-                           __global const real_t *restrict q4, const int n_range, const int n_azimuth,
-                           const real_t azimuth_dt_s) {
-    const int j = get_global_id(0), row = get_global_id(1);
+/* H7, the nonlinear chirp scaling function (eq. 15): exp(j pi (q2 t^2 + q3 t^3 + q4 t^4)), absolute t_a.
+ * Work item (q, row): range bins 4q..4q+3. */
+__kernel void nlcs_scaling(__global float2 *restrict s, __global const real_t *restrict q2,
+                           __global const real_t *restrict q3, __global const real_t *restrict q4,
+                           const int n_range, const int n_azimuth, const real_t azimuth_dt_s) {
+    const int j = 4 * get_global_id(0), row = get_global_id(1);
     if (j >= n_range) return;
+    __global float2 *line = s + row * n_range;
     const real_t t = signed_index(row, n_azimuth) * azimuth_dt_s;
-    const real_t phase = UWBCL_PI * t * t * (q2[j] + t * (q3[j] + t * q4[j]));
-    s[row * n_range + j] = cmul(s[row * n_range + j], cis(phase));
+    const real4_t phase = UWBCL_PI * t * t * (real4_load(q2, j, n_range)
+                                              + t * (real4_load(q3, j, n_range) + t * real4_load(q4, j, n_range)));
+    c4_store_lanes(line, j, n_range, c4_mul(c4_load_lanes(line, j, n_range), cis4(phase)));
 }
 
 /* H8, azimuth compression (eq. 17 [fix]): exp(-j sum_d a_d (f_a / f_scale)^d) inside the bin's band, zero
@@ -55,25 +60,30 @@ __kernel void azimuth_compression(__global cplx_t *restrict s, __global const re
 /* The slow-time signal of the reference target of each bin (t_n = 0, r0 = r_j) after LRWC, SRC and RC,
  * through the whole beam (notes 7b): w(t) exp{-j 4 pi / lambda [R(t) + v s_q t]}. The exact-reference
  * azimuth compression is matched to it after H6 and H7. Two-way main-lobe beam sinc^2(D sin(psi - theta)
- * / lambda) about the slant squint theta. */
-__kernel void reference_point_response(__global cplx_t *restrict out, __global const real_t *restrict r_bin_m,
+ * / lambda) about the slant squint theta. Work item (q, row): range bins 4q..4q+3. */
+__kernel void reference_point_response(__global float2 *restrict out, __global const real_t *restrict r_bin_m,
                                        const int n_range, const int n_azimuth, const real_t azimuth_dt_s,
                                        const real_t speed_m_s, const real_t sin_squint,
                                        const real_t wavelength_m, const real_t aperture_m) {
-    const int j = get_global_id(0), row = get_global_id(1);
+    const int j = 4 * get_global_id(0), row = get_global_id(1);
     if (j >= n_range) return;
     const real_t t = signed_index(row, n_azimuth) * azimuth_dt_s;
-    const real_t r0 = r_bin_m[j], vt = speed_m_s * t;
-    const real_t rng = sqrt(r0 * r0 + vt * vt - 2.0 * r0 * vt * sin_squint);
-    const real_t sin_look = (r0 * sin_squint - vt) / rng;
-    const real_t cos_look = sqrt(fmax(1.0 - sin_look * sin_look, 0.0));
+    const real4_t r0 = real4_load(r_bin_m, j, n_range);
+    const real_t vt = speed_m_s * t;
+    const real4_t rng = sqrt(r0 * r0 + vt * vt - 2.0 * vt * sin_squint * r0);
+    const real4_t sin_look = (r0 * sin_squint - vt) / rng;
+    const real4_t cos_look = sqrt(fmax(1.0 - sin_look * sin_look, 0.0));
     const real_t cos_squint = sqrt(1.0 - sin_squint * sin_squint);
-    const real_t u = aperture_m * (sin_look * cos_squint - cos_look * sin_squint) / wavelength_m;
-    if (fabs(u) >= 1.0) {  /* outside the main lobe, most of the padded slow time: no phase needed */
-        out[row * n_range + j] = (cplx_t)(0, 0);
-        return;
+    const float4 u = convert_float4(aperture_m * (sin_look * cos_squint - cos_look * sin_squint) / wavelength_m);
+    const int4 in_lobe = fabs(u) < 1.0f;
+    c4 v = {0.0f, 0.0f};
+    if (any(in_lobe)) {  /* outside the main lobe (most of the padded slow time) no phase is needed */
+        const float4 x = (float)UWBCL_PI * u;
+        const float4 sinc = select(sincos4(x).im / x, (float4)1.0f, x == 0.0f);
+        const float4 beam = select((float4)0.0f, sinc * sinc, in_lobe);
+        const c4 phasor = cis4(-2.0 * UWBCL_TWO_PI / wavelength_m * (rng + speed_m_s * sin_squint * t));
+        v.re = beam * phasor.re;
+        v.im = beam * phasor.im;
     }
-    const real_t x = UWBCL_PI * u;
-    const real_t sinc = x == 0 ? 1.0 : sin(x) / x;
-    out[row * n_range + j] = (float)(sinc * sinc) * cis(-2.0 * UWBCL_TWO_PI / wavelength_m * (rng + speed_m_s * sin_squint * t));
+    c4_store_lanes(out + row * n_range, j, n_range, v);
 }

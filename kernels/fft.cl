@@ -4,7 +4,7 @@
  *
  * Why not only VkFFT: on a CPU runtime (PoCL) VkFFT's GPU-shaped work-groups, local memory and barriers run
  * about 3x slower than this layout. Work item (c, b) does one radix-R butterfly for the four neighbouring
- * columns 4c..4c+3, held as split real and imaginary float4 (`c4`): the butterflies are then plain float4
+ * columns 4c..4c+3, held as split real and imaginary float4 (`c4`, common.cl): the butterflies are then plain float4
  * arithmetic, which every runtime vectorises, and neighbouring work items read contiguous memory (coalesced
  * on GPUs). docs/opencl.md has the measurements.
  *
@@ -13,10 +13,6 @@
  * exp(-2 pi i k / n)), does a length-R DFT and writes y[(b div ns) ns R + b mod ns + r ns]. The inverse
  * transform is conj(FFT(conj(x))), pass by pass; `scale` (1/n on the inverse's last pass, 1 otherwise) gives
  * numpy's normalisation. */
-
-typedef struct {
-    float4 re, im;
-} c4;
 
 inline c4 c4_load(__global const float2 *p, const int conjugate) {
     const float8 v = vload8(0, (__global const float *)p);
@@ -40,7 +36,7 @@ inline c4 c4_sub(const c4 a, const c4 b) {
 }
 
 /* a * w for one complex w (a twiddle shared by the four columns) */
-inline c4 c4_mul(const c4 a, const float2 w) {
+inline c4 c4_twiddle(const c4 a, const float2 w) {
     c4 r = {a.re * w.x - a.im * w.y, a.re * w.y + a.im * w.x};
     return r;
 }
@@ -74,7 +70,7 @@ inline void dft4(c4 *v0, c4 *v1, c4 *v2, c4 *v3) {
     c4 v[R];                                                                                                 \
     for (int r = 0; r < R; ++r) {                                                                            \
         const c4 a = c4_load(x + (b + r * stride) * n_cols + col, inverse);                                  \
-        v[r] = r == 0 ? a : c4_mul(a, twiddle[r * k * (n / (ns * R))]);                                      \
+        v[r] = r == 0 ? a : c4_twiddle(a, twiddle[r * k * (n / (ns * R))]);                                      \
     }
 
 #define FFT_STORE(R)                                                                                         \

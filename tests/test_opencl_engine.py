@@ -134,8 +134,11 @@ def test_secondary_range_compression_and_range_ifft_match_the_reference(engine, 
     assert rel_err(centred(d.get()), ref) < STAGE_TOL
 
 
-def test_nlcs_filter_scaling_and_compression_match_the_reference(engine, grid, coefficients):
-    k = coefficients
+@pytest.mark.parametrize("n_range", [None, 131], ids=["128 bins", "131 bins"])
+def test_nlcs_filter_scaling_and_compression_match_the_reference(engine, grid, n_range):
+    """Also with a bin count that is not a multiple of the four bins a work item of the vector kernels does."""
+    grid = dataclasses.replace(grid, n_range=n_range or grid.n_range)
+    k = coef.nlcs_coefficients(grid.range_bins_m, grid.speed_m_s, grid.sin_squint, grid.wavelength_m)
     x = noise((grid.n_azimuth, grid.n_range), 5)
     ac = nlcs.exact_reference_azimuth_compression(k, grid, 0.14)
     steps = [
@@ -150,10 +153,13 @@ def test_nlcs_filter_scaling_and_compression_match_the_reference(engine, grid, c
         assert rel_err(centred(d.get()), reference_stage(x)) < STAGE_TOL
 
 
-def test_reference_point_response_matches_the_slow_time_model(engine, grid, coefficients):
-    ref = nlcs.slow_time_point_response(coefficients.r_m, 0.0, grid, 0.14, rail_only=False)
+@pytest.mark.parametrize("n_range", [None, 129], ids=["128 bins", "129 bins"])
+def test_reference_point_response_matches_the_slow_time_model(engine, grid, n_range):
+    grid = dataclasses.replace(grid, n_range=n_range or grid.n_range)
+    r_m = grid.range_bins_m
+    ref = nlcs.slow_time_point_response(r_m, 0.0, grid, 0.14, rail_only=False)
     d = engine.buffer("t_ref", (grid.n_azimuth, grid.n_range))
-    engine._run("reference_point_response", grid.n_azimuth, grid.n_range, d, engine.reals("r", coefficients.r_m),
+    engine._run("reference_point_response", grid.n_azimuth, grid.n_range, d, engine.reals("r", r_m),
                 grid.n_range, grid.n_azimuth, grid.dt_s, grid.speed_m_s, grid.sin_squint, grid.wavelength_m, 0.14)
     assert rel_err(centred(d.get()), ref) < STAGE_TOL
 

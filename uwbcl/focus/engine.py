@@ -153,8 +153,12 @@ class FocusEngine:
         if src is not arr:  # an odd number of passes (n = 2 or 4)
             self._cl.enqueue_copy(self.queue, arr.data, src.data)
 
+    # kernels whose work item handles four neighbouring range bins (common.cl, c4)
+    FOUR_BIN_KERNELS = frozenset({"nlcs_filter", "nlcs_scaling", "reference_point_response"})
+
     def _run(self, name: str, rows: int, cols: int, *args) -> None:
-        """Launch kernel `name` on a (cols, rows) grid; Python ints become int32, floats the phase precision."""
+        """Launch kernel `name` on a (cols, rows) grid (cols / 4 work items across for the four-bin kernels);
+        Python ints become int32, floats the phase precision."""
         conv = []
         for a in args:
             if isinstance(a, bool):
@@ -165,6 +169,8 @@ class FocusEngine:
                 conv.append(self.real(a))
             else:
                 conv.append(a.data if hasattr(a, "data") and not isinstance(a, np.ndarray) else a)
+        if name in self.FOUR_BIN_KERNELS:
+            cols = -(-cols // 4)
         self.kernels[name](self.queue, (cols, rows), None, *conv)
 
     def _fft_self_test_failure(self, dtype, tol: float, axes: tuple[int, ...]) -> str:
