@@ -363,3 +363,16 @@ def test_without_pyvkfft_process_says_how_to_install_it_and_exits_2(monkeypatch,
     err = capsys.readouterr().err
     assert "VKFFT_BACKEND=opencl pip install pyvkfft" in err and "--backend numpy" in err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("scenario", [PAPER_SIM1, PAPER_SIM2], ids=lambda s: s.name)
+def test_doppler_band_rows_hold_every_row_the_band_mask_passes(scenario):
+    from uwbcl.focus.engine import _doppler_band_rows
+
+    for scan in scenario.simulate(seed=2, speed_jitter=0.1):
+        g = nlcs.focus_grid(scan)
+        x = nlcs.slant_squint_sine(g)
+        lo, hi = g.doppler_band
+        rows = np.flatnonzero(((x >= lo) & (x <= hi) & (np.abs(x) < 0.98)).any(axis=1)) - g.n_azimuth // 2
+        first, count = _doppler_band_rows(g)
+        assert first <= rows[0] and rows[-1] <= first + count - 1 and count <= rows.size + 4

@@ -439,13 +439,20 @@ class _PassFilters:
 
 
 def _doppler_band_rows(grid: nlcs.FocusGrid) -> tuple[int, int]:
-    """(first signed azimuth index, count) of the rows where the band mask of eqs. (9-10) passes anything."""
-    x = nlcs.slant_squint_sine(grid)
+    """(first signed azimuth index, count) of a run of rows that holds every row where the band mask of
+    eqs. (9-10) passes anything. X = sin(theta_q) + c f_a / (2 v F) is monotonic in f_a at each F = f_c + f_r,
+    so each range frequency passes one interval of f_a; their hull, one row wider on each side, is taken (the
+    SRC table applies the exact mask inside it)."""
     lo, hi = grid.doppler_band
-    rows = np.flatnonzero(((x >= lo) & (x <= hi) & (np.abs(x) < 0.98)).any(axis=1))
-    if rows.size == 0:
+    lo, hi = max(lo, -0.98), min(hi, 0.98)
+    if lo > hi:
         return 0, 1
-    return int(rows[0]) - grid.n_azimuth // 2, int(rows[-1] - rows[0]) + 1
+    f = grid.carrier_frequency_hz + grid.f_range_hz
+    scale = 2.0 * grid.speed_m_s * f / nlcs.C * (grid.n_azimuth * grid.dt_s)  # signed azimuth index per unit X
+    first = int(np.floor(((lo - grid.sin_squint) * scale).min())) - 1
+    last = int(np.ceil(((hi - grid.sin_squint) * scale).max())) + 1
+    first, last = max(first, -(grid.n_azimuth // 2)), min(last, grid.n_azimuth // 2 - 1)
+    return first, last - first + 1
 
 
 def undecided_band_edges(mag: np.ndarray, grid: nlcs.FocusGrid, margin: float) -> np.ndarray:
