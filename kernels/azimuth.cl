@@ -57,26 +57,33 @@ __kernel void azimuth_compression(__global cplx_t *restrict s, __global const re
     s[idx] = cmul(s[idx], cis(-phase));
 }
 
-/* The slow-time signal of the reference target of each bin (t_n = 0, r0 = r_j) after LRWC, SRC and RC,
- * through the whole beam (notes 7b): w(t) exp{-j 4 pi / lambda [R(t) + v s_q t]}. The exact-reference
- * azimuth compression is matched to it after H6 and H7. Two-way main-lobe beam sinc^2(D sin(psi - theta)
- * / lambda) about the slant squint theta. Work item (q, row): range bins 4q..4q+3. */
-__kernel void reference_point_response(__global float2 *restrict out, __global const real_t *restrict r_bin_m,
-                                       const int n_range, const int n_azimuth, const real_t azimuth_dt_s,
-                                       const real_t speed_m_s, const real_t sin_squint,
-                                       const real_t wavelength_m, const real_t aperture_m) {
+/* The slow-time signal, in range bin r, of a point target at azimuth time t_n after LRWC, SRC and RC (notes
+ * 7b): w(t) exp{-j 4 pi / lambda [R(t) + v s_q t]} with r0 = r - v s_q t_n, one target per column: the
+ * exact-reference H8 is matched to the t_n = 0 target of each bin seen through the whole beam
+ * (half_track_s < 0), detection's t_n(t_f) calibration simulates targets seen from the rail only
+ * (|t| <= half_track_s). Two-way main-lobe beam sinc^2(D sin(psi - theta) / lambda) about the slant squint
+ * theta. Work item (q, row): columns 4q..4q+3. */
+__kernel void point_response(__global float2 *restrict out, __global const real_t *restrict r_m,
+                             __global const real_t *restrict t_n_s, const int n_cols, const int n_azimuth,
+                             const real_t azimuth_dt_s, const real_t speed_m_s, const real_t sin_squint,
+                             const real_t wavelength_m, const real_t aperture_m, const real_t half_track_s) {
     const int j = 4 * get_global_id(0), row = get_global_id(1);
-    if (j >= n_range) return;
+    if (j >= n_cols) return;
     const real_t t = signed_index(row, n_azimuth) * azimuth_dt_s;
-    const real4_t r0 = real4_load(r_bin_m, j, n_range);
-    const real_t vt = speed_m_s * t;
-    const real4_t rng = sqrt(r0 * r0 + vt * vt - 2.0 * vt * sin_squint * r0);
-    const real4_t sin_look = (r0 * sin_squint - vt) / rng;
+    c4 v = {0.0f, 0.0f};
+    if (half_track_s >= 0 && fabs(t) > half_track_s + 1e-12) {  /* off the rail */
+        c4_store_lanes(out + row * n_cols, j, n_cols, v);
+        return;
+    }
+    const real4_t t_n = real4_load(t_n_s, j, n_cols);
+    const real4_t r0 = real4_load(r_m, j, n_cols) - speed_m_s * sin_squint * t_n;
+    const real4_t vtau = speed_m_s * (t - t_n);
+    const real4_t rng = sqrt(r0 * r0 + vtau * vtau - 2.0 * sin_squint * r0 * vtau);
+    const real4_t sin_look = (r0 * sin_squint - vtau) / rng;
     const real4_t cos_look = sqrt(fmax(1.0 - sin_look * sin_look, 0.0));
     const real_t cos_squint = sqrt(1.0 - sin_squint * sin_squint);
     const float4 u = convert_float4(aperture_m * (sin_look * cos_squint - cos_look * sin_squint) / wavelength_m);
     const int4 in_lobe = fabs(u) < 1.0f;
-    c4 v = {0.0f, 0.0f};
     if (any(in_lobe)) {  /* outside the main lobe (most of the padded slow time) no phase is needed */
         const float4 x = (float)UWBCL_PI * u;
         const float4 sinc = select(sincos4(x).im / x, (float4)1.0f, x == 0.0f);
@@ -85,5 +92,5 @@ __kernel void reference_point_response(__global float2 *restrict out, __global c
         v.re = beam * phasor.re;
         v.im = beam * phasor.im;
     }
-    c4_store_lanes(out + row * n_range, j, n_range, v);
+    c4_store_lanes(out + row * n_cols, j, n_cols, v);
 }

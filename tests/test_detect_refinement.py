@@ -178,7 +178,7 @@ def test_calibration_spectra_are_the_focusing_chains(paper_products):
     grid = products.grid
     t_n = np.linspace(-1.0, 1.0, 5)
     r = grid.range_bins_m[[20, 64]] + 0.004
-    f, y, coarse = detect._calibration_spectra(products, r, t_n)
+    f, y, coarse = detect.calibration_spectra(products, r, t_n)
     f_ref = np.fft.ifftshift(grid.f_azimuth_hz)
     rows = np.isin(f_ref, f)
     for i, r_m in enumerate(r):
@@ -212,7 +212,7 @@ def test_detections_of_whole_passes_match_the_derivative_free_refinement(scenari
         new = pipeline.detect_pass(scan, settings)
         with monkeypatch.context() as m:
             m.setattr(detect.TrigInterpolant, "maximise", nelder_mead_maximise)
-            m.setattr(detect, "focus_position", lambda products, r_m, t_n_s: np.array(
+            m.setattr(detect, "focus_position", lambda products, r_m, t_n_s, focuser=None: np.array(
                 [scalar_search_focus_position(products, x, t_n_s) for x in np.atleast_1d(r_m)]))
             ref = pipeline.detect_pass(scan, settings)
         assert len(new) == len(ref) == 3

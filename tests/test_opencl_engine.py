@@ -158,9 +158,11 @@ def test_reference_point_response_matches_the_slow_time_model(engine, grid, n_ra
     grid = dataclasses.replace(grid, n_range=n_range or grid.n_range)
     r_m = grid.range_bins_m
     ref = nlcs.slow_time_point_response(r_m, 0.0, grid, 0.14, rail_only=False)
-    d = engine.buffer("t_ref", (grid.n_azimuth, grid.n_range))
-    engine._run("reference_point_response", grid.n_azimuth, grid.n_range, d, engine.reals("r", r_m),
-                grid.n_range, grid.n_azimuth, grid.dt_s, grid.speed_m_s, grid.sin_squint, grid.wavelength_m, 0.14)
+    d = engine.point_response(r_m, np.zeros(r_m.size), grid, 0.14, "t_ref")
+    assert rel_err(centred(d.get()), ref) < STAGE_TOL
+    t_n = np.linspace(-1.5, 1.5, r_m.size)  # rail-only targets across (and beyond) the rail, as the calibration
+    ref = nlcs.slow_time_point_response(r_m, t_n, grid, 0.14)
+    d = engine.point_response(r_m, t_n, grid, 0.14, "t_rail", rail_only=True)
     assert rel_err(centred(d.get()), ref) < STAGE_TOL
 
 
@@ -255,6 +257,22 @@ def test_model_spectra_equal_the_2d_spectrum_of_the_focused_image(engine, jitter
     assert rel_err(out[0], ref) < CHAIN_TOL and rel_err(out[1], 2j * ref) < CHAIN_TOL
     with pytest.raises(ValueError, match="contiguous"):
         engine.nlcs_model_spectra(products, x_rel, echo[None], signed[::2])
+
+
+def test_calibration_spectra_match_detections_numpy_simulation(engine, jittery_pass, grid):
+    """Detection's t_n(t_f) calibration simulated on the device: the same spectra, peaks and focus positions."""
+    from uwbcl import detect
+
+    products = nlcs.nlcs_focus(jittery_pass, grid=grid)
+    r = grid.range_bins_m[[20, 21, 90]] + 0.003
+    t_n = np.linspace(-3.0, 3.0, 13)
+    f_ref, y_ref, coarse_ref = detect.calibration_spectra(products, r, t_n)
+    f, y, coarse = engine.calibration_spectra(products, r, t_n)
+    np.testing.assert_array_equal(f, f_ref)
+    np.testing.assert_array_equal(coarse, coarse_ref)
+    assert rel_err(y, y_ref) < STAGE_TOL
+    t_f_ref = detect.focus_position(products, r, t_n)
+    np.testing.assert_allclose(detect.focus_position(products, r, t_n, engine), t_f_ref, rtol=0, atol=1e-6 * grid.dt_s)
 
 
 def test_backprojection_image_matches_the_reference(engine, jittery_pass):

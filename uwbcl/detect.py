@@ -242,7 +242,7 @@ def _peak_times(f_hz: np.ndarray, y: np.ndarray, t0_s: np.ndarray, dt_s: float, 
     return t0_s + x * dt_s
 
 
-def _calibration_spectra(products: nlcs.NlcsProducts, r_m: np.ndarray, t_n_s: np.ndarray
+def calibration_spectra(products: nlcs.NlcsProducts, r_m: np.ndarray, t_n_s: np.ndarray
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Focused azimuth spectra of simulated targets at every (r, t_n) (columns r-major), each through the azimuth
     chain of the bin nearest its r: (f, y, coarse) with y on the rows f where H8 is not zero and the coarse t_f
@@ -283,18 +283,19 @@ def _calibration_spectra(products: nlcs.NlcsProducts, r_m: np.ndarray, t_n_s: np
     return f[band], s[:, band].T, coarse
 
 
-def focus_position(products: nlcs.NlcsProducts, r_m, t_n_s: np.ndarray) -> np.ndarray:
+def focus_position(products: nlcs.NlcsProducts, r_m, t_n_s: np.ndarray, focuser=None) -> np.ndarray:
     """t_f(t_n): where the azimuth chain of the bin nearest r focuses targets at t_n (calibrated by simulation).
 
-    `r_m` a float: one t_f per t_n. An array of ranges: one row of t_f per range, all simulated at once."""
+    `r_m` a float: one t_f per t_n. An array of ranges: one row of t_f per range, all simulated at once. The
+    simulation runs on `focuser.calibration_spectra` where the focuser has one (the OpenCL engine), else here."""
     r = np.atleast_1d(np.asarray(r_m, dtype=float))
     t_n = np.asarray(t_n_s, dtype=float).ravel()
-    f, y, coarse = _calibration_spectra(products, r, t_n)
+    f, y, coarse = getattr(focuser, "calibration_spectra", calibration_spectra)(products, r, t_n)
     t_f = _peak_times(f, y, coarse, products.grid.dt_s).reshape(r.size, t_n.size)
     return t_f if np.ndim(r_m) else t_f[0]
 
 
-def invert_focus_position(products: nlcs.NlcsProducts, r_m, t_f_s, degree: int = 5):
+def invert_focus_position(products: nlcs.NlcsProducts, r_m, t_f_s, degree: int = 5, focuser=None):
     """t_n from the focused t_f: fit t_n(t_f) through simulated targets across the aperture, per range (cached
     in products.focus_calibration). Arrays of (r, t_f) give an array of t_n; the missing fits are simulated
     together."""
@@ -305,7 +306,7 @@ def invert_focus_position(products: nlcs.NlcsProducts, r_m, t_f_s, degree: int =
         grid = products.grid
         half = 0.5 * (grid.n_track - 1) * grid.dt_s
         t_n = np.linspace(-half, half, 13)
-        for x, t_f in zip(missing, focus_position(products, np.array(missing), t_n)):
+        for x, t_f in zip(missing, focus_position(products, np.array(missing), t_n, focuser)):
             cache[(x, degree)] = np.polynomial.polynomial.polyfit(t_f, t_n, degree)
     t_f = np.broadcast_to(np.asarray(t_f_s, dtype=float), (len(r),))
     out = np.array([np.polynomial.polynomial.polyval(t, cache[(x, degree)]) for x, t in zip(r, t_f)])
@@ -342,19 +343,19 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
                                        focuser, (rows, spectrum))
     if not cells:
         return []
-    t_f, r, t_n = _nlcs_peak_times(products, [c[0] for c in cells], [c[1] for c in cells])
+    t_f, r, t_n = _nlcs_peak_times(products, [c[0] for c in cells], [c[1] for c in cells], focuser)
     r0 = r - grid.speed_m_s * grid.sin_squint * t_n  # eq. (19) [fix]: r_LC = r_LRCM - v sin(theta_q) t_nc
     return [_detection(grid, float(t_n[i]), float(r0[i]), grid.speed_m_s * float(t_f[i]), float(r[i]), abs(val),
                        floor) for i, (_, _, val) in enumerate(cells)]
 
 
-def _nlcs_peak_times(products: nlcs.NlcsProducts, a: np.ndarray, b: np.ndarray
+def _nlcs_peak_times(products: nlcs.NlcsProducts, a: np.ndarray, b: np.ndarray, focuser=None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(t_f, r_LRCM, t_n) of peaks at fractional image indices (a, b)."""
     grid = products.grid
     t_f = (np.asarray(a, dtype=float) - grid.n_azimuth // 2) * grid.dt_s
     r = grid.range_bins_m[0] + np.asarray(b, dtype=float) * (grid.range_bins_m[1] - grid.range_bins_m[0])
-    return t_f, r, np.atleast_1d(invert_focus_position(products, r, t_f))
+    return t_f, r, np.atleast_1d(invert_focus_position(products, r, t_f, focuser=focuser))
 
 
 def cancel_neighbours_nlcs(products: nlcs.NlcsProducts, scan: ScanPass, cells: list[tuple[float, float, complex]],
@@ -375,7 +376,7 @@ def cancel_neighbours_nlcs(products: nlcs.NlcsProducts, scan: ScanPass, cells: l
     dr = grid.range_bins_m[1] - grid.range_bins_m[0]
     for _ in range(passes):
         at = np.array([(a, b) for a, b, _ in cells])
-        _, r, t_n = _nlcs_peak_times(products, at[:, 0], at[:, 1])
+        _, r, t_n = _nlcs_peak_times(products, at[:, 0], at[:, 1], focuser)
         u = grid.speed_m_s * t_n
         echoes = [bp.point_target_echo(grid, rc.x_rel_m, rc.t_s, u[j], r[j]) for j in range(len(at))]
         gains = fit_pulse_gains(rc.data, rc.x_rel_m, echoes, degree)

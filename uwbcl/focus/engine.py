@@ -154,7 +154,7 @@ class FocusEngine:
             self._cl.enqueue_copy(self.queue, arr.data, src.data)
 
     # kernels whose work item handles four neighbouring range bins (common.cl, c4)
-    FOUR_BIN_KERNELS = frozenset({"nlcs_filter", "nlcs_scaling", "reference_point_response"})
+    FOUR_BIN_KERNELS = frozenset({"nlcs_filter", "nlcs_scaling", "point_response"})
 
     def _run(self, name: str, rows: int, cols: int, *args) -> None:
         """Launch kernel `name` on a (cols, rows) grid (cols / 4 work items across for the four-bin kernels);
@@ -272,10 +272,7 @@ class FocusEngine:
         The fit picks each bin's segment and band with a hard threshold on |X_ref|, which float32 rounding can
         move by one sample (an image error of 2e-3): the few bins with a band edge within rounding of the
         threshold are recomputed on the host in float64, so the fit decides exactly as the reference does."""
-        ref = self.buffer("reference", (grid.n_azimuth, grid.n_range))
-        self._run("reference_point_response", grid.n_azimuth, grid.n_range, ref, self.reals("r_bins", k.r_m),
-                  grid.n_range, grid.n_azimuth, grid.dt_s, grid.speed_m_s, grid.sin_squint, grid.wavelength_m,
-                  aperture_m)
+        ref = self.point_response(k.r_m, np.zeros(grid.n_range), grid, aperture_m, "reference")
         self.fft(ref, 0)
         self.nlcs_filter(ref, k, grid, with_h5=False)
         self.fft(ref, 0, inverse=True)
@@ -284,9 +281,48 @@ class FocusEngine:
         x_ref = np.fft.fftshift(self.host(ref), axes=0).astype(np.complex128)
         undecided = np.flatnonzero(undecided_band_edges(np.abs(x_ref), grid, REFERENCE_EDGE_MARGIN))
         if undecided.size:
-            kb = dataclasses.replace(k, **{f.name: getattr(k, f.name)[undecided] for f in dataclasses.fields(k)})
-            x_ref[:, undecided] = nlcs.reference_spectra(kb, grid, aperture_m)
+            x_ref[:, undecided] = nlcs.reference_spectra(_columns(k, undecided), grid, aperture_m)
         return x_ref
+
+    def point_response(self, r_m: np.ndarray, t_n_s: np.ndarray, grid: nlcs.FocusGrid, aperture_m: float,
+                       name: str, rail_only: bool = False):
+        """`nlcs.slow_time_point_response` on the device, one (r, t_n) per column, FFT order; a buffer `name`."""
+        out = self.buffer(name, (grid.n_azimuth, r_m.size))
+        half_track = 0.5 * (grid.n_track - 1) * grid.dt_s if rail_only else -1.0
+        self._run("point_response", grid.n_azimuth, r_m.size, out, self.reals(f"{name}_r", r_m),
+                  self.reals(f"{name}_t_n", t_n_s), r_m.size, grid.n_azimuth, grid.dt_s, grid.speed_m_s,
+                  grid.sin_squint, grid.wavelength_m, aperture_m, half_track)
+        return out
+
+    def calibration_spectra(self, products: nlcs.NlcsProducts, r_m: np.ndarray, t_n_s: np.ndarray
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`detect.calibration_spectra` on the device: simulated targets at every (r, t_n) (columns r-major)
+        through the azimuth chain of the bin nearest each r -> (f on H8's rows, y there, coarse t_f)."""
+        grid = products.grid
+        bins = grid.range_bins_m
+        r_cols = np.repeat(np.asarray(r_m, dtype=float), t_n_s.size)
+        t_cols = np.tile(np.asarray(t_n_s, dtype=float), np.size(r_m))
+        width = -(-r_cols.size // 4) * 4  # the azimuth FFT kernels take columns four at a time
+        r_cols = np.concatenate([r_cols, np.repeat(r_cols[-1:], width - r_cols.size)])
+        t_cols = np.concatenate([t_cols, np.repeat(t_cols[-1:], width - t_cols.size)])
+        j = np.clip(np.rint((r_cols - bins[0]) / (bins[1] - bins[0])), 0, bins.size - 1).astype(int)
+        k = _columns(products.coefficients, j)
+        ac = _columns(products.compression, j)
+        columns = dataclasses.replace(grid, n_range=width)  # the kernels index per-column coefficients
+        s = self.point_response(r_cols, t_cols, grid, products.aperture_m, "calibration", rail_only=True)
+        self.fft(s, 0)
+        self.nlcs_filter(s, k, columns, with_h5=False)
+        self.fft(s, 0, inverse=True)
+        self.nlcs_scaling(s, k, columns)
+        self.fft(s, 0)
+        self.azimuth_compression(s, ac, columns)
+        f = np.fft.ifftshift(grid.f_azimuth_hz)
+        band = (f >= ac.f_lo_hz.min()) & (f <= ac.f_hi_hz.max())
+        y = self.host(s).astype(np.complex128)[band]
+        self.fft(s, 0, inverse=True)
+        coarse = np.fft.ifftshift(grid.t_azimuth_s)[np.argmax(np.abs(self.host(s)), axis=0)]
+        n = np.size(r_m) * t_n_s.size
+        return f[band], y[:, :n], coarse[:n]
 
     def nlcs_focus(self, scan: ScanPass, *, ac_mode: str = "exact", grid: nlcs.FocusGrid | None = None,
                    compression: nlcs.AzimuthCompression | None = None) -> nlcs.NlcsProducts:
@@ -436,6 +472,12 @@ class _PassFilters:
     src: object  # H3 * mask * H4 * delay origin, (band rows, n_range)
     h5h6: object  # (band rows, n_range)
     h7: object  # (n_azimuth, n_range), FFT order
+
+
+def _columns(obj, j: np.ndarray):
+    """The dataclass with every per-bin array indexed by j (one entry per column)."""
+    return dataclasses.replace(obj, **{f.name: getattr(obj, f.name)[j] for f in dataclasses.fields(obj)
+                                       if isinstance(getattr(obj, f.name), np.ndarray)})
 
 
 def _doppler_band_rows(grid: nlcs.FocusGrid) -> tuple[int, int]:
