@@ -64,6 +64,7 @@ class FocusEngine:
         self._plans: dict = {}
         self._buffers: dict = {}
         self._twiddles: dict = {}
+        self._fft_launches: dict = {}  # (buffer, scratch, shape, inverse) -> [(kernel with its arguments, size)]
         self._uploaded: dict = {}  # (name, shape, dtype) -> bytes of the last small upload
         self._filters: _PassFilters | None = None  # the last grid's filter tables
         self._h8_tables: dict = {}  # name -> (compression, grid, (first, last row), table)
@@ -132,26 +133,38 @@ class FocusEngine:
 
     def azimuth_fft(self, arr, inverse: bool = False) -> None:
         """Stockham FFT along axis 0 (fft.cl), radix 8/4/2 passes ping-ponging through a scratch buffer; the
-        pass count is kept even so the result lands back in `arr`."""
+        pass count is kept even so the result lands back in `arr`. The passes' kernels are kept with their
+        arguments set, per buffer, so a transform costs its launches only (a pass takes ~0.4 ms on a CPU; setting
+        nine arguments from Python costs a noticeable part of that)."""
+        scratch = self.buffer(f"fft_scratch_{np.dtype(arr.dtype).name}", arr.shape, arr.dtype)
+        key = (arr.data.int_ptr, scratch.data.int_ptr, arr.shape, bool(inverse))
+        launches = self._fft_launches.get(key)
+        if launches is None:
+            if len(self._fft_launches) >= 64:  # buffers of passes long gone: bound what is kept
+                self._fft_launches.clear()
+            launches = self._fft_launches[key] = self._azimuth_fft_launches(arr, scratch, inverse)
+        for kernel, size in launches:
+            self._cl.enqueue_nd_range_kernel(self.queue, kernel, size, None)
+        if len(launches) % 2:  # an odd number of passes (n = 2 or 4)
+            self._cl.enqueue_copy(self.queue, arr.data, scratch.data)
+
+    def _azimuth_fft_launches(self, arr, scratch, inverse: bool) -> list:
         n, n_cols = arr.shape
         twiddle = self._twiddles.get((n, arr.dtype))
         if twiddle is None:
             table = np.exp(-2j * np.pi * np.arange(n) / n).astype(arr.dtype)
             twiddle = self._twiddles[(n, arr.dtype)] = self._cl_array.to_device(self.queue, table)
-        scratch = self.buffer(f"fft_scratch_{np.dtype(arr.dtype).name}", arr.shape, arr.dtype)
-        kernels = self.kernels
-        src, dst = arr, scratch
         radices = _radix_plan(n)
-        ns = 1
+        launches, src, dst, ns = [], arr, scratch, 1
         for i, radix in enumerate(radices):
+            kernel = self._cl.Kernel(self.program, f"azimuth_fft_radix{radix}")
             scale = 1.0 / n if inverse and i == len(radices) - 1 else 1.0
-            kernels[f"azimuth_fft_radix{radix}"](self.queue, (n_cols // 4, n // radix), None, src.data, dst.data,
-                                                 twiddle.data, np.int32(n), np.int32(n_cols), np.int32(ns),
-                                                 np.int32(inverse), np.float32(scale))
+            kernel.set_args(src.data, dst.data, twiddle.data, np.int32(n), np.int32(n_cols), np.int32(ns),
+                            np.int32(inverse), np.float32(scale))
+            launches.append((kernel, (n_cols // 4, n // radix)))
             ns *= radix
             src, dst = dst, src
-        if src is not arr:  # an odd number of passes (n = 2 or 4)
-            self._cl.enqueue_copy(self.queue, arr.data, src.data)
+        return launches
 
     # kernels whose work item handles four neighbouring range bins (common.cl, c4)
     FOUR_BIN_KERNELS = frozenset({"nlcs_filter", "nlcs_scaling", "point_response"})
@@ -243,11 +256,10 @@ class FocusEngine:
     def azimuth_compression(self, s, ac: nlcs.AzimuthCompression, grid: nlcs.FocusGrid,
                             first_row: int | None = None) -> None:
         """H8 (eq. 17 [fix]) in place on a range-Doppler array (or band of rows)."""
-        f = grid.f_azimuth_hz[:, None]
-        inside = (f >= ac.f_lo_hz[None, :]) & (f <= ac.f_hi_hz[None, :])  # the reference's own test
-        any_inside = inside.any(axis=0)
-        first = np.where(any_inside, np.argmax(inside, axis=0) - grid.n_azimuth // 2, 1)
-        last = np.where(any_inside, grid.n_azimuth - 1 - np.argmax(inside[::-1], axis=0) - grid.n_azimuth // 2, 0)
+        # the reference's own test f_lo <= f <= f_hi on the (increasing) centred axis, as index bounds
+        f = grid.f_azimuth_hz
+        first = np.searchsorted(f, ac.f_lo_hz, side="left") - grid.n_azimuth // 2
+        last = np.searchsorted(f, ac.f_hi_hz, side="right") - 1 - grid.n_azimuth // 2  # first > last: empty
         self._run("azimuth_compression", s.shape[0], grid.n_range, s, self.reals("ac_poly", ac.poly),
                   ac.poly.shape[1], self.to_device("ac_first", first.astype(np.int32), constant=True),
                   self.to_device("ac_last", last.astype(np.int32), constant=True),
@@ -346,13 +358,13 @@ class FocusEngine:
         # H8 on the rows that hold the image's spectrum (zero elsewhere); those rows are also read back, so
         # detection needs no 2-D FFT of the image
         rows = nlcs.spectrum_rows(grid, ac)
-        band = self.buffer("h8_rows", (rows.size, grid.n_range))
+        band = self._rows_buffer("h8_rows", rows.size, grid)
         origin = self._row_origin(grid, rows[0])
-        self._run("gather_rows", band.shape[0], grid.n_range, s, band,
+        self._run("gather_rows", rows.size, grid.n_range, s, band,
                   self._h8_table(ac, grid, int(rows[0]), int(rows[-1]), "h8"), origin, grid.n_azimuth, grid.n_range)
-        self._run("scatter_rows", grid.n_azimuth, grid.n_range, band, s, origin, band.shape[0], grid.n_azimuth,
+        self._run("scatter_rows", grid.n_azimuth, grid.n_range, band, s, origin, rows.size, grid.n_azimuth,
                   grid.n_range)
-        spectrum = nlcs.spectrum_rows_from_range_doppler(self.host(band), rows, grid)
+        spectrum = self._range_spectra(band, rows, grid)
         self.fft(s, 0, inverse=True)
         image = np.fft.fftshift(self.host(s), axes=0)
         return nlcs.NlcsProducts(image=image, grid=grid, coefficients=k, compression=ac, aperture_m=aperture,
@@ -424,14 +436,25 @@ class FocusEngine:
         if not np.array_equal(rows, np.arange(lo, hi + 1)) or not -n // 2 <= lo <= hi < n // 2:
             raise ValueError("rows must be contiguous signed azimuth indices in [-n/2, n/2)")
         h8 = self._h8_table(ac, grid, lo, hi, "h8")
-        band = self.buffer("model_rows", h8.shape)
+        band = self._rows_buffer("model_rows", rows.size, grid)
         out = []
         for echo in echoes:
             s = self._nlcs_spectrum(echo, x_rel_m, grid, k, float(p2[0]))
-            self._run("gather_rows", band.shape[0], grid.n_range, s, band, h8, self._row_origin(grid, lo),
+            self._run("gather_rows", rows.size, grid.n_range, s, band, h8, self._row_origin(grid, lo),
                       grid.n_azimuth, grid.n_range)
-            out.append(self.host(band))
-        return nlcs.spectrum_rows_from_range_doppler(np.array(out), rows, grid)
+            out.append(self._range_spectra(band, rows, grid))
+        return np.array(out)
+
+    def _rows_buffer(self, name: str, n_rows: int, grid: nlcs.FocusGrid):
+        """A buffer for a band of azimuth rows, its row count rounded up to a multiple of 64 so that the range
+        FFT plans of `_range_spectra` are reused across passes (the band's width varies a little)."""
+        return self.buffer(name, (min(-(-n_rows // 64) * 64, grid.n_azimuth), grid.n_range))
+
+    def _range_spectra(self, band, rows: np.ndarray, grid: nlcs.FocusGrid) -> np.ndarray:
+        """fft2(image) / (n m) on `rows` from their range-Doppler values (the first rows.size rows of `band`,
+        transformed along range in place)."""
+        self.fft(band, 1)
+        return nlcs.spectrum_rows_from_range_spectra(self.host(band[:rows.size]), rows, grid)
 
     # ------------------------------------------------------------------------------------------ backprojection
     def range_compress(self, scan: ScanPass, grid: nlcs.FocusGrid, upsample: int = 16):

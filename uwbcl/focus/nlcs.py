@@ -39,8 +39,13 @@ def spectrum_rows_from_range_doppler(y_rows: np.ndarray, rows: np.ndarray, grid:
     """fft2(image) / (n m) at the signed azimuth frequency indices `rows`, for the image az_ifft(Y), from those
     rows of Y (shape (..., rows.size, n_range)): detection's band-limited interpolation needs only these, and
     the azimuth IFFT then FFT cancel but for fft(fftshift(z)) = (-1)^k fft(z) (n even)."""
+    return spectrum_rows_from_range_spectra(np.fft.fft(y_rows, axis=-1), rows, grid)
+
+
+def spectrum_rows_from_range_spectra(y_rows_fft: np.ndarray, rows: np.ndarray, grid: FocusGrid) -> np.ndarray:
+    """`spectrum_rows_from_range_doppler` for rows already transformed along range."""
     sign = np.where(np.asarray(rows) % 2 == 0, 1.0, -1.0)[:, None]
-    return np.fft.fft(y_rows, axis=-1) * (sign / (grid.n_azimuth * grid.n_range))
+    return y_rows_fft * (sign / (grid.n_azimuth * grid.n_range))
 
 
 # --------------------------------------------------------------------------------------------- the grid
