@@ -78,16 +78,21 @@ class FocusEngine:
     def __repr__(self) -> str:
         return f"FocusEngine({self.device.name.strip()!r}, fp64_phase={self.fp64_phase})"
 
-    def buffer(self, name: str, shape: tuple[int, ...], dtype=np.complex64):
-        """A device array kept between passes, reallocated only when the shape changes."""
-        import pyopencl.array as cla
+    # shapes kept per buffer name: a batch alternates between a few pass shapes (rigs with other rails)
+    SHAPES_PER_BUFFER = 3
 
+    def buffer(self, name: str, shape: tuple[int, ...], dtype=np.complex64):
+        """A device array kept between passes, one per name and shape (the name's least recently used shape is
+        released beyond SHAPES_PER_BUFFER)."""
         key = (name, tuple(shape), np.dtype(dtype))
-        arr = self._buffers.get(key)
+        arr = self._buffers.pop(key, None)
         if arr is None:
-            self._buffers = {k: v for k, v in self._buffers.items() if k[0] != name}
-            self._uploaded = {k: v for k, v in self._uploaded.items() if k[0] != name}
-            arr = self._buffers[key] = cla.empty(self.queue, shape, dtype)
+            same_name = [k for k in self._buffers if k[0] == name]
+            for old in same_name[:max(0, len(same_name) - self.SHAPES_PER_BUFFER + 1)]:
+                del self._buffers[old]
+                self._uploaded.pop(old, None)
+            arr = self._cl_array.empty(self.queue, shape, dtype)
+        self._buffers[key] = arr  # most recently used last
         return arr
 
     def to_device(self, name: str, host: np.ndarray, dtype=None, *, constant: bool = False):
@@ -136,7 +141,7 @@ class FocusEngine:
         pass count is kept even so the result lands back in `arr`. The passes' kernels are kept with their
         arguments set, per buffer, so a transform costs its launches only (a pass takes ~0.4 ms on a CPU; setting
         nine arguments from Python costs a noticeable part of that)."""
-        scratch = self.buffer(f"fft_scratch_{np.dtype(arr.dtype).name}", arr.shape, arr.dtype)
+        scratch = self.buffer("fft_scratch", arr.shape, arr.dtype)
         key = (arr.data.int_ptr, scratch.data.int_ptr, arr.shape, bool(inverse))
         launches = self._fft_launches.get(key)
         if launches is None:
@@ -314,7 +319,9 @@ class FocusEngine:
         bins = grid.range_bins_m
         r_cols = np.repeat(np.asarray(r_m, dtype=float), t_n_s.size)
         t_cols = np.tile(np.asarray(t_n_s, dtype=float), np.size(r_m))
-        width = -(-r_cols.size // 4) * 4  # the azimuth FFT kernels take columns four at a time
+        # the azimuth FFT kernels take columns four at a time; widths in steps of 16 recur from pass to pass, so
+        # the buffer and its FFT launches are reused
+        width = -(-r_cols.size // 16) * 16
         r_cols = np.concatenate([r_cols, np.repeat(r_cols[-1:], width - r_cols.size)])
         t_cols = np.concatenate([t_cols, np.repeat(t_cols[-1:], width - t_cols.size)])
         j = np.clip(np.rint((r_cols - bins[0]) / (bins[1] - bins[0])), 0, bins.size - 1).astype(int)
