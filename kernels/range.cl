@@ -1,16 +1,21 @@
-/* Range stages of the modified NLCS chain (paper eqs. 3-11). Work item (k, p): range sample k of row p. */
+/* Range stages of the modified NLCS chain (paper eqs. 3-11). Work item (k, p): range sample k of row p, unless
+ * said otherwise. */
 
 /* eq. (3)-(4): restore the absolute delay origin of the range window, then H1, the linear range walk
- * correction exp(-j 4 pi (f_c + f_r) sin(theta_q) x_p / c) with x_p the LOGGED rail position of pulse p. */
-__kernel void range_walk_correction(__global float2 *restrict s, __global const real_t *restrict x_rel_m, const int n_range,
-                                    const real_t sample_rate_hz, const real_t window_start_s,
+ * correction exp(-j 4 pi (f_c + f_r) sin(theta_q) x_p / c) with x_p the LOGGED rail position of pulse p.
+ * Work item (q, p): range frequencies 4q..4q+3 of row p (common.cl, c4). */
+__kernel void range_walk_correction(__global float2 *restrict s, __global const real_t *restrict x_rel_m,
+                                    const int n_range, const real_t sample_rate_hz, const real_t window_start_s,
                                     const real_t carrier_hz, const real_t sin_squint) {
-    const int k = get_global_id(0), p = get_global_id(1);
+    const int k = 4 * get_global_id(0), p = get_global_id(1);
     if (k >= n_range) return;
-    const real_t f = signed_index(k, n_range) * sample_rate_hz / n_range;
-    const real_t phase = -UWBCL_TWO_PI * f * window_start_s
-                         - 2.0 * UWBCL_TWO_PI * (carrier_hz + f) * sin_squint * x_rel_m[p] / UWBCL_C;
-    s[p * n_range + k] = cmul(s[p * n_range + k], cis(phase));
+    const int4 lane = k + (int4)(0, 1, 2, 3);
+    const int4 index = select(lane, lane - n_range, lane >= (n_range + 1) / 2);  /* signed_index */
+    const real4_t f = convert_real4(index) * (sample_rate_hz / n_range);
+    const real4_t phase = -UWBCL_TWO_PI * window_start_s * f
+                          - (2.0 * UWBCL_TWO_PI * sin_squint * x_rel_m[p] / UWBCL_C) * (carrier_hz + f);
+    __global float2 *row = s + p * n_range;
+    c4_store_lanes(row, k, n_range, c4_mul(c4_load_lanes(row, k, n_range), cis4(phase)));
 }
 
 /* Motion compensation and padding: Lagrange interpolation from the logged pulses onto the uniform track

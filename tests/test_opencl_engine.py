@@ -97,9 +97,11 @@ def test_radix_plans_multiply_to_the_length_with_an_even_pass_count_where_possib
         assert len(plan) % 2 == 0 or m <= 2
 
 
-def test_range_fft_and_walk_correction_match_the_reference(engine, jittery_pass, grid):
+@pytest.mark.parametrize("n_range", [None, 127], ids=["128 samples", "127 samples"])
+def test_range_fft_and_walk_correction_match_the_reference(engine, jittery_pass, grid, n_range):
+    grid = dataclasses.replace(grid, n_range=n_range or grid.n_range)
     echo, x_rel = nlcs.prepare_track(jittery_pass, grid)
-    x = noise(echo.shape, 1)
+    x = noise((echo.shape[0], grid.n_range), 1)
     ref = nlcs.linear_range_walk_correction(nlcs.range_fft(x, grid), x_rel, grid)
     d = engine.to_device("t_echo", x, np.complex64)
     engine.fft(d, 1)

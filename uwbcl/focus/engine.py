@@ -172,7 +172,7 @@ class FocusEngine:
         return launches
 
     # kernels whose work item handles four neighbouring range bins (common.cl, c4)
-    FOUR_BIN_KERNELS = frozenset({"nlcs_filter", "nlcs_scaling", "point_response"})
+    FOUR_BIN_KERNELS = frozenset({"nlcs_filter", "nlcs_scaling", "point_response", "range_walk_correction"})
 
     def _run(self, name: str, rows: int, cols: int, *args) -> None:
         """Launch kernel `name` on a (cols, rows) grid (cols / 4 work items across for the four-bin kernels);
