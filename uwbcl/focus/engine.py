@@ -453,9 +453,9 @@ class FocusEngine:
         return np.array(out)
 
     def _rows_buffer(self, name: str, n_rows: int, grid: nlcs.FocusGrid):
-        """A buffer for a band of azimuth rows, its row count rounded up to a multiple of 64 so that the range
+        """A buffer for a band of azimuth rows, its row count rounded up to a multiple of 128 so that the range
         FFT plans of `_range_spectra` are reused across passes (the band's width varies a little)."""
-        return self.buffer(name, (min(-(-n_rows // 64) * 64, grid.n_azimuth), grid.n_range))
+        return self.buffer(name, (min(-(-n_rows // 128) * 128, grid.n_azimuth), grid.n_range))
 
     def _range_spectra(self, band, rows: np.ndarray, grid: nlcs.FocusGrid) -> np.ndarray:
         """fft2(image) / (n m) on `rows` from their range-Doppler values (the first rows.size rows of `band`,
