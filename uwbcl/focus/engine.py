@@ -289,13 +289,25 @@ class FocusEngine:
         The fit picks each bin's segment and band with a hard threshold on |X_ref|, which float32 rounding can
         move by one sample (an image error of 2e-3): the few bins with a band edge within rounding of the
         threshold are recomputed on the host in float64, so the fit decides exactly as the reference does."""
+        return self._reference_spectra_result(self._enqueue_reference_spectra(k, grid, aperture_m), k, grid,
+                                              aperture_m)
+
+    def _enqueue_reference_spectra(self, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, aperture_m: float):
+        """Queue the device part of `reference_spectra` and its read-back; returns (host array, read event)."""
         ref = self.point_response(k.r_m, np.zeros(grid.n_range), grid, aperture_m, "reference")
         self.fft(ref, 0)
         self.nlcs_filter(ref, k, grid, with_h5=False)
         self.fft(ref, 0, inverse=True)
         self._run("apply_filter", grid.n_azimuth, grid.n_range, ref, self._pass_filters(grid, k).h7, grid.n_range)
         self.fft(ref, 0)
-        x_ref = np.fft.fftshift(self.host(ref), axes=0).astype(np.complex128)
+        host = np.empty(ref.shape, ref.dtype)
+        return host, self._cl.enqueue_copy(self.queue, host, ref.data, is_blocking=False)
+
+    def _reference_spectra_result(self, pending, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid,
+                                  aperture_m: float) -> np.ndarray:
+        host, read = pending
+        read.wait()
+        x_ref = np.fft.fftshift(host, axes=0).astype(np.complex128)
         undecided = np.flatnonzero(undecided_band_edges(np.abs(x_ref), grid, REFERENCE_EDGE_MARGIN))
         if undecided.size:
             x_ref[:, undecided] = nlcs.reference_spectra(_columns(k, undecided), grid, aperture_m)
@@ -355,13 +367,12 @@ class FocusEngine:
         if np.ptp(p2) > 0:
             raise NotImplementedError("the engine applies H2 with one p2 per pass; p2 varies across range here")
         aperture = scan.radar.antenna_aperture_m
-        if compression is not None:
-            ac = compression
-        elif ac_mode == "exact":
-            ac = self.exact_reference_azimuth_compression(k, grid, aperture)
-        else:
-            ac = nlcs.series_azimuth_compression(k, grid)
+        ac = compression or (nlcs.series_azimuth_compression(k, grid) if ac_mode == "series" else None)
+        pending = self._enqueue_reference_spectra(k, grid, aperture) if ac is None else None
+        # queued behind the reference spectra: the device runs the chain while the host fits H8 to them
         s = self._nlcs_spectrum(echo, x_rel, grid, k, float(p2[0]))
+        if ac is None:
+            ac = nlcs.fit_azimuth_compression(self._reference_spectra_result(pending, k, grid, aperture), k, grid)
         # H8 on the rows that hold the image's spectrum (zero elsewhere); those rows are also read back, so
         # detection needs no 2-D FFT of the image
         rows = nlcs.spectrum_rows(grid, ac)
