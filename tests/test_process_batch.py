@@ -7,6 +7,7 @@ cache, so each case below only focuses the files it adds or changes.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import fcntl
 import hashlib
 import os
@@ -380,3 +381,11 @@ def test_a_pass_that_kills_its_worker_is_reported_and_the_others_are_still_focus
     assert "worker process died" in report.errors[0].reason
     assert [r["cycle"] for r in report.rows] == [2]  # cycle 2 measured from cycle 0, across the lost cycle
     assert report.rows[0]["from_cycle"] == 0
+
+
+def test_default_jobs_are_all_cores_for_numpy_and_two_for_opencl(monkeypatch):
+    monkeypatch.setattr(batch.os, "sched_getaffinity", lambda pid: set(range(6)), raising=False)
+    assert batch.default_jobs(dataclasses.replace(SETTINGS, backend="numpy")) == 6
+    assert batch.default_jobs(dataclasses.replace(SETTINGS, backend="opencl")) == 2
+    monkeypatch.setattr(batch.os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    assert batch.default_jobs(dataclasses.replace(SETTINGS, backend="opencl")) == 1

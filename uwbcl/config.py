@@ -50,7 +50,7 @@ class SiteConfig:
     backend: str | None = None
     device: str | None = None
     ac_mode: str | None = None
-    jobs: int | None = None  # None: all cores for numpy, 1 for opencl (one OpenCL context per process)
+    jobs: int | None = None  # None: batch.default_jobs (all cores for numpy, 2 for opencl)
     cache: bool = True
     web_depth_m: float | None = None  # nominal advance per cycle: the association prior along X
     prior_creep_m: float = 0.0
