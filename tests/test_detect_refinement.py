@@ -34,8 +34,8 @@ def reference_columns(products, r_m, t_n_s):
     grid = products.grid
     bins = grid.range_bins_m
     j = int(np.clip(np.rint((r_m - bins[0]) / (bins[1] - bins[0])), 0, bins.size - 1))
-    k = detect._bins(products.coefficients, [j])
-    ac = detect._bins(products.compression, [j])
+    k = nlcs.select_bins(products.coefficients, [j])
+    ac = nlcs.select_bins(products.compression, [j])
     rd = nlcs.az_fft(nlcs.slow_time_point_response(r_m, t_n_s, grid, products.aperture_m))
     y = nlcs.azimuth_compression(nlcs._azimuth_nlcs_chain(rd, k, grid), ac, grid)
     coarse = grid.t_azimuth_s[np.argmax(np.abs(nlcs.az_ifft(y)), axis=0)]

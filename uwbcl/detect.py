@@ -194,12 +194,6 @@ def _maximise(value, a0: float, b0: float, step: float = 0.5) -> tuple[float, fl
 
 
 # --------------------------------------------------------------------------------------------- NLCS
-def _bins(obj, j: np.ndarray):
-    """The dataclass with every per-bin array narrowed to the bins j (one column per entry, for broadcasting)."""
-    return dataclasses.replace(obj, **{f.name: getattr(obj, f.name)[j] for f in dataclasses.fields(obj)
-                                       if isinstance(getattr(obj, f.name), np.ndarray)})
-
-
 def _peak_times(f_hz: np.ndarray, y: np.ndarray, t0_s: np.ndarray, dt_s: float, tol_s: float = 1e-10,
                 max_iter: int = 30, order: int = 32) -> np.ndarray:
     """Per column c of y (rows at azimuth frequencies f_hz, |f dt| <= 1/2), the t in [t0_c - dt, t0_c + dt] that
@@ -257,7 +251,7 @@ def calibration_spectra(products: nlcs.NlcsProducts, r_m: np.ndarray, t_n_s: np.
     bins = grid.range_bins_m
     j = np.clip(np.rint((r_m - bins[0]) / (bins[1] - bins[0])), 0, bins.size - 1).astype(int)
     bins_used, bin_of_r = np.unique(j, return_inverse=True)
-    k, ac = _bins(products.coefficients, bins_used), _bins(products.compression, bins_used)
+    k, ac = nlcs.select_bins(products.coefficients, bins_used), nlcs.select_bins(products.compression, bins_used)
     f = np.fft.ifftshift(grid.f_azimuth_hz)
     band = (f >= ac.f_lo_hz.min()) & (f <= ac.f_hi_hz.max())
     ones = np.ones((n, bins_used.size), dtype=np.complex128)

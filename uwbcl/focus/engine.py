@@ -310,7 +310,7 @@ class FocusEngine:
         x_ref = np.fft.fftshift(host, axes=0).astype(np.complex128)
         undecided = np.flatnonzero(undecided_band_edges(np.abs(x_ref), grid, REFERENCE_EDGE_MARGIN))
         if undecided.size:
-            x_ref[:, undecided] = nlcs.reference_spectra(_columns(k, undecided), grid, aperture_m)
+            x_ref[:, undecided] = nlcs.reference_spectra(nlcs.select_bins(k, undecided), grid, aperture_m)
         return x_ref
 
     def point_response(self, r_m: np.ndarray, t_n_s: np.ndarray, grid: nlcs.FocusGrid, aperture_m: float,
@@ -337,8 +337,8 @@ class FocusEngine:
         r_cols = np.concatenate([r_cols, np.repeat(r_cols[-1:], width - r_cols.size)])
         t_cols = np.concatenate([t_cols, np.repeat(t_cols[-1:], width - t_cols.size)])
         j = np.clip(np.rint((r_cols - bins[0]) / (bins[1] - bins[0])), 0, bins.size - 1).astype(int)
-        k = _columns(products.coefficients, j)
-        ac = _columns(products.compression, j)
+        k = nlcs.select_bins(products.coefficients, j)
+        ac = nlcs.select_bins(products.compression, j)
         columns = dataclasses.replace(grid, n_range=width)  # the kernels index per-column coefficients
         s = self.point_response(r_cols, t_cols, grid, products.aperture_m, "calibration", rail_only=True)
         self.fft(s, 0)
@@ -513,12 +513,6 @@ class _PassFilters:
     src: object  # H3 * mask * H4 * delay origin, (band rows, n_range)
     h5h6: object  # (band rows, n_range)
     h7: object  # (n_azimuth, n_range), FFT order
-
-
-def _columns(obj, j: np.ndarray):
-    """The dataclass with every per-bin array indexed by j (one entry per column)."""
-    return dataclasses.replace(obj, **{f.name: getattr(obj, f.name)[j] for f in dataclasses.fields(obj)
-                                       if isinstance(getattr(obj, f.name), np.ndarray)})
 
 
 def _doppler_band_rows(grid: nlcs.FocusGrid) -> tuple[int, int]:

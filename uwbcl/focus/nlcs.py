@@ -308,6 +308,13 @@ def _azimuth_nlcs_chain(rd: np.ndarray, k: coef.NlcsCoefficients, grid: FocusGri
     return az_fft(nlcs_scaling(az_ifft(nlcs_filter(rd, k, grid)), k, grid))
 
 
+def select_bins(obj, j):
+    """The dataclass (NlcsCoefficients, AzimuthCompression) with every per-bin array indexed by j: a subset of
+    the bins, or one entry per column of a batch of simulated targets."""
+    return dataclasses.replace(obj, **{f.name: getattr(obj, f.name)[j] for f in dataclasses.fields(obj)
+                                       if isinstance(getattr(obj, f.name), np.ndarray)})
+
+
 def reference_spectra(k: coef.NlcsCoefficients, grid: FocusGrid, aperture_m: float) -> np.ndarray:
     """X_ref: the t_n = 0 reference target of each bin of `k` after H6/H7, centred f_a (notes 7b).
     The reference sees the whole beam (no rail ends): its spectrum is then smooth, and the fit is of the
