@@ -16,7 +16,6 @@ typedef float real_t;
 #endif
 
 typedef float2 cplx_t;
-typedef float cplx_real_t;
 
 #define UWBCL_PI 3.14159265358979323846
 #define UWBCL_TWO_PI 6.28318530717958647692

@@ -233,7 +233,7 @@ def test_neighbour_models_are_focused_by_the_chain_of_nlcs_focus():
     scan = _stacked_pass(STACKED)
     products = nlcs.nlcs_focus(scan)
     echo, x_rel = nlcs.prepare_track(scan, products.grid)
-    rows = detect._band_rows(products)
+    rows = nlcs.spectrum_rows(products.grid, products.compression)
     spectra = nlcs.nlcs_model_spectra(products, x_rel, echo[None], rows)[0]
     want = np.fft.fft2(products.image)[rows % products.grid.n_azimuth] / products.image.size
     np.testing.assert_allclose(spectra, want, rtol=0, atol=1e-12 * np.abs(want).max())

@@ -146,7 +146,7 @@ def _peaks(products):
 
 def test_newton_maximum_of_a_focused_image_is_the_nelder_mead_maximum(paper_products):
     for _, products in paper_products:
-        interp = detect.TrigInterpolant.from_image(products.image, detect._nlcs_band(products))
+        interp = detect.TrigInterpolant.from_image(products.image, nlcs.spectrum_band(products.grid, products.compression))
         peaks = _peaks(products)
         assert len(peaks) == 3
         for i, j in peaks:

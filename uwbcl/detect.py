@@ -95,13 +95,15 @@ class TrigInterpolant:
         """`azimuth_band` = (lo, hi) in cycles per sample: the image's azimuth spectrum is zero outside it (the
         NLCS azimuth compression zeroes it), so only those spectral rows are kept; the others hold rounding
         noise only."""
-        n, m = image.shape
-        spec = np.fft.fft2(image) / (n * m)
-        ka = np.fft.fftfreq(n)
-        if azimuth_band is not None:
-            rows = (ka >= azimuth_band[0]) & (ka <= azimuth_band[1])
-            spec, ka = spec[rows], ka[rows]
-        return cls(np.ascontiguousarray(spec, dtype=np.complex128), ka, np.fft.fftfreq(m))
+        n = image.shape[0]
+        rows = nlcs.band_rows(n, azimuth_band if azimuth_band is not None else (-1.0, 1.0))
+        return cls.from_rows(rows, image_spectrum_rows(image, rows), n)
+
+    @classmethod
+    def from_rows(cls, rows: np.ndarray, coeffs: np.ndarray, n: int) -> TrigInterpolant:
+        """From `coeffs` = fft2(image) / (n m) at the signed azimuth rows `rows` of an n-row image."""
+        return cls(np.ascontiguousarray(coeffs, dtype=np.complex128), rows * (1.0 / n),
+                   np.fft.fftfreq(coeffs.shape[-1]))
 
     def value(self, a: float, b: float) -> complex:
         return complex(np.exp(2j * np.pi * self.ka * a) @ (self.coeffs @ np.exp(2j * np.pi * self.kb * b)))
@@ -159,28 +161,10 @@ class TrigInterpolant:
         return float(x[0]), float(x[1]), v
 
 
-def _band_rows(products: nlcs.NlcsProducts) -> np.ndarray:
-    """Signed azimuth frequency indices, ascending, of the rows `TrigInterpolant.from_image` keeps for this image."""
-    return nlcs.spectrum_rows(products.grid, products.compression)
-
-
-def _interpolant(products: nlcs.NlcsProducts, rows: np.ndarray, coeffs: np.ndarray) -> TrigInterpolant:
-    """The interpolant of spectral rows `coeffs` (fft2 / (n m) at the signed rows `rows`)."""
-    n, m = products.grid.n_azimuth, products.grid.n_range
-    return TrigInterpolant(np.ascontiguousarray(coeffs, dtype=np.complex128), rows * (1.0 / n), np.fft.fftfreq(m))
-
-
 def image_spectrum_rows(image: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """fft2(image) / (n m) at the signed azimuth rows `rows` (the range FFT only on those rows)."""
     n, m = image.shape
     return np.fft.fft(np.fft.fft(image, axis=0)[rows % n], axis=1) / (n * m)
-
-
-def _nlcs_band(products: nlcs.NlcsProducts) -> tuple[float, float]:
-    """The union of the per-bin H8 bands, in cycles per azimuth sample, with a one-sample margin."""
-    grid, ac = products.grid, products.compression
-    return (float(ac.f_lo_hz.min()) * grid.dt_s - 1.0 / grid.n_azimuth,
-            float(ac.f_hi_hz.max()) * grid.dt_s + 1.0 / grid.n_azimuth)
 
 
 def _maximise(value, a0: float, b0: float, step: float = 0.5) -> tuple[float, float, complex]:
@@ -248,8 +232,7 @@ def calibration_spectra(products: nlcs.NlcsProducts, r_m: np.ndarray, t_n_s: np.
     H7, H8 are computed once per bin (H8 on its band only)."""
     grid = products.grid
     n = grid.n_azimuth
-    bins = grid.range_bins_m
-    j = np.clip(np.rint((r_m - bins[0]) / (bins[1] - bins[0])), 0, bins.size - 1).astype(int)
+    j = grid.nearest_bin(r_m)
     bins_used, bin_of_r = np.unique(j, return_inverse=True)
     k, ac = nlcs.select_bins(products.coefficients, bins_used), nlcs.select_bins(products.compression, bins_used)
     f = np.fft.ifftshift(grid.f_azimuth_hz)
@@ -327,9 +310,9 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     valid[on_rail - top, 2:-2] = True
     peaks, floor = _local_peaks(mag, valid, (grid.track_spacing_m, dr), settings)
     peaks = peaks + (top, 0)
-    rows = _band_rows(products)
+    rows = nlcs.spectrum_rows(products.grid, products.compression)
     spectrum = products.spectrum if products.spectrum is not None else image_spectrum_rows(products.image, rows)
-    interpolant = _interpolant(products, rows, spectrum)
+    interpolant = TrigInterpolant.from_rows(rows, spectrum, products.grid.n_azimuth)
     cells = [interpolant.maximise(float(i), float(j)) for i, j in peaks]
     if settings.neighbour_cancellation_passes > 0 and len(cells) > 1 and scan is not None:
         cells = cancel_neighbours_nlcs(products, scan, cells, settings.neighbour_cancellation_passes,
@@ -363,7 +346,7 @@ def cancel_neighbours_nlcs(products: nlcs.NlcsProducts, scan: ScanPass, cells: l
     `spectrum` = (signed rows, fft2(image) / (n m) on them) of the pass's image, if already computed."""
     grid = products.grid
     focuser = nlcs if focuser is None else focuser
-    rows, image_spectrum = spectrum if spectrum is not None else (_band_rows(products), None)
+    rows, image_spectrum = spectrum if spectrum is not None else (nlcs.spectrum_rows(grid, products.compression), None)
     if image_spectrum is None:
         image_spectrum = image_spectrum_rows(products.image, rows)
     rc = bp.range_compress(scan, grid, upsample=1)  # the gain fit needs no upsampling; same delays as the echo
@@ -378,8 +361,8 @@ def cancel_neighbours_nlcs(products: nlcs.NlcsProducts, scan: ScanPass, cells: l
                         for j, g in enumerate(gains)])
         models = focuser.nlcs_model_spectra(products, rc.x_rel_m, raw, rows)
         residual = image_spectrum - models.sum(axis=0)
-        cells = [_interpolant(products, rows, residual + models[i]).maximise(at[i, 0], at[i, 1], step=0.2)
-                 for i in range(len(at))]
+        cells = [TrigInterpolant.from_rows(rows, residual + models[i], grid.n_azimuth)
+                 .maximise(at[i, 0], at[i, 1], step=0.2) for i in range(len(at))]
         moved = np.hypot((np.array([c[0] for c in cells]) - at[:, 0]) * grid.track_spacing_m,
                          (np.array([c[1] for c in cells]) - at[:, 1]) * dr)
         if moved.max() <= tol_m:

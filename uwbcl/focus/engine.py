@@ -328,7 +328,6 @@ class FocusEngine:
         """`detect.calibration_spectra` on the device: simulated targets at every (r, t_n) (columns r-major)
         through the azimuth chain of the bin nearest each r -> (f on H8's rows, y there, coarse t_f)."""
         grid = products.grid
-        bins = grid.range_bins_m
         r_cols = np.repeat(np.asarray(r_m, dtype=float), t_n_s.size)
         t_cols = np.tile(np.asarray(t_n_s, dtype=float), np.size(r_m))
         # the azimuth FFT kernels take columns four at a time; widths in steps of 16 recur from pass to pass, so
@@ -336,16 +335,13 @@ class FocusEngine:
         width = -(-r_cols.size // 16) * 16
         r_cols = np.concatenate([r_cols, np.repeat(r_cols[-1:], width - r_cols.size)])
         t_cols = np.concatenate([t_cols, np.repeat(t_cols[-1:], width - t_cols.size)])
-        j = np.clip(np.rint((r_cols - bins[0]) / (bins[1] - bins[0])), 0, bins.size - 1).astype(int)
+        j = grid.nearest_bin(r_cols)
         k = nlcs.select_bins(products.coefficients, j)
         ac = nlcs.select_bins(products.compression, j)
         columns = dataclasses.replace(grid, n_range=width)  # the kernels index per-column coefficients
         s = self.point_response(r_cols, t_cols, grid, products.aperture_m, "calibration", rail_only=True)
         self.fft(s, 0)
-        self.nlcs_filter(s, k, columns, with_h5=False)
-        self.fft(s, 0, inverse=True)
-        self.nlcs_scaling(s, k, columns)
-        self.fft(s, 0)
+        self.azimuth_nlcs_chain(s, k, columns, with_h5=False)
         self.azimuth_compression(s, ac, columns)
         f = np.fft.ifftshift(grid.f_azimuth_hz)
         band = (f >= ac.f_lo_hz.min()) & (f <= ac.f_hi_hz.max())
@@ -518,16 +514,14 @@ class _PassFilters:
 def _doppler_band_rows(grid: nlcs.FocusGrid) -> tuple[int, int]:
     """(first signed azimuth index, count) of a run of rows that holds every row where the band mask of
     eqs. (9-10) passes anything. X = sin(theta_q) + c f_a / (2 v F) is monotonic in f_a at each F = f_c + f_r,
-    so each range frequency passes one interval of f_a; their hull, one row wider on each side, is taken (the
-    SRC table applies the exact mask inside it)."""
-    lo, hi = grid.doppler_band
-    lo, hi = max(lo, -0.98), min(hi, 0.98)
-    if lo > hi:
+    so each range frequency passes the carrier's band (`nlcs.doppler_band_hz`) scaled by F / f_c; their hull,
+    one row wider on each side, is taken (the SRC table applies the exact mask inside it)."""
+    f_lo, f_hi = nlcs.doppler_band_hz(grid)
+    if f_lo > f_hi:
         return 0, 1
-    f = grid.carrier_frequency_hz + grid.f_range_hz
-    scale = 2.0 * grid.speed_m_s * f / nlcs.C * (grid.n_azimuth * grid.dt_s)  # signed azimuth index per unit X
-    first = int(np.floor(((lo - grid.sin_squint) * scale).min())) - 1
-    last = int(np.ceil(((hi - grid.sin_squint) * scale).max())) + 1
+    scale = (grid.carrier_frequency_hz + grid.f_range_hz) / grid.carrier_frequency_hz * (grid.n_azimuth * grid.dt_s)
+    first = int(np.floor((f_lo * scale).min())) - 1
+    last = int(np.ceil((f_hi * scale).max())) + 1
     first, last = max(first, -(grid.n_azimuth // 2)), min(last, grid.n_azimuth // 2 - 1)
     return first, last - first + 1
 

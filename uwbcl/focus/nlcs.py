@@ -99,6 +99,11 @@ class FocusGrid:
     def range_bins_m(self) -> np.ndarray:
         return 0.5 * C * (self.range_window_start_s + np.arange(self.n_range) / self.sample_rate_hz)
 
+    def nearest_bin(self, r_m) -> np.ndarray:
+        """Index of the range bin nearest each range r_m (clipped to the window)."""
+        bins = self.range_bins_m
+        return np.clip(np.rint((np.asarray(r_m) - bins[0]) / (bins[1] - bins[0])), 0, bins.size - 1).astype(int)
+
 
 def focus_grid(scan: ScanPass, azimuth_oversampling: int = 8) -> FocusGrid:
     x = np.sort(scan.pulse_position_m)
@@ -444,15 +449,23 @@ class NlcsProducts:
     focus_calibration: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
 
 
-def spectrum_rows(grid: FocusGrid, ac: AzimuthCompression) -> np.ndarray:
-    """Signed azimuth frequency indices, ascending, of the rows that hold a focused image's 2-D spectrum: the
-    union of the per-bin H8 bands with one row of margin (what detection's band-limited interpolation sums)."""
-    n = grid.n_azimuth
+def spectrum_band(grid: FocusGrid, ac: AzimuthCompression) -> tuple[float, float]:
+    """The union of the per-bin H8 bands, in cycles per azimuth sample, with a one-sample margin."""
+    return (float(ac.f_lo_hz.min()) * grid.dt_s - 1.0 / grid.n_azimuth,
+            float(ac.f_hi_hz.max()) * grid.dt_s + 1.0 / grid.n_azimuth)
+
+
+def band_rows(n: int, band: tuple[float, float]) -> np.ndarray:
+    """Signed frequency indices, ascending, of the rows of an n-point DFT inside `band` (cycles per sample)."""
     ka = np.fft.fftfreq(n)
-    lo = float(ac.f_lo_hz.min()) * grid.dt_s - 1.0 / n
-    hi = float(ac.f_hi_hz.max()) * grid.dt_s + 1.0 / n
-    natural = np.flatnonzero((ka >= lo) & (ka <= hi))
+    natural = np.flatnonzero((ka >= band[0]) & (ka <= band[1]))
     return np.sort(np.where(natural < (n + 1) // 2, natural, natural - n))
+
+
+def spectrum_rows(grid: FocusGrid, ac: AzimuthCompression) -> np.ndarray:
+    """Signed azimuth frequency indices, ascending, of the rows that hold a focused image's 2-D spectrum
+    (`spectrum_band`): what detection's band-limited interpolation sums."""
+    return band_rows(grid.n_azimuth, spectrum_band(grid, ac))
 
 
 def prepare_track(scan: ScanPass, grid: FocusGrid) -> tuple[np.ndarray, np.ndarray]:
