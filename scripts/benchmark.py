@@ -63,10 +63,11 @@ import scipy.fft
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from uwbcl import archive, detect, opencl, pipeline, simulate
+from uwbcl import archive, chain, detect, opencl, outputs, pipeline, simulate
 from uwbcl.focus import nlcs, scipy32
 from uwbcl.focus.scipy32 import nlcs_focus_scipy32
 from uwbcl.model import PassGeometry, RadarParameters, ScanPass
+from uwbcl.records import ProcessingSettings
 from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2
 
 AGREEMENT_TOL = 1e-4  # ||out - ref|| / ||ref|| of complex images (docs/opencl.md, error budget)
@@ -202,7 +203,7 @@ class BatchRun:
     shapes: Counter
 
 
-def run_batch(leg: Leg, files: list[Path], out_csv: Path, settings: pipeline.ProcessingSettings) -> BatchRun:
+def run_batch(leg: Leg, files: list[Path], out_csv: Path, settings: ProcessingSettings) -> BatchRun:
     """archive read -> focus -> detect per pass; locate per cycle; displacement per rig; CSV written."""
     clock = Stopwatch()
     by_cycle: dict[tuple[str, int], list] = defaultdict(list)
@@ -220,14 +221,15 @@ def run_batch(leg: Leg, files: list[Path], out_csv: Path, settings: pipeline.Pro
         n_det += len(found)
         by_cycle[(scan.rig_id, scan.cycle)].append((scan, found))
     with clock("locate"):
-        cycles = [pipeline.locate_detections([s for s, _ in items], {s.geometry.height_m: f for s, f in items})
+        cycles = [pipeline.locate_detections([s for s, _ in items], [f for _, f in items])
                   for _, items in sorted(by_cycle.items())]
     with clock("displacement"):
-        results = pipeline.cycle_displacements(cycles, settings)
+        rows = chain.series(cycles, settings.association)
     with clock("csv"):
-        pipeline.write_csv_atomic(out_csv, pipeline.DISPLACEMENT_COLUMNS, pipeline.displacement_rows(results))
+        outputs.write_displacements_csv(out_csv, rows)
     seconds = time.perf_counter() - t0
-    disp = {(c.rig_id, c.cycle): (np.asarray(d.advance_m, dtype=float), d.status) for c, d in results}
+    disp = {(r.cycle.rig_id, r.cycle.cycle): (np.asarray(r.displacement.advance_m, dtype=float),
+                                              r.displacement.status) for r in rows}
     return BatchRun(seconds, dict(clock.seconds), disp, n_det, shapes)
 
 
@@ -393,7 +395,7 @@ def main(argv=None) -> int:
 
 
 def benchmark_batch(args, legs: list[Leg], workdir: Path, failures: list[str]) -> dict:
-    settings = pipeline.ProcessingSettings(algorithm="nlcs", ac_mode="exact")
+    settings = ProcessingSettings(algorithm="nlcs", ac_mode="exact")
     t = time.perf_counter()
     files = write_batch(workdir / "archive", args.passes)
     n_rigs = args.passes // PASSES_PER_RIG

@@ -27,8 +27,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from uwbcl import detect, pipeline
+from uwbcl import chain, pipeline
 from uwbcl import geometry as geo
+from uwbcl.records import BACKENDS, DetectionSettings, ProcessingSettings
 from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2
 
 # Paper values, metres. Table 2's range column for C is lost in the published text.
@@ -71,14 +72,14 @@ def run_scenario(sc, settings, passes):
     per_pass, cycles = {}, []
     for c in sorted({p.cycle for p in passes}):
         mine = [p for p in passes if p.cycle == c]
-        by_height = {p.geometry.height_m: pipeline.detect_pass(p, settings) for p in mine}
-        per_pass.update({(c, h): d for h, d in by_height.items()})
-        cycles.append(pipeline.locate_detections(mine, by_height))
-    (_, disp), = pipeline.cycle_displacements(cycles, settings)
-    return per_pass, cycles, disp
+        found = [pipeline.detect_pass(p, settings) for p in mine]
+        per_pass.update({(c, p.geometry.height_m): d for p, d in zip(mine, found)})
+        cycles.append(pipeline.locate_detections(mine, found))
+    (row,) = chain.series(cycles, settings.association)
+    return per_pass, cycles, row.displacement
 
 
-def part1(sc, base: pipeline.ProcessingSettings) -> None:
+def part1(sc, base: ProcessingSettings) -> None:
     print(f"\n## {sc.name}: noise-free (paper Tables {'2/3' if sc.name.endswith('1') else '5/6'})\n")
     passes = sc.simulate(seed=1)
     names = sc.target_names
@@ -125,7 +126,7 @@ def part1(sc, base: pipeline.ProcessingSettings) -> None:
               f"(paper {PAPER_MEAN_ERROR_MM[sc.name]} mm), {disp.n_targets} plates, status {disp.status}\n")
 
 
-def part2(sc, seeds: int, extra_height: float, base: pipeline.ProcessingSettings) -> None:
+def part2(sc, seeds: int, extra_height: float, base: ProcessingSettings) -> None:
     print(f"\n## {sc.name}: SNR 10 dB per raw sample, +-10 % rail speed, {seeds} seeds\n")
     print("| heights (m) | algorithm | RMS error retreat / creep / vertical (mm) | max abs retreat / creep (mm) "
           "| failed |")
@@ -155,13 +156,13 @@ def main() -> int:
     ap.add_argument("--no-noise", action="store_true", help="skip the noise study")
     ap.add_argument("--scenario", choices=("paper-sim1", "paper-sim2", "both"), default="both")
     ap.add_argument("--cancellation-passes", type=int,
-                    default=detect.DetectionSettings().neighbour_cancellation_passes,
+                    default=DetectionSettings().neighbour_cancellation_passes,
                     help="neighbour-cancelling re-refinements in detection (0: off; default %(default)s)")
-    ap.add_argument("--backend", choices=pipeline.BACKENDS, default="numpy",
+    ap.add_argument("--backend", choices=BACKENDS, default="numpy",
                     help="focusing backend (default: the float64 numpy reference)")
     args = ap.parse_args()
-    detection = dataclasses.replace(detect.DetectionSettings(), neighbour_cancellation_passes=args.cancellation_passes)
-    base = pipeline.ProcessingSettings(backend=args.backend, detection=detection)
+    detection = dataclasses.replace(DetectionSettings(), neighbour_cancellation_passes=args.cancellation_passes)
+    base = ProcessingSettings(backend=args.backend, detection=detection)
     chosen = [s for s in (PAPER_SIM1, PAPER_SIM2) if args.scenario in ("both", s.name)]
     print("# uwbcl against the paper's simulations")
     print("\nOurs: f_s = 4 GHz complex, antenna beam pattern, per-pulse positions. Paper: MATLAB, Tables 1-6.")

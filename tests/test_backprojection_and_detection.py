@@ -18,6 +18,7 @@ from uwbcl import geometry as geo
 from uwbcl.focus import backprojection as bp
 from uwbcl.focus import nlcs
 from uwbcl.model import PassGeometry, RadarParameters
+from uwbcl.records import DetectionSettings
 from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2
 from uwbcl.simulate import simulate_echo, simulate_pass
 
@@ -183,7 +184,7 @@ def _focus_and_detect(scan, algorithm: str, passes=(0, 1)) -> list[np.ndarray]:
     products = bp.backprojection_focus(scan) if algorithm == "bp" else nlcs.nlcs_focus(scan)
     out = []
     for n in passes:
-        settings = detect.DetectionSettings(neighbour_cancellation_passes=n)
+        settings = DetectionSettings(neighbour_cancellation_passes=n)
         found = (detect.detect_bp(products, settings) if algorithm == "bp"
                  else detect.detect_nlcs(products, settings, scan))
         out.append(np.array(sorted(((d.x_m, d.rc_m) for d in found), key=lambda p: p[1])).reshape(-1, 2))
@@ -246,7 +247,7 @@ def test_nlcs_peaks_searched_on_the_rail_rows_are_those_of_the_whole_image(monke
     the noise floor must be those the whole image gives."""
     scan = PAPER_SIM1.simulate(snr_db=10, speed_jitter=0.1, seed=5)[1]
     products = nlcs.nlcs_focus(scan)
-    g, s = products.grid, detect.DetectionSettings()
+    g, s = products.grid, DetectionSettings()
     mag = np.abs(products.image)
     valid = np.zeros(mag.shape, dtype=bool)
     valid[np.abs(g.t_azimuth_s) <= 0.5 * (g.n_track - 1) * g.dt_s, 2:-2] = True

@@ -14,6 +14,7 @@ from scipy import optimize
 
 from uwbcl import detect, pipeline
 from uwbcl.focus import nlcs
+from uwbcl.records import DetectionSettings, ProcessingSettings
 from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2
 
 
@@ -140,7 +141,7 @@ def _peaks(products):
     valid = np.zeros(mag.shape, dtype=bool)
     valid[np.abs(grid.t_azimuth_s) <= 0.5 * (grid.n_track - 1) * grid.dt_s, 2:-2] = True
     dr = grid.range_bins_m[1] - grid.range_bins_m[0]
-    peaks, _ = detect._local_peaks(mag, valid, (grid.track_spacing_m, dr), detect.DetectionSettings())
+    peaks, _ = detect._local_peaks(mag, valid, (grid.track_spacing_m, dr), DetectionSettings())
     return peaks
 
 
@@ -207,7 +208,7 @@ def test_several_peaks_are_inverted_at_once_with_the_same_cache(paper_products):
 def test_detections_of_whole_passes_match_the_derivative_free_refinement(scenario, monkeypatch):
     """detect_pass with the new refinements against detect_pass with the former ones (Nelder-Mead on the
     interpolant, a scalar search per calibration target), on every pass."""
-    settings = pipeline.ProcessingSettings(backend="numpy")
+    settings = ProcessingSettings(backend="numpy")
     for scan in scenario.simulate(seed=1):
         new = pipeline.detect_pass(scan, settings)
         with monkeypatch.context() as m:

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from uwbcl.detect import Detection
-from uwbcl.displacement import AssociationSettings, estimate_advance, robust_mean
-from uwbcl.locate import Located, associate_across_heights, locate_plates, locate_target
+from uwbcl.displacement import estimate_advance, robust_mean
+from uwbcl.locate import associate_across_heights, locate_plates, locate_target
+from uwbcl.records import AssociationSettings, Detection, Located
 
 
 def _rc(wall, z, heights):

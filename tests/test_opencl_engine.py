@@ -15,10 +15,11 @@ import os
 import numpy as np
 import pytest
 
-from uwbcl import opencl, pipeline
+from uwbcl import chain, opencl, pipeline
 from uwbcl.focus import backprojection as bp
 from uwbcl.focus import coefficients as coef
 from uwbcl.focus import nlcs
+from uwbcl.records import ProcessingSettings
 from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2
 
 pytestmark = pytest.mark.opencl
@@ -295,8 +296,8 @@ def test_engine_buffers_and_plans_are_reused_across_passes(engine, jittery_pass)
 @pytest.mark.parametrize("algorithm", ["nlcs", "bp"])
 def test_targets_found_on_engine_images_agree_within_half_a_millimetre(engine, algorithm):
     scan = PAPER_SIM1.simulate(snr_db=10.0, speed_jitter=0.1, seed=4)[0]
-    ref = pipeline.detect_pass(scan, pipeline.ProcessingSettings(algorithm=algorithm, backend="numpy"))
-    out = pipeline.detect_pass(scan, pipeline.ProcessingSettings(algorithm=algorithm, backend="opencl"))
+    ref = pipeline.detect_pass(scan, ProcessingSettings(algorithm=algorithm, backend="numpy"))
+    out = pipeline.detect_pass(scan, ProcessingSettings(algorithm=algorithm, backend="opencl"))
     assert len(out) == len(ref) >= 3
     key = (lambda d: d.x_m)
     for a, b in zip(sorted(out, key=key), sorted(ref, key=key)):
@@ -309,12 +310,13 @@ def test_displacements_agree_within_a_fifth_of_a_millimetre(engine, scenario):
     passes = scenario.simulate(seed=1)
     advances = {}
     for backend in ("numpy", "opencl"):
-        settings = pipeline.ProcessingSettings(backend=backend)
+        settings = ProcessingSettings(backend=backend)
         by_cycle: dict[int, list] = {}
         for p in passes:
             by_cycle.setdefault(p.cycle, []).append(p)
         cycles = [pipeline.locate_cycle(ps, settings) for _, ps in sorted(by_cycle.items())]
-        (_, d), = pipeline.cycle_displacements(cycles, settings)
+        (row,) = chain.series(cycles, settings.association)
+        d = row.displacement
         advances[backend] = np.asarray(d.advance_m)
     assert np.max(np.abs(advances["opencl"] - advances["numpy"])) < 2e-4
 
@@ -363,8 +365,8 @@ def test_a_pass_run_in_the_other_direction_gives_the_same_targets_on_both_backen
                                   aperture_length_m=sc.aperture_length_m, speed_m_s=sc.speed_m_s, snr_db=10.0,
                                   speed_jitter=0.1, rng=np.random.default_rng(2), direction=-1)
     assert scan.pulse_position_m[0] > scan.pulse_position_m[-1]
-    ref = pipeline.detect_pass(scan, pipeline.ProcessingSettings(backend="numpy"))
-    out = pipeline.detect_pass(scan, pipeline.ProcessingSettings(backend="opencl"))
+    ref = pipeline.detect_pass(scan, ProcessingSettings(backend="numpy"))
+    out = pipeline.detect_pass(scan, ProcessingSettings(backend="opencl"))
     assert len(out) == len(ref) == 3
     for a, b in zip(sorted(out, key=lambda d: d.x_m), sorted(ref, key=lambda d: d.x_m)):
         assert abs(a.x_m - b.x_m) < 5e-4 and abs(a.rc_m - b.rc_m) < 5e-4

@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from uwbcl import pipeline
+from uwbcl import chain, pipeline
+from uwbcl.records import ProcessingSettings
 from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2
 
 SCENARIOS = {s.name: s for s in (PAPER_SIM1, PAPER_SIM2)}
@@ -26,11 +27,11 @@ def results():
     for name, scenario in SCENARIOS.items():
         passes = scenario.simulate(seed=1)
         for alg in ("nlcs", "bp"):
-            settings = pipeline.ProcessingSettings(algorithm=alg, backend="numpy", ac_mode="exact")
+            settings = ProcessingSettings(algorithm=alg, backend="numpy", ac_mode="exact")
             cycles = [pipeline.locate_cycle([p for p in passes if p.cycle == c], settings)
                       for c in range(len(scenario.rig_positions_m))]
-            ((_, displacement),) = pipeline.cycle_displacements(cycles, settings)
-            out[name, alg] = cycles, displacement
+            (row,) = chain.series(cycles, settings.association)
+            out[name, alg] = cycles, row.displacement
     return out
 
 
@@ -49,7 +50,7 @@ def test_located_plates_are_the_scenario_targets(results, name, alg):
     cycles, _ = results[name, alg]
     for c in cycles:
         truth = scenario.targets_radar_m(c.cycle)
-        got = pipeline.plates_array(c.plates)
+        got = np.array([p.position_m for p in c.plates]).reshape(-1, 3)
         # nearest plate (targets are >= 0.4 m apart); per-target Z suffers the GDOP of notes section 9
         # (measured up to 9.3 mm for D with nlcs-exact, Y up to 3.6 mm, BP <= 1.6 mm in sim2), the displacement
         # tests are the tight ones

@@ -1,18 +1,13 @@
-"""Matching look-alike bolt plates between cycles (displacement.py) and chaining cycles (batch.rig_series)."""
+"""Matching look-alike bolt plates between cycles (displacement.py) and chaining cycles (chain.rig_series)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from uwbcl import batch
-from uwbcl.displacement import (
-    AssociationSettings,
-    estimate_advance,
-    location_covariance_m2,
-    robust_mean,
-)
-from uwbcl.locate import Located, locate_target
-from uwbcl.pipeline import CycleResult
+from uwbcl import chain
+from uwbcl.displacement import estimate_advance, location_covariance_m2, robust_mean
+from uwbcl.locate import locate_target
+from uwbcl.records import AssociationSettings, CycleResult, Located
 
 HEIGHTS = (0.2, 0.6)
 PRIOR = AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0))
@@ -155,7 +150,7 @@ def test_a_cycle_that_cannot_be_matched_is_bridged_and_costs_no_cumulative_drift
     rigs = np.cumsum([[0.0, 2.4, 0.0]] + [[0.9 + 0.02 * (k % 3), 0.004, 0.0] for k in range(6)], axis=0)
     cycles = _cycles(RIB, rigs)
     cycles[3] = CycleResult("rig-1", 3, cycles[3].start_time, HEIGHTS, [])  # nothing located
-    rows = batch.rig_series(cycles, PRIOR)
+    rows = chain.rig_series(cycles, PRIOR)
     by_cycle = {r.cycle.cycle: r for r in rows}
     assert by_cycle[3].displacement.status == "too_few_targets" and np.isnan(by_cycle[3].cumulative_m).all()
     assert by_cycle[4].reference.cycle == 2  # measured across the gap
@@ -168,7 +163,7 @@ def test_after_too_many_unmatched_cycles_a_new_chain_starts_rather_than_a_guess(
     cycles = _cycles(RIB, rigs)
     for c in (2, 3, 4):
         cycles[c] = CycleResult("rig-1", c, cycles[c].start_time, HEIGHTS, [])
-    rows = {r.cycle.cycle: r for r in batch.rig_series(cycles, PRIOR, max_bridge_cycles=3)}
+    rows = {r.cycle.cycle: r for r in chain.rig_series(cycles, PRIOR, max_bridge_cycles=3)}
     assert [rows[c].chain for c in range(1, 8)] == [0, 0, 0, 1, 1, 1, 1]
     assert rows[4].reference.cycle == 1 and rows[4].displacement.status == "too_few_targets"
     np.testing.assert_allclose(rows[7].cumulative_m, rigs[7] - rigs[5], atol=1e-9)  # counted from cycle 5

@@ -20,17 +20,15 @@ import pytest
 
 from uwbcl import batch, shift
 from uwbcl.cli import main
-from uwbcl.config import OutputOptions
-from uwbcl.displacement import AssociationSettings
-from uwbcl.pipeline import ProcessingSettings
+from uwbcl.records import AssociationSettings, BatchError, BatchOptions, OutputOptions, ProcessingSettings
 
 SETTINGS = ProcessingSettings(backend="numpy", association=AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0)))
 OUTPUTS = ("displacements.csv", "displacements.h5", "targets.csv", "errors.csv")
 CONFIG = shift.ShiftConfig(rigs=1, cycles=3, seed=5)
 
 
-def options(**kw) -> batch.BatchOptions:
-    return batch.BatchOptions(**{"jobs": 1, "progress": False, **kw})
+def options(**kw) -> BatchOptions:
+    return BatchOptions(**{"jobs": 1, "progress": False, **kw})
 
 
 def snapshot(out: Path) -> dict[str, bytes]:
@@ -184,7 +182,7 @@ def test_a_second_process_on_the_same_output_directory_is_refused(archive_dir, t
     out.mkdir()
     with (out / batch.LOCK_FILE).open("a") as held:
         fcntl.flock(held, fcntl.LOCK_EX)
-        with pytest.raises(batch.BatchError, match="another uwbcl process"):
+        with pytest.raises(BatchError, match="another uwbcl process"):
             batch.process_directory(archive_dir, out, SETTINGS, options())
 
 
@@ -356,7 +354,7 @@ def test_plots_without_matplotlib_stop_the_run_before_it_starts(archive_dir, tmp
         return real_import(name, *args, **kw)
 
     monkeypatch.setattr(builtins, "__import__", no_matplotlib)
-    with pytest.raises(batch.BatchError, match="uwbcl\\[plot\\]"):
+    with pytest.raises(BatchError, match="uwbcl\\[plot\\]"):
         batch.process_directory(archive_dir, tmp_path / "out", SETTINGS, options(outputs=OutputOptions(plots=True)))
     assert not (tmp_path / "out" / "displacements.csv").exists()
 

@@ -9,7 +9,6 @@ reader never sees a half-written file. ``read_pass`` validates everything and re
 from __future__ import annotations
 
 import contextlib
-import datetime as _dt
 import errno
 import math
 import os
@@ -20,7 +19,9 @@ from typing import Any
 import h5py
 import numpy as np
 
+from uwbcl.atomic import atomic_path
 from uwbcl.model import PassGeometry, RadarParameters, ScanPass
+from uwbcl.utc import parse_utc
 
 FORMAT_NAME = "uwbcl-scan"
 FORMAT_VERSION = 1  # major version: bumped only by changes an existing reader would misread
@@ -29,7 +30,6 @@ PULSE_SHAPE = "gaussian"
 ECHO_DTYPES = ("complex64", "complex128", "int16")
 INT16_FULL_SCALE = 32767  # symmetric: -32768 is never written, so +-peak maps to +-32767
 FILE_SUFFIX = ".h5"
-PARTIAL_SUFFIX = ".partial"
 
 _LIBVER = ("v110", "v110")  # the h5py wheel bundles HDF5 2.0; "latest" would lock out older readers
 _GZIP_LEVEL = 4
@@ -73,7 +73,7 @@ def default_pass_id(scan: ScanPass) -> str:
 
 def default_relative_path(scan: ScanPass) -> Path:
     """``<rig_id>/<YYYY-MM-DD>/<rig_id>_c<cycle:06d>_h<height_mm:04d>.h5``, the date being the UTC pass start."""
-    day = _parse_utc(scan.pass_start_time).date().isoformat()
+    day = parse_utc(scan.pass_start_time).date().isoformat()
     name = f"{scan.rig_id}_c{scan.cycle:06d}_h{height_mm(scan.geometry.height_m):04d}{FILE_SUFFIX}"
     return Path(scan.rig_id, day, name)
 
@@ -118,23 +118,13 @@ def write_pass(
     _check_echo_finite(path, echo)
     stored, layout, scale = _encode_echo(path, echo, echo_dtype)
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f".{path.name}{PARTIAL_SUFFIX}")
-    try:
-        with h5py.File(partial, "w", libver=_LIBVER) as f:
-            _write_header(f, header)
-            _write_dataset(f, "/pulses/time_s", time_s)
-            _write_dataset(f, "/pulses/position_m", position_m)
-            ds = _write_dataset(f, "/echo", stored)
-            ds.attrs["layout"] = layout
-            ds.attrs["scale"] = np.float64(scale)
-        _fsync_file(partial)
-        _publish(partial, path, overwrite)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            partial.unlink()
-        raise
-    _fsync_dir(path.parent)
+    with atomic_path(path, overwrite=overwrite) as partial, h5py.File(partial, "w", libver=_LIBVER) as f:
+        _write_header(f, header)
+        _write_dataset(f, "/pulses/time_s", time_s)
+        _write_dataset(f, "/pulses/position_m", position_m)
+        ds = _write_dataset(f, "/echo", stored)
+        ds.attrs["layout"] = layout
+        ds.attrs["scale"] = np.float64(scale)
     return path
 
 
@@ -214,41 +204,6 @@ def _write_dataset(f: h5py.File, name: str, data: np.ndarray) -> h5py.Dataset:
     )
     ds.attrs["units"] = _UNITS[name]
     return ds
-
-
-def _fsync_file(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def _fsync_dir(directory: Path) -> None:
-    # Makes the rename itself durable; some platforms/filesystems cannot open or fsync a directory.
-    with contextlib.suppress(OSError):
-        fd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
-def _publish(partial: Path, path: Path, overwrite: bool) -> None:
-    if overwrite:
-        os.replace(partial, path)
-        return
-    # link() fails if the target exists, so a file that appeared while we wrote is never clobbered.
-    try:
-        os.link(partial, path)
-    except FileExistsError:
-        raise FileExistsError(errno.EEXIST, "scan file appeared while writing", str(path)) from None
-    except OSError:  # filesystem without hard links: best-effort check, then rename
-        if path.exists():
-            raise FileExistsError(errno.EEXIST, "scan file appeared while writing", str(path)) from None
-        os.replace(partial, path)
-        return
-    partial.unlink()
 
 
 # ----------------------------------------------------------------------------------------------- reading
@@ -425,7 +380,7 @@ def _check_header(path: Any, h: dict[str, Any]) -> None:
         if not h[name].strip():
             fail(f"/@{name}", "must not be empty")
     try:
-        _parse_utc(h["pass_start_time"])
+        parse_utc(h["pass_start_time"])
     except ValueError as e:
         fail("/@pass_start_time", str(e))
     if h["cycle"] < 0:
@@ -484,18 +439,6 @@ def _check_echo_finite(path: Any, echo: np.ndarray) -> None:
     if bad.any():
         pulse, sample = np.argwhere(bad)[0]
         raise ArchiveError(path, "/echo", f"NaN or inf (first at pulse {pulse}, sample {sample})")
-
-
-def _parse_utc(text: str) -> _dt.datetime:
-    # Python 3.10's fromisoformat does not take "Z"; spell it as an offset first.
-    s = text[:-1] + "+00:00" if text.endswith(("Z", "z")) else text
-    try:
-        t = _dt.datetime.fromisoformat(s)
-    except ValueError:
-        raise ValueError(f"not an ISO 8601 date-time: {text!r}") from None
-    if t.utcoffset() != _dt.timedelta(0):
-        raise ValueError(f"must be UTC ('Z' or '+00:00'), got {text!r}")
-    return t
 
 
 # ----------------------------------------------------------------------------------------------- attributes

@@ -1,12 +1,16 @@
-"""Atomic output files: write next to the final name, fsync, rename. A reader, or a restarted run, never sees
-half a file, and a failed write leaves the previous version in place. Used for every output uwbcl writes."""
+"""Atomic output files: write next to the final name, fsync, rename, fsync the directory. A reader, or a
+restarted run, never sees half a file, and a failed write leaves the previous version in place. Every file uwbcl
+writes goes through `atomic_path` (CSV, HDF5, PNG, JSON cache entries, archives)."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import errno
 import io
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 
@@ -17,22 +21,62 @@ def _umask() -> int:
 
 
 FILE_MODE = 0o666 & ~_umask()  # what open() would give; mkstemp's 0600 would hide outputs from other users
+PARTIAL_SUFFIX = ".partial"  # temporary files are ".<name>.<random>.partial" beside the final name
+
+
+def fsync_directory(directory: Path) -> None:
+    """Make a rename in `directory` durable (POSIX: the rename lives in the directory's own blocks); some
+    filesystems cannot open or fsync a directory, which is not an error."""
+    with contextlib.suppress(OSError):
+        fd = os.open(directory, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def _publish(tmp: Path, path: Path, overwrite: bool) -> None:
+    if overwrite:
+        os.replace(tmp, path)
+        return
+    # link() fails if the target exists, so a file that appeared while we wrote is never clobbered.
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise FileExistsError(errno.EEXIST, "file appeared while writing; not overwritten", str(path)) from None
+    except OSError:  # a filesystem without hard links: best-effort check, then rename
+        if path.exists():
+            raise FileExistsError(errno.EEXIST, "file appeared while writing; not overwritten", str(path)) from None
+        os.replace(tmp, path)
+        return
+    tmp.unlink()
+
+
+@contextlib.contextmanager
+def atomic_path(path: Path, *, overwrite: bool = True) -> Iterator[Path]:
+    """Yield a temporary path beside `path`; on success it is fsynced and renamed over `path` (with
+    overwrite=False: published only if `path` does not exist, else FileExistsError), on any error or
+    interruption it is removed and `path` keeps its previous content."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=PARTIAL_SUFFIX, dir=path.parent)
+    tmp = Path(name)
+    os.fchmod(fd, FILE_MODE)
+    os.close(fd)
+    try:
+        yield tmp
+        with open(tmp, "rb") as fh:
+            os.fsync(fh.fileno())
+        _publish(tmp, path, overwrite)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    fsync_directory(path.parent)
 
 
 def write_bytes_atomic(path: Path, data: bytes) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
-    os.fchmod(fd, FILE_MODE)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
 
 
 def write_text_atomic(path: Path, text: str) -> None:

@@ -20,28 +20,27 @@ import functools
 import hashlib
 import json
 import logging
-import math
 import multiprocessing
 import os
 import sys
 import time
 from collections import defaultdict
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from . import __version__, archive, locate, pipeline
-from .atomic import FILE_MODE, write_bytes_atomic, write_text_atomic  # noqa: F401
-from .detect import Detection
-from .displacement import (
-    TRUSTED_STATUSES,
-    AssociationSettings,
-    Displacement,
-    estimate_advance,
-    location_covariance_m2,
+from . import __version__, archive, chain, outputs, pipeline
+from .atomic import write_text_atomic
+from .records import (
+    BatchError,
+    BatchOptions,
+    BatchReport,
+    CycleResult,
+    Detection,
+    PassRecord,
+    Problem,
+    ProcessingSettings,
 )
-from .pipeline import CycleResult, ProcessingSettings
 
 log = logging.getLogger("uwbcl")
 
@@ -50,66 +49,6 @@ CACHE_VERSION = 1  # bump when the cached record changes meaning
 LOCK_FILE = ".uwbcl.lock"
 PARAMETER_KEYS = ("carrier_frequency_hz", "bandwidth_hz", "sample_rate_hz", "pulse_repetition_frequency_hz",
                   "antenna_aperture_m", "rotation_table_angle_deg", "reference_point_m", "boresight_y_sign")
-
-
-class BatchError(RuntimeError):
-    """The run cannot start (output directory locked, plotting unavailable); nothing was written."""
-
-
-@dataclasses.dataclass(frozen=True)
-class BatchOptions:
-    jobs: int | None = None  # None: all cores for numpy, 2 for the OpenCL backend (default_jobs)
-    cache: bool = True
-    progress: bool | None = None  # None: a progress bar when stderr is a terminal
-    heights_m: tuple[float, ...] | None = None  # expected rail heights (None: any)
-    height_tolerance_m: float = 0.005
-    max_bridge_cycles: int = 3
-    outputs: object | None = None  # config.OutputOptions; None: its defaults
-    on_pass_done: Callable[[int], None] | None = None  # called with the count of passes detected so far
-
-
-@dataclasses.dataclass(frozen=True)
-class Problem:
-    file: str  # relative to the input directory ("; "-separated when several files share the problem)
-    kind: str
-    reason: str
-
-
-@dataclasses.dataclass(frozen=True)
-class PassRecord:
-    """What one archive contributes: its identity, the parameters a cycle must agree on, its detections."""
-
-    file: str  # relative to the input directory, POSIX separators
-    sha256: str
-    rig_id: str
-    cycle: int
-    height_m: float
-    pass_id: str
-    pass_start_time: str
-    parameters: dict
-    detections: tuple[Detection, ...]
-
-
-@dataclasses.dataclass
-class SeriesRow:
-    """One displacement: cycle `cycle.cycle` of a rig measured from its earlier cycle `reference.cycle`."""
-
-    cycle: CycleResult
-    reference: CycleResult
-    displacement: Displacement
-    cumulative_m: np.ndarray  # (3,) rig position relative to the chain's first cycle; NaN: not in the chain
-    chain: int = 0  # 0, then +1 each time the chain of trusted matches had to start again
-
-
-@dataclasses.dataclass
-class BatchReport:
-    rows: list[dict]
-    errors: list[Problem]
-    cycles: list[CycleResult]
-    series: list[SeriesRow]
-    n_passes: int
-    n_detected: int  # passes focused in this run
-    n_cached: int = 0  # passes whose detections came from the cache
 
 
 # ----------------------------------------------------------------------------------------------- per pass
@@ -333,95 +272,11 @@ def group_cycles(records: list[PassRecord], options: BatchOptions) -> tuple[dict
 
 # ----------------------------------------------------------------------------------------------- cycles
 def locate_records(recs: dict[int, PassRecord]) -> CycleResult:
-    rs = sorted(recs.values(), key=lambda r: r.height_m)
-    by_height = {r.height_m: list(r.detections) for r in rs}
-    plates = locate.locate_plates(by_height, int(rs[0].parameters["boresight_y_sign"]))
-    first = min(rs, key=lambda r: (r.pass_start_time, r.file))
-    return CycleResult(first.rig_id, first.cycle, first.pass_start_time, tuple(r.height_m for r in rs), plates)
-
-
-def plate_covariances(cycle: CycleResult, range_sigma_m: float) -> np.ndarray:
-    """(n, 3, 3) location covariance of each plate of a cycle (displacement.location_covariance_m2)."""
-    heights = np.asarray(cycle.heights_m)
-    out = []
-    for p in cycle.plates:
-        # A plate seen at fewer heights than the cycle has: the extreme heights' baseline is an optimistic
-        # stand-in, widened by the missing passes.
-        hs = heights if p.n_passes >= heights.size else heights[[0, -1]]
-        scale = math.sqrt(heights.size / max(p.n_passes, 1)) if p.n_passes < heights.size else 1.0
-        out.append(location_covariance_m2(p.position_m, hs, range_sigma_m * scale))
-    return np.array(out).reshape(-1, 3, 3)
-
-
-def rig_series(cycles: list[CycleResult], association: AssociationSettings, max_bridge_cycles: int = 3
-               ) -> list[SeriesRow]:
-    """Displacements of one rig's cycles and the chain of cumulative positions through them.
-
-    Each cycle is measured from the last cycle in the chain (the anchor), with the prior scaled by the cycles
-    spanned. A trusted match (ok, low_confidence) extends the chain. An untrusted one leaves the row flagged
-    with a NaN cumulative and the next cycle is measured from the anchor again, bridging the gap, so a cycle
-    matched to the wrong plates never enters the cumulative values. An "inconsistent" match (unique plates that
-    disagree by centimetres) is held in reserve: if the next cycle cannot be bridged from the anchor but matches
-    the inconsistent cycle, the chain runs through it. After max_bridge_cycles without a trusted match the
-    chain is broken and starts again at the current cycle (`chain` + 1, cumulative from 0): the break is
-    visible, never bridged by a guess that may be off by a plate spacing.
-    """
-    seq = sorted(cycles, key=lambda c: c.cycle)
-    if not seq:
-        return []
-    covs = {c.cycle: plate_covariances(c, association.range_sigma_m) for c in seq}
-
-    def measure(a: CycleResult, b: CycleResult) -> Displacement:
-        return estimate_advance(a.plates, b.plates, association.for_gap(b.cycle - a.cycle),
-                                before_cov_m2=covs[a.cycle], after_cov_m2=covs[b.cycle])
-
-    def trusted(d: Displacement) -> bool:
-        return d.status in TRUSTED_STATUSES and bool(np.all(np.isfinite(d.advance_m)))
-
-    rows: list[SeriesRow] = []
-    chain = 0
-    anchor, anchor_cum = seq[0], np.zeros(3)
-    reserve: tuple[int, CycleResult, np.ndarray] | None = None  # (row index, cycle, cumulative through it)
-    for cur in seq[1:]:
-        d = measure(anchor, cur)
-        if not anchor.plates:  # nothing to measure from (an empty first cycle, or a restart on one)
-            rows.append(SeriesRow(cur, anchor, d, np.zeros(3), chain))
-            anchor, anchor_cum, reserve = cur, np.zeros(3), None
-            continue
-        if trusted(d):
-            cum = anchor_cum + d.advance_m
-            rows.append(SeriesRow(cur, anchor, d, cum, chain))
-            anchor, anchor_cum, reserve = cur, cum, None
-            continue
-        if reserve is not None:
-            index, via, via_cum = reserve
-            d2 = measure(via, cur)
-            if trusted(d2):
-                rows[index].cumulative_m = via_cum
-                cum = via_cum + d2.advance_m
-                rows.append(SeriesRow(cur, via, d2, cum, chain))
-                anchor, anchor_cum, reserve = cur, cum, None
-                continue
-        rows.append(SeriesRow(cur, anchor, d, np.full(3, np.nan), chain))
-        if d.status == "inconsistent" and reserve is None:
-            reserve = (len(rows) - 1, cur, anchor_cum + d.advance_m)
-        if cur.cycle - anchor.cycle >= max_bridge_cycles:
-            # Start a new chain here: its cumulative values count from this cycle, not from the rig's first.
-            log.warning("rig %s: no trusted match for %d cycles up to cycle %d; the cumulative values start "
-                        "again from 0 at cycle %d (chain %d)", cur.rig_id, cur.cycle - anchor.cycle, cur.cycle,
-                        cur.cycle, chain + 1)
-            chain += 1
-            rows[-1].cumulative_m, rows[-1].chain = np.zeros(3), chain
-            anchor, anchor_cum, reserve = cur, np.zeros(3), None
-    return rows
-
-
-def series(cycles: list[CycleResult], association: AssociationSettings, max_bridge_cycles: int = 3
-           ) -> list[SeriesRow]:
-    by_rig = defaultdict(list)
-    for c in cycles:
-        by_rig[c.rig_id].append(c)
-    return [row for rig in sorted(by_rig) for row in rig_series(by_rig[rig], association, max_bridge_cycles)]
+    """The located plates of one cycle from its passes' records (keyed by height in mm)."""
+    first = min(recs.values(), key=lambda r: (r.pass_start_time, r.file))
+    return chain.locate_cycle(first.rig_id, first.cycle, first.pass_start_time,
+                              {r.height_m: r.detections for r in recs.values()},
+                              int(first.parameters["boresight_y_sign"]))
 
 
 # ----------------------------------------------------------------------------------------------- the job
@@ -530,13 +385,10 @@ def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, ca
 def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings | None = None,
                       options: BatchOptions | None = None) -> BatchReport:
     """Every archive under in_dir -> the outputs of docs/outputs.md in out_dir. Bad input is reported, skipped."""
-    from . import outputs
-    from .config import OutputOptions
-
     settings = settings or ProcessingSettings()
     options = options or BatchOptions()
     in_dir, out_dir = Path(in_dir), Path(out_dir)
-    out_opts = options.outputs or OutputOptions()
+    out_opts = options.outputs
     if out_opts.plots or out_opts.cycle_images:
         outputs.require_matplotlib()
     with _exclusive(out_dir):
@@ -554,7 +406,7 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
             log.info("rig %s cycle %d: %d plates located from %d heights", rig, cycle, len(result.plates),
                      len(result.heights_m))
             cycles.append(result)
-        rows_series = series(cycles, settings.association, options.max_bridge_cycles)
+        rows_series = chain.series(cycles, settings.association, options.max_bridge_cycles)
         for r in rows_series:
             if r.displacement.status != "ok":
                 log.warning("rig %s cycle %d: %s (%d plates matched, runner-up %d)", r.cycle.rig_id,

@@ -8,7 +8,9 @@ import logging
 import sys
 from pathlib import Path
 
-from . import __version__, archive, pipeline
+from . import __version__, archive, batch, config
+from .atomic import write_text_atomic
+from .records import ALGORITHMS, BACKENDS, BatchError, ConfigError
 from .scenarios import SCENARIOS
 
 
@@ -62,16 +64,12 @@ def _simulate(args: argparse.Namespace) -> int:
         } for c in cycles],
         "files": written,
     }
-    tmp = out / ".truth.json.partial"
-    tmp.write_text(json.dumps(truth, indent=2) + "\n")
-    tmp.replace(out / "truth.json")
+    write_text_atomic(out / "truth.json", json.dumps(truth, indent=2) + "\n")
     print(f"wrote {len(written)} passes and truth.json to {out}")
     return 0
 
 
 def _process(args: argparse.Namespace) -> int:
-    from . import batch, config
-
     try:
         site = config.load_config(args.config) if args.config else config.SiteConfig()
         site = config.override(
@@ -81,7 +79,7 @@ def _process(args: argparse.Namespace) -> int:
             cache=False if args.no_cache else None, plots=True if args.plots else None,
             cycle_images=True if args.cycle_images else None)
         settings = site.processing_settings()
-    except config.ConfigError as exc:
+    except ConfigError as exc:
         print(f"uwbcl process: {exc}", file=sys.stderr)
         return 2
     if settings.backend == "opencl" and not _engine_ready(settings.device):
@@ -91,9 +89,9 @@ def _process(args: argparse.Namespace) -> int:
         print(f"uwbcl process: {in_dir}: not a directory", file=sys.stderr)
         return 2
     try:
-        report = pipeline.process_directory(in_dir, Path(args.out), settings, site.batch_options(
+        report = batch.process_directory(in_dir, Path(args.out), settings, site.batch_options(
             progress=False if args.no_progress else None))
-    except batch.BatchError as exc:
+    except BatchError as exc:
         print(f"uwbcl process: {exc}", file=sys.stderr)
         return 2
     flagged = sum(r["status"] != "ok" for r in report.rows)
@@ -163,12 +161,12 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("in_dir")
     q.add_argument("--out", required=True, help="output directory (docs/outputs.md)")
     q.add_argument("--config", help="site configuration, TOML (docs/configuration.md); flags override it")
-    q.add_argument("--backend", choices=pipeline.BACKENDS, default=None,
+    q.add_argument("--backend", choices=BACKENDS, default=None,
                    help="opencl: the OpenCL engine (default); numpy: the float64 reference")
     q.add_argument("--device", default=None,
                    help="OpenCL device: 'P:D' indices or part of its name (`uwbcl devices`); "
                         "default: $PYOPENCL_CTX, else the first GPU, else the first device")
-    q.add_argument("--algorithm", choices=pipeline.ALGORITHMS, default=None, help="default nlcs")
+    q.add_argument("--algorithm", choices=ALGORITHMS, default=None, help="default nlcs")
     q.add_argument("--ac-mode", choices=("exact", "series"), default=None,
                    help="NLCS azimuth compression: exact-reference (default) or the series of eq. 17")
     q.add_argument("--jobs", type=int, default=None,

@@ -12,8 +12,17 @@ import os
 from pathlib import Path
 from typing import Any
 
-from . import detect
-from .displacement import AssociationSettings
+from .records import (
+    AC_MODES,
+    ALGORITHMS,
+    BACKENDS,
+    AssociationSettings,
+    BatchOptions,
+    ConfigError,
+    DetectionSettings,
+    OutputOptions,
+    ProcessingSettings,
+)
 
 try:
     import tomllib
@@ -22,24 +31,6 @@ except ModuleNotFoundError:  # Python 3.10
         import tomli as tomllib  # type: ignore[no-redef]
     except ModuleNotFoundError:
         tomllib = None  # type: ignore[assignment]
-
-
-class ConfigError(ValueError):
-    def __init__(self, path: str | os.PathLike[str] | None, key: str, reason: str) -> None:
-        super().__init__(str(path), key, reason)
-        self.path, self.key, self.reason = path, key, reason
-
-    def __str__(self) -> str:
-        where = f"{self.path}: " if self.path else ""
-        return f"{where}{self.key}: {self.reason}"
-
-
-@dataclasses.dataclass(frozen=True)
-class OutputOptions:
-    hdf5: bool = True  # displacements.h5 beside displacements.csv
-    targets: bool = True  # targets.csv
-    plots: bool = False  # time series PNG per rig (needs matplotlib: pip install 'uwbcl[plot]')
-    cycle_images: bool = False  # focused image PNG per pass with the detections marked (refocuses: slow)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,18 +62,16 @@ class SiteConfig:
             kw["prior_window_m"] = tuple(self.prior_window_m)
         return AssociationSettings(**kw)
 
-    def detection_settings(self) -> detect.DetectionSettings:
-        return detect.DetectionSettings(**self.detection)
+    def detection_settings(self) -> DetectionSettings:
+        return DetectionSettings(**self.detection)
 
     def processing_settings(self):
-        from .pipeline import ALGORITHMS, BACKENDS, ProcessingSettings
-
         if self.backend is not None and self.backend not in BACKENDS:
             raise ConfigError(None, "processing.backend", f"{self.backend!r} is not one of {', '.join(BACKENDS)}")
         if self.algorithm is not None and self.algorithm not in ALGORITHMS:
             raise ConfigError(None, "processing.algorithm",
                               f"{self.algorithm!r} is not one of {', '.join(ALGORITHMS)}")
-        if self.ac_mode is not None and self.ac_mode not in ("exact", "series"):
+        if self.ac_mode is not None and self.ac_mode not in AC_MODES:
             raise ConfigError(None, "processing.ac_mode", f"{self.ac_mode!r} is not 'exact' or 'series'")
         chosen = {k: getattr(self, k) for k in ("algorithm", "backend", "device", "ac_mode")
                   if getattr(self, k) is not None}
@@ -90,8 +79,6 @@ class SiteConfig:
                                    association=self.association_settings())
 
     def batch_options(self, **extra):
-        from .batch import BatchOptions
-
         return BatchOptions(jobs=self.jobs, cache=self.cache, heights_m=self.heights_m,
                             height_tolerance_m=self.height_tolerance_m, max_bridge_cycles=self.max_bridge_cycles,
                             outputs=self.output, **extra)
@@ -142,7 +129,7 @@ _SCHEMA = {
 
 def _detection_schema() -> dict:
     out = {}
-    for f in dataclasses.fields(detect.DetectionSettings):
+    for f in dataclasses.fields(DetectionSettings):
         default = f.default
         out[f.name] = _bool if isinstance(default, bool) else _int if isinstance(default, int) else _number
     return out

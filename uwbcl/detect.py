@@ -19,33 +19,7 @@ from scipy import ndimage, optimize
 from .focus import backprojection as bp
 from .focus import nlcs
 from .model import ScanPass
-
-
-@dataclasses.dataclass(frozen=True)
-class DetectionSettings:
-    relative_floor_db: float = -20.0  # peaks weaker than the strongest by more than this are ignored
-    min_snr_db: float = 12.0  # peak over the median image magnitude (a robust noise/clutter level)
-    separation_m: float = 0.15  # non-maximum suppression: semi-axis of the ellipse along track
-    range_separation_m: float = 0.12  # and in range (beyond the azimuth side-lobes, inside the plate spacing)
-    max_targets: int = 64
-    # CLEAN-like re-refinements of every peak with the other targets' modelled responses removed (0: off)
-    neighbour_cancellation_passes: int = 1
-    neighbour_cancellation_tol_m: float = 1e-5  # stop early once no peak moves more than this
-    neighbour_gain_degree: int = 8  # Legendre degree of a modelled target's gain along the rail (beam pattern)
-
-
-@dataclasses.dataclass(frozen=True)
-class Detection:
-    """One point target seen in one pass, in that pass's closest-approach coordinates."""
-
-    x_m: float  # along-track position X_r of the target
-    rc_m: float  # closest-approach slant range from the rail
-    t_n_s: float  # P1 azimuth time (crossing of the squinted beam centre)
-    r0_m: float  # P1 range at t_n
-    image_azimuth_m: float  # where the peak sits in the image (u = v t_f), before geometry correction
-    image_range_m: float  # r_LRCM of the peak
-    amplitude: float
-    snr_db: float
+from .records import Detection, DetectionSettings
 
 
 def _local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float], s: DetectionSettings):

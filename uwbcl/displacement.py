@@ -12,26 +12,7 @@ import dataclasses
 
 import numpy as np
 
-from .locate import Located
-
-
-@dataclasses.dataclass(frozen=True)
-class AssociationSettings:
-    tolerance_m: tuple[float, float, float] = (0.05, 0.10, 0.25)  # |P - P' - dP| per axis for an inlier
-    prior_advance_m: tuple[float, float, float] | None = None  # e.g. (web depth, 0, 0)
-    prior_window_m: tuple[float, float, float] = (0.4, 0.3, 0.5)  # half-width around the prior
-    min_targets: int = 1  # fewer matched plates: no estimate ("too_few_targets")
-    min_confident_targets: int = 2  # fewer: the estimate is given but flagged "low_confidence"
-    weighted: bool = True  # generalised least squares with the plates' location covariances, when supplied
-    range_sigma_m: float = 0.003  # per-pass range (and along-track) precision of a plate, for the covariances
-    outlier_chi2: float = 16.27  # chi-square (3 dof, p = 0.001) beyond which a matched plate is rejected
-
-    def for_gap(self, cycles: int) -> AssociationSettings:
-        """The prior for a displacement spanning `cycles` cutting cycles (after a missing or rejected one)."""
-        if self.prior_advance_m is None or cycles == 1:
-            return self
-        return dataclasses.replace(self, prior_advance_m=tuple(cycles * v for v in self.prior_advance_m))
-
+from .records import AssociationSettings, Displacement, Located
 
 AMBIGUITY_MARGIN = 0.5  # a competitor within half a well-matched plate of the best: can't tell them apart
 CONFLICT_MARGIN = 1.0  # outside the prior window, a translation must beat the best inside by a whole plate
@@ -40,29 +21,6 @@ STATUSES = ("ok", "low_confidence", "ambiguous", "prior_conflict", "inconsistent
 TRUSTED_STATUSES = ("ok", "low_confidence")  # a unique, consistent match; the others may be the wrong plates
 # Unique plate correspondence, but the plates disagree: off by centimetres at worst, never by a plate spacing.
 CHAINABLE_STATUSES = (*TRUSTED_STATUSES, "inconsistent")
-
-
-@dataclasses.dataclass(frozen=True)
-class Displacement:
-    advance_m: np.ndarray  # (3,) Delta P = (retreat, creep, vertical)
-    spread_m: np.ndarray  # (3,) standard deviation over the inlier plates
-    n_targets: int
-    residual_m: float  # RMS of the inlier differences about the estimate
-    status: str  # one of STATUSES
-    pairs: list[tuple[int, int]]  # (index before, index after) of the inlier plates
-    runner_up_targets: int = 0  # plates explained by the best competing translation (0: none)
-
-    @property
-    def retreat_m(self) -> float:
-        return float(self.advance_m[0])
-
-    @property
-    def creep_m(self) -> float:
-        return float(self.advance_m[1])
-
-    @property
-    def vertical_m(self) -> float:
-        return float(self.advance_m[2])
 
 
 def _match(before: np.ndarray, after: np.ndarray, shift: np.ndarray, tol: np.ndarray):

@@ -17,15 +17,7 @@ import math
 import numpy as np
 from scipy import optimize
 
-from .detect import Detection
-
-
-@dataclasses.dataclass(frozen=True)
-class Located:
-    position_m: np.ndarray  # (3,) radar frame
-    residual_m: float  # RMS misfit of the per-pass (x, R_c) to the located point
-    n_passes: int
-    amplitude: float
+from .records import Detection, Located
 
 
 def locate_target(heights_m, x_m, rc_m, weights=None, boresight_y_sign: int = -1) -> Located | None:

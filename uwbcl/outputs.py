@@ -9,17 +9,15 @@ from __future__ import annotations
 import dataclasses
 import io
 import logging
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from . import __version__, archive
-from .atomic import FILE_MODE, csv_bytes, write_bytes_atomic
-from .batch import Problem, SeriesRow
-from .displacement import TRUSTED_STATUSES
-from .pipeline import CycleResult
+from .atomic import atomic_path, csv_bytes, write_bytes_atomic
+from .focus import backprojection, nlcs
+from .records import TRUSTED_STATUSES, BatchError, CycleResult, Problem, SeriesRow
+from .utc import parse_utc
 
 log = logging.getLogger("uwbcl")
 
@@ -67,6 +65,13 @@ def _text(records: list[dict]) -> list[dict]:
     return [{k: _m(v) if isinstance(v, float) else v for k, v in rec.items()} for rec in records]
 
 
+def write_displacements_csv(path: Path, rows: list[SeriesRow]) -> list[dict]:
+    """displacements.csv of docs/outputs.md from a chain's rows; returns the rows as written (text)."""
+    text = _text(displacement_records(rows))
+    write_bytes_atomic(path, csv_bytes(DISPLACEMENT_COLUMNS, text))
+    return text
+
+
 def target_records(rows: list[SeriesRow], cycles: list[CycleResult]) -> list[dict]:
     """Every plate of every cycle, with a track id that follows a physical plate through trusted matches."""
     row_of = {(r.cycle.rig_id, r.cycle.cycle): r for r in rows}
@@ -112,43 +117,31 @@ def write_h5_atomic(path: Path, tables: dict[str, tuple[tuple[str, ...], list[di
     """One group per table, one 1-D dataset per column with a `units` attribute; deterministic bytes."""
     import h5py
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
-    os.fchmod(fd, FILE_MODE)
-    os.close(fd)
-    try:
-        with h5py.File(tmp, "w", libver=("v110", "v110"), track_order=True) as f:
-            f.attrs["format"] = H5_FORMAT
-            f.attrs["format_version"] = np.int64(H5_FORMAT_VERSION)
-            f.attrs["created_by"] = f"uwbcl {__version__}"
-            for name, (columns, records) in tables.items():
-                g = f.create_group(name, track_order=True)
-                g.attrs["rows"] = np.int64(len(records))
-                for col in columns:
-                    values = [rec[col] for rec in records]
-                    unit = _unit(col)
-                    if col in ("rig_id", "start_time", "status"):
-                        data = np.array(values, dtype=h5py.string_dtype())
-                    elif unit == "1":
-                        data = np.array(values, dtype=np.int64)
-                    else:
-                        data = np.array(values, dtype=np.float64)
-                    ds = g.create_dataset(col, data=data, shape=(len(values),))
-                    ds.attrs["units"] = unit
-        with open(tmp, "rb") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp, h5py.File(tmp, "w", libver=("v110", "v110"), track_order=True) as f:
+        f.attrs["format"] = H5_FORMAT
+        f.attrs["format_version"] = np.int64(H5_FORMAT_VERSION)
+        f.attrs["created_by"] = f"uwbcl {__version__}"
+        for name, (columns, records) in tables.items():
+            g = f.create_group(name, track_order=True)
+            g.attrs["rows"] = np.int64(len(records))
+            for col in columns:
+                values = [rec[col] for rec in records]
+                unit = _unit(col)
+                if col in ("rig_id", "start_time", "status"):
+                    data = np.array(values, dtype=h5py.string_dtype())
+                elif unit == "1":
+                    data = np.array(values, dtype=np.int64)
+                else:
+                    data = np.array(values, dtype=np.float64)
+                ds = g.create_dataset(col, data=data, shape=(len(values),))
+                ds.attrs["units"] = unit
 
 
 def write_all(out_dir: Path, rows: list[SeriesRow], cycles: list[CycleResult], problems: list[Problem], opts,
               *, groups: dict, in_dir: Path, settings) -> list[dict]:
     """Every output of a run; returns the displacements.csv rows (text)."""
     disp = displacement_records(rows)
-    disp_text = _text(disp)
-    write_bytes_atomic(out_dir / "displacements.csv", csv_bytes(DISPLACEMENT_COLUMNS, disp_text))
+    disp_text = write_displacements_csv(out_dir / "displacements.csv", rows)
     targets = target_records(rows, cycles) if (opts.targets or opts.hdf5) else []
     if opts.targets:
         write_bytes_atomic(out_dir / "targets.csv", csv_bytes(TARGET_COLUMNS, _text(targets)))
@@ -166,7 +159,6 @@ def write_all(out_dir: Path, rows: list[SeriesRow], cycles: list[CycleResult], p
 
 # ----------------------------------------------------------------------------------------------- plots
 def require_matplotlib() -> None:
-    from .batch import BatchError
 
     try:
         import matplotlib  # noqa: F401
@@ -191,14 +183,12 @@ def _save(fig, path: Path) -> None:
 
 def plot_time_series(plot_dir: Path, records: list[dict]) -> None:
     """plots/timeseries_<rig>.png: cumulative and per-cycle retreat and creep against time, flags in red."""
-    import datetime as dt
-
     plt = _pyplot()
     by_rig: dict[str, list[dict]] = {}
     for rec in records:
         by_rig.setdefault(rec["rig_id"], []).append(rec)
     for rig, recs in sorted(by_rig.items()):
-        t = [dt.datetime.fromisoformat(r["start_time"].replace("Z", "+00:00")) for r in recs]
+        t = [parse_utc(r["start_time"]) for r in recs]
         flagged = [r["status"] != "ok" for r in recs]
         fig, axes = plt.subplots(2, 2, figsize=(11, 6), sharex=True)
         for col, (name, label) in enumerate((("retreat", "retreat"), ("creep", "creep"))):
@@ -224,8 +214,6 @@ def plot_cycle_images(plot_dir: Path, groups: dict, in_dir: Path, settings) -> N
 
     Refocuses every pass with the numpy reference (the engine's image is the same within its tolerance).
     """
-    from .focus import backprojection, nlcs
-
     plt = _pyplot()
     for (rig, cycle), recs in sorted(groups.items()):
         for hmm, rec in sorted(recs.items()):

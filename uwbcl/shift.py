@@ -27,13 +27,16 @@ import dataclasses
 import datetime as dt
 import math
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 
+from . import archive
 from . import geometry as geo
 from .atomic import csv_text, write_text_atomic
 from .model import SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters, ScanPass
 from .simulate import rail_motion, simulate_echo
+from .utc import parse_utc
 
 SHIFT_START = dt.datetime(2026, 11, 2, 6, 0, tzinfo=dt.timezone.utc)
 
@@ -241,7 +244,7 @@ def simulate_shift(cfg: ShiftConfig) -> Iterator[ScanPass]:
         for truth in cycle_truths(cfg, rig, rib_)[cfg.first_cycle:]:
             radar_frame = targets - truth.rig_position_m
             near = np.abs(radar_frame[:, 0]) < 10.0  # a cheap cut before the per-pulse beam test
-            start = dt.datetime.strptime(truth.start_time, "%Y-%m-%dT%H:%M:%SZ").replace(tzinfo=dt.timezone.utc)
+            start = parse_utc(truth.start_time)
             for i, h in enumerate(cfg.heights_m):
                 g = PassGeometry(height_m=float(h), rotation_table_angle_deg=truth.rotation_table_angle_deg,
                                  reference_point_m=tuple(float(v) for v in truth.reference_point_m))
@@ -296,10 +299,6 @@ def write_shift(out_dir, cfg: ShiftConfig, *, overwrite: bool = False, created_b
                 ) -> list[str]:
     """Archive every pass of `cfg` under out_dir (archive.default_relative_path) plus truth.csv and
     truth_plates.csv (covering cycles 0 .. first_cycle + cycles - 1); returns the archives' relative paths."""
-    from pathlib import Path
-
-    from . import archive
-
     out = Path(out_dir)
     written = []
     for scan in simulate_shift(cfg):

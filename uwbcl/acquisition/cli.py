@@ -260,7 +260,7 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _write_truth(out: Path, device, report) -> list[dict]:
-    from .. import pipeline
+    from ..atomic import write_csv_atomic
 
     rows = []
     for r in report.results:
@@ -274,7 +274,7 @@ def _write_truth(out: Path, device, report) -> list[dict]:
     cols = ("cycle", "previous_cycle", "retreat_m", "true_retreat_m", "creep_m", "true_creep_m", "vertical_m",
             "true_vertical_m", "status")
     fmt = [{k: (f"{v:.6f}" if isinstance(v, float) else v) for k, v in row.items()} for row in rows]
-    pipeline.write_csv_atomic(out / "truth.csv", cols, fmt)
+    write_csv_atomic(out / "truth.csv", cols, fmt)
     return rows
 
 

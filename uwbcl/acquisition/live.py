@@ -2,8 +2,10 @@
 
 A worker thread takes cycles from a bounded queue (acquisition never waits on processing: a full queue means
 the cycle stays archived and is left to `uwbcl process`), locates the plates with `pipeline.locate_cycle` and
-estimates the advance from the previous located cycle with `displacement.estimate_advance`. Results come back
-through `results` to the acquisition thread, which alone talks Modbus and publishes them.
+measures each cycle with the same `chain.RigChain` that `uwbcl process` uses (association, GLS with the plates'
+covariances, bridging of untrusted cycles), so acquire-results.csv, the RESULT registers and displacements.csv
+agree for the same passes. Results come back through `results` to the acquisition thread, which alone talks
+Modbus and publishes them.
 """
 
 from __future__ import annotations
@@ -15,8 +17,10 @@ import queue
 import threading
 from pathlib import Path
 
-from .. import pipeline
-from ..displacement import estimate_advance
+from .. import chain, pipeline
+from ..atomic import write_csv_atomic
+from ..records import ProcessingSettings
+from ..utc import utc_seconds
 from . import registers as R
 
 log = logging.getLogger("uwbcl.acquire")
@@ -26,9 +30,9 @@ RESULT_COLUMNS = ("rig_id", "cycle", "previous_cycle", "start_time", "retreat_m"
 RESULTS_FILE = "acquire-results.csv"
 
 
-def processing_settings(backend: str = "", web_depth_m: float = 0.0) -> pipeline.ProcessingSettings:
+def processing_settings(backend: str = "", web_depth_m: float = 0.0) -> ProcessingSettings:
     """ProcessingSettings with the chosen backend (empty: the pipeline's default) and the web-depth prior."""
-    s = pipeline.ProcessingSettings()
+    s = ProcessingSettings()
     if backend:
         s = dataclasses.replace(s, backend=backend)
     if web_depth_m > 0:
@@ -37,7 +41,7 @@ def processing_settings(backend: str = "", web_depth_m: float = 0.0) -> pipeline
     return s
 
 
-def backend_available(settings: pipeline.ProcessingSettings) -> str | None:
+def backend_available(settings: ProcessingSettings) -> str | None:
     """None if the backend can run here, else the reason it cannot."""
     if settings.backend != "opencl":
         return None
@@ -59,12 +63,12 @@ _STATUS = {"ok": R.ResultStatus.OK, "ambiguous": R.ResultStatus.AMBIGUOUS,
 
 
 class LiveProcessor:
-    def __init__(self, settings: pipeline.ProcessingSettings, rig_id: str = "", max_pending: int = 8):
+    def __init__(self, settings: ProcessingSettings, rig_id: str = "", max_pending: int = 8):
         self.settings = settings
         self.rig_id = rig_id
         self.results: queue.Queue = queue.Queue()
         self._todo: queue.Queue = queue.Queue(maxsize=max_pending)
-        self._previous = None  # the last located cycle
+        self._chain = chain.RigChain(settings.association)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._work, name="uwbcl-live-process", daemon=True)
         self._thread.start()
@@ -102,24 +106,18 @@ class LiveProcessor:
             log.warning("cycle %d: incomplete (%d passes); no displacement", cycle, len(passes))
             return self._row(cycle, start_time, None, R.ResultStatus.INCOMPLETE_CYCLE, "incomplete_cycle")
         located = pipeline.locate_cycle(passes, self.settings)
-        previous, self._previous = self._previous, located
         log.info("cycle %d: %d plates located", cycle, len(located.plates))
-        if previous is None:
+        row = self._chain.add(located)
+        if row is None:
             return self._row(cycle, start_time, None, None, "reference", located=len(located.plates))
-        assoc = self.settings.association
-        gap = cycle - previous.cycle
-        if gap > 1 and hasattr(assoc, "for_gap"):
-            assoc = assoc.for_gap(gap)
-        d = estimate_advance(previous.plates, located.plates, assoc)
+        d = row.displacement
         code = _STATUS.get(d.status, R.ResultStatus.FLAGGED)
-        return self._row(cycle, start_time, previous.cycle, code, d.status, d=d)
+        return self._row(cycle, start_time, row.reference.cycle, code, d.status, d=d)
 
     def _row(self, cycle, start_time, previous_cycle, code, status, d=None, located=0) -> dict:
-        from .recorder import _parse_time
-
         nan = math.nan
         return {"rig_id": self.rig_id, "cycle": cycle, "previous_cycle": previous_cycle,
-                "start_time": start_time or "", "time_s": _parse_time(start_time),
+                "start_time": start_time or "", "time_s": utc_seconds(start_time),
                 "retreat_m": d.retreat_m if d else nan, "creep_m": d.creep_m if d else nan,
                 "vertical_m": d.vertical_m if d else nan, "n_targets": d.n_targets if d else located,
                 "residual_m": d.residual_m if d else nan, "status": status,
@@ -132,5 +130,5 @@ class LiveProcessor:
             rows.append({k: (f"{r[k]:.6f}" if isinstance(r[k], float) and math.isfinite(r[k]) else
                              ("" if isinstance(r[k], float) or r[k] is None else r[k])) for k in RESULT_COLUMNS})
         path = Path(out_dir) / RESULTS_FILE
-        pipeline.write_csv_atomic(path, RESULT_COLUMNS, rows)
+        write_csv_atomic(path, RESULT_COLUMNS, rows)
         return path

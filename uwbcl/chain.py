@@ -1,0 +1,162 @@
+"""Cycle-to-cycle displacement of a rig: the one estimator every output uses (docs/method.md section 6).
+
+A cycle's passes give each plate's 3-D position (`locate`); two cycles give Delta P = -(P' - P) through the
+association and generalised least squares of `displacement.estimate_advance`, with each plate's location
+covariance; a rig's cycles are chained so a cycle whose match cannot be trusted is bridged, never summed.
+`uwbcl process` (displacements.csv), `uwbcl acquire --process` (acquire-results.csv and the RESULT registers),
+`scripts/reproduce_paper.py` and `scripts/benchmark.py` all take their displacements from here.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import defaultdict
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from .displacement import estimate_advance, location_covariance_m2
+from .locate import locate_plates
+from .records import TRUSTED_STATUSES, AssociationSettings, CycleResult, Detection, Displacement, SeriesRow
+
+log = logging.getLogger("uwbcl")
+
+DEFAULT_MAX_BRIDGE_CYCLES = 3  # how many cycles a displacement may span after an untrusted one
+
+
+def locate_cycle(rig_id: str, cycle: int, start_time: str, detections_by_height: Mapping[float, Sequence[Detection]],
+                 boresight_y_sign: int) -> CycleResult:
+    """The 3-D plates of one cycle from its passes' detections.
+
+    Parameters
+    ----------
+    rig_id, cycle, start_time : the cycle's identity; start_time is the earliest pass's ISO 8601 UTC start.
+    detections_by_height : {rail height (m): detections of the pass at that height}, two or more heights.
+    boresight_y_sign : -1 when the rib is on the -Y side of the rail, +1 on the +Y side.
+
+    Returns
+    -------
+    CycleResult with `heights_m` ascending and the plates sorted by x (radar frame, m).
+    """
+    heights = sorted(detections_by_height)
+    by_height = {h: list(detections_by_height[h]) for h in heights}
+    return CycleResult(rig_id, int(cycle), start_time, tuple(heights), locate_plates(by_height, boresight_y_sign))
+
+
+def plate_covariances(cycle: CycleResult, range_sigma_m: float) -> np.ndarray:
+    """(n, 3, 3) location covariance (m^2) of each plate of a cycle (displacement.location_covariance_m2)."""
+    heights = np.asarray(cycle.heights_m)
+    out = []
+    for p in cycle.plates:
+        # A plate seen at fewer heights than the cycle has: the extreme heights' baseline is an optimistic
+        # stand-in, widened by the missing passes.
+        hs = heights if p.n_passes >= heights.size else heights[[0, -1]]
+        scale = math.sqrt(heights.size / max(p.n_passes, 1)) if p.n_passes < heights.size else 1.0
+        out.append(location_covariance_m2(p.position_m, hs, range_sigma_m * scale))
+    return np.array(out).reshape(-1, 3, 3)
+
+
+def trusted(d: Displacement) -> bool:
+    """A unique, consistent match with a finite estimate: may enter the cumulative values."""
+    return d.status in TRUSTED_STATUSES and bool(np.all(np.isfinite(d.advance_m)))
+
+
+class RigChain:
+    """The displacements of one rig's cycles, fed in cycle order, and the chain of cumulative positions.
+
+    Each cycle is measured from the last cycle in the chain (the anchor), with the prior scaled by the cycles
+    spanned. A trusted match (ok, low_confidence) extends the chain. An untrusted one leaves the row flagged
+    with a NaN cumulative and the next cycle is measured from the anchor again, bridging the gap, so a cycle
+    matched to the wrong plates never enters the cumulative values. An "inconsistent" match (unique plates that
+    disagree by centimetres) is held in reserve: if the next cycle cannot be bridged from the anchor but matches
+    the inconsistent cycle, the chain runs through it (and the reserve row gets its cumulative value). After
+    max_bridge_cycles without a trusted match the chain is broken and starts again at the current cycle
+    (`chain` + 1, cumulative from 0): the break is visible, never bridged by a guess that may be off by a plate
+    spacing.
+
+    State is real here: a row depends only on the cycles before it, so `uwbcl acquire --process` feeding the
+    cycles one at a time gets exactly the rows that `uwbcl process` gets from the whole series.
+    """
+
+    def __init__(self, association: AssociationSettings, max_bridge_cycles: int = DEFAULT_MAX_BRIDGE_CYCLES):
+        self.association = association
+        self.max_bridge_cycles = max_bridge_cycles
+        self.rows: list[SeriesRow] = []
+        self.first: CycleResult | None = None
+        self._chain = 0
+        self._anchor: CycleResult | None = None
+        self._anchor_cum = np.zeros(3)
+        self._reserve: tuple[int, CycleResult, np.ndarray] | None = None  # (row index, cycle, cumulative)
+        self._covs: dict[int, np.ndarray] = {}
+
+    def _measure(self, a: CycleResult, b: CycleResult) -> Displacement:
+        return estimate_advance(a.plates, b.plates, self.association.for_gap(b.cycle - a.cycle),
+                                before_cov_m2=self._covs[a.cycle], after_cov_m2=self._covs[b.cycle])
+
+    def _restart(self, cur: CycleResult) -> None:
+        self._anchor, self._anchor_cum, self._reserve = cur, np.zeros(3), None
+
+    def add(self, cur: CycleResult) -> SeriesRow | None:
+        """Measure the next cycle (higher cycle number than every cycle before); None for the rig's first."""
+        self._covs[cur.cycle] = plate_covariances(cur, self.association.range_sigma_m)
+        if self._anchor is None:
+            self.first = cur
+            self._restart(cur)
+            return None
+        if cur.cycle <= self._anchor.cycle:
+            raise ValueError(f"rig {cur.rig_id}: cycle {cur.cycle} after cycle {self._anchor.cycle}")
+        anchor = self._anchor
+        d = self._measure(anchor, cur)
+        if not anchor.plates:  # nothing to measure from (an empty first cycle, or a restart on one)
+            return self._append(SeriesRow(cur, anchor, d, np.zeros(3), self._chain), restart=cur)
+        if trusted(d):
+            cum = self._anchor_cum + d.advance_m
+            row = self._append(SeriesRow(cur, anchor, d, cum, self._chain))
+            self._anchor, self._anchor_cum, self._reserve = cur, cum, None
+            return row
+        if self._reserve is not None:
+            index, via, via_cum = self._reserve
+            d2 = self._measure(via, cur)
+            if trusted(d2):
+                self.rows[index].cumulative_m = via_cum
+                cum = via_cum + d2.advance_m
+                row = self._append(SeriesRow(cur, via, d2, cum, self._chain))
+                self._anchor, self._anchor_cum, self._reserve = cur, cum, None
+                return row
+        row = self._append(SeriesRow(cur, anchor, d, np.full(3, np.nan), self._chain))
+        if d.status == "inconsistent" and self._reserve is None:
+            self._reserve = (len(self.rows) - 1, cur, self._anchor_cum + d.advance_m)
+        if cur.cycle - anchor.cycle >= self.max_bridge_cycles:
+            # Start a new chain here: its cumulative values count from this cycle, not from the rig's first.
+            log.warning("rig %s: no trusted match for %d cycles up to cycle %d; the cumulative values start "
+                        "again from 0 at cycle %d (chain %d)", cur.rig_id, cur.cycle - anchor.cycle, cur.cycle,
+                        cur.cycle, self._chain + 1)
+            self._chain += 1
+            row.cumulative_m, row.chain = np.zeros(3), self._chain
+            self._restart(cur)
+        return row
+
+    def _append(self, row: SeriesRow, restart: CycleResult | None = None) -> SeriesRow:
+        self.rows.append(row)
+        if restart is not None:
+            self._restart(restart)
+        return row
+
+
+def rig_series(cycles: Sequence[CycleResult], association: AssociationSettings,
+               max_bridge_cycles: int = DEFAULT_MAX_BRIDGE_CYCLES) -> list[SeriesRow]:
+    """Displacements of one rig's cycles (any order; sorted by cycle number) through a RigChain."""
+    chain = RigChain(association, max_bridge_cycles)
+    for c in sorted(cycles, key=lambda c: c.cycle):
+        chain.add(c)
+    return chain.rows
+
+
+def series(cycles: Sequence[CycleResult], association: AssociationSettings,
+           max_bridge_cycles: int = DEFAULT_MAX_BRIDGE_CYCLES) -> list[SeriesRow]:
+    """Displacements of every rig's cycles, rigs in sorted order, each rig's rows in cycle order."""
+    by_rig: dict[str, list[CycleResult]] = defaultdict(list)
+    for c in cycles:
+        by_rig[c.rig_id].append(c)
+    return [row for rig in sorted(by_rig) for row in rig_series(by_rig[rig], association, max_bridge_cycles)]

@@ -1,0 +1,200 @@
+"""Data-only records: the settings, options, results and errors that the layers above pass to each other.
+
+The bottom layer of docs/architecture.md: it imports nothing of uwbcl but `model`, so every layer may use it and
+none of these types drags a computation (or an import cycle) along with it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Callable
+
+import numpy as np
+
+ALGORITHMS = ("nlcs", "bp")
+BACKENDS = ("opencl", "numpy")  # the OpenCL engine, and the float64 numpy reference it is checked against
+AC_MODES = ("exact", "series")  # NLCS azimuth compression: exact reference, or the series of eq. 17
+
+STATUSES = ("ok", "low_confidence", "ambiguous", "prior_conflict", "inconsistent", "too_few_targets")
+TRUSTED_STATUSES = ("ok", "low_confidence")  # a unique, consistent match; the others may be the wrong plates
+# Unique plate correspondence, but the plates disagree: off by centimetres at worst, never by a plate spacing.
+CHAINABLE_STATUSES = (*TRUSTED_STATUSES, "inconsistent")
+
+
+# ----------------------------------------------------------------------------------------------- errors
+class ConfigError(ValueError):
+    """A configuration value (file, key) is wrong; `uwbcl` exits 2 with this message."""
+
+    def __init__(self, path: str | os.PathLike[str] | None, key: str, reason: str) -> None:
+        super().__init__(str(path), key, reason)
+        self.path, self.key, self.reason = path, key, reason
+
+    def __str__(self) -> str:
+        where = f"{self.path}: " if self.path else ""
+        return f"{where}{self.key}: {self.reason}"
+
+
+class BatchError(RuntimeError):
+    """The run cannot start (output directory locked, plotting unavailable); nothing was written."""
+
+
+# ----------------------------------------------------------------------------------------------- settings
+@dataclasses.dataclass(frozen=True)
+class DetectionSettings:
+    relative_floor_db: float = -20.0  # peaks weaker than the strongest by more than this are ignored
+    min_snr_db: float = 12.0  # peak over the median image magnitude (a robust noise/clutter level)
+    separation_m: float = 0.15  # non-maximum suppression: semi-axis of the ellipse along track
+    range_separation_m: float = 0.12  # and in range (beyond the azimuth side-lobes, inside the plate spacing)
+    max_targets: int = 64
+    # CLEAN-like re-refinements of every peak with the other targets' modelled responses removed (0: off)
+    neighbour_cancellation_passes: int = 1
+    neighbour_cancellation_tol_m: float = 1e-5  # stop early once no peak moves more than this
+    neighbour_gain_degree: int = 8  # Legendre degree of a modelled target's gain along the rail (beam pattern)
+
+
+@dataclasses.dataclass(frozen=True)
+class AssociationSettings:
+    tolerance_m: tuple[float, float, float] = (0.05, 0.10, 0.25)  # |P - P' - dP| per axis for an inlier
+    prior_advance_m: tuple[float, float, float] | None = None  # e.g. (web depth, 0, 0)
+    prior_window_m: tuple[float, float, float] = (0.4, 0.3, 0.5)  # half-width around the prior
+    min_targets: int = 1  # fewer matched plates: no estimate ("too_few_targets")
+    min_confident_targets: int = 2  # fewer: the estimate is given but flagged "low_confidence"
+    weighted: bool = True  # generalised least squares with the plates' location covariances, when supplied
+    range_sigma_m: float = 0.003  # per-pass range (and along-track) precision of a plate, for the covariances
+    outlier_chi2: float = 16.27  # chi-square (3 dof, p = 0.001) beyond which a matched plate is rejected
+
+    def for_gap(self, cycles: int) -> AssociationSettings:
+        """The prior for a displacement spanning `cycles` cutting cycles (after a missing or rejected one)."""
+        if self.prior_advance_m is None or cycles == 1:
+            return self
+        return dataclasses.replace(self, prior_advance_m=tuple(cycles * v for v in self.prior_advance_m))
+
+
+@dataclasses.dataclass(frozen=True)
+class ProcessingSettings:
+    algorithm: str = "nlcs"
+    backend: str = "opencl"
+    device: str | None = None  # OpenCL device spec (`uwbcl devices`); None: PYOPENCL_CTX, else GPU first
+    ac_mode: str = "exact"  # NLCS azimuth compression: "exact" reference or "series" (eq. 17)
+    detection: DetectionSettings = dataclasses.field(default_factory=DetectionSettings)
+    association: AssociationSettings = dataclasses.field(default_factory=AssociationSettings)
+
+
+@dataclasses.dataclass(frozen=True)
+class OutputOptions:
+    hdf5: bool = True  # displacements.h5 beside displacements.csv
+    targets: bool = True  # targets.csv
+    plots: bool = False  # time series PNG per rig (needs matplotlib: pip install 'uwbcl[plot]')
+    cycle_images: bool = False  # focused image PNG per pass with the detections marked (refocuses: slow)
+
+
+@dataclasses.dataclass(frozen=True)
+class BatchOptions:
+    jobs: int | None = None  # None: all cores for numpy, 2 for the OpenCL backend (default_jobs)
+    cache: bool = True
+    progress: bool | None = None  # None: a progress bar when stderr is a terminal
+    heights_m: tuple[float, ...] | None = None  # expected rail heights (None: any)
+    height_tolerance_m: float = 0.005
+    max_bridge_cycles: int = 3
+    outputs: OutputOptions = OutputOptions()
+    on_pass_done: Callable[[int], None] | None = None  # called with the count of passes detected so far
+
+
+# ----------------------------------------------------------------------------------------------- results
+@dataclasses.dataclass(frozen=True)
+class Detection:
+    """One point target seen in one pass, in that pass's closest-approach coordinates."""
+
+    x_m: float  # along-track position X_r of the target
+    rc_m: float  # closest-approach slant range from the rail
+    t_n_s: float  # P1 azimuth time (crossing of the squinted beam centre)
+    r0_m: float  # P1 range at t_n
+    image_azimuth_m: float  # where the peak sits in the image (u = v t_f), before geometry correction
+    image_range_m: float  # r_LRCM of the peak
+    amplitude: float
+    snr_db: float
+
+
+@dataclasses.dataclass(frozen=True)
+class Located:
+    position_m: np.ndarray  # (3,) radar frame
+    residual_m: float  # RMS misfit of the per-pass (x, R_c) to the located point
+    n_passes: int
+    amplitude: float
+
+
+@dataclasses.dataclass(frozen=True)
+class Displacement:
+    advance_m: np.ndarray  # (3,) Delta P = (retreat, creep, vertical)
+    spread_m: np.ndarray  # (3,) standard deviation over the inlier plates
+    n_targets: int
+    residual_m: float  # RMS of the inlier differences about the estimate
+    status: str  # one of STATUSES
+    pairs: list[tuple[int, int]]  # (index before, index after) of the inlier plates
+    runner_up_targets: int = 0  # plates explained by the best competing translation (0: none)
+
+    @property
+    def retreat_m(self) -> float:
+        return float(self.advance_m[0])
+
+    @property
+    def creep_m(self) -> float:
+        return float(self.advance_m[1])
+
+    @property
+    def vertical_m(self) -> float:
+        return float(self.advance_m[2])
+
+
+@dataclasses.dataclass
+class CycleResult:
+    rig_id: str
+    cycle: int
+    start_time: str
+    heights_m: tuple[float, ...]
+    plates: list[Located]
+
+
+@dataclasses.dataclass
+class SeriesRow:
+    """One displacement: cycle `cycle.cycle` of a rig measured from its earlier cycle `reference.cycle`."""
+
+    cycle: CycleResult
+    reference: CycleResult
+    displacement: Displacement
+    cumulative_m: np.ndarray  # (3,) rig position relative to the chain's first cycle; NaN: not in the chain
+    chain: int = 0  # 0, then +1 each time the chain of trusted matches had to start again
+
+
+@dataclasses.dataclass(frozen=True)
+class Problem:
+    file: str  # relative to the input directory ("; "-separated when several files share the problem)
+    kind: str
+    reason: str
+
+
+@dataclasses.dataclass(frozen=True)
+class PassRecord:
+    """What one archive contributes: its identity, the parameters a cycle must agree on, its detections."""
+
+    file: str  # relative to the input directory, POSIX separators
+    sha256: str
+    rig_id: str
+    cycle: int
+    height_m: float
+    pass_id: str
+    pass_start_time: str
+    parameters: dict
+    detections: tuple[Detection, ...]
+
+
+@dataclasses.dataclass
+class BatchReport:
+    rows: list[dict]
+    errors: list[Problem]
+    cycles: list[CycleResult]
+    series: list[SeriesRow]
+    n_passes: int
+    n_detected: int  # passes focused in this run
+    n_cached: int = 0  # passes whose detections came from the cache
