@@ -75,11 +75,6 @@ def location_covariance_m2(position_m, heights_m, range_sigma_m: float, along_si
                      [0.0, sign * cov_wz[0, 1], cov_wz[1, 1]]])
 
 
-def location_sigma_m(position_m, heights_m, range_sigma_m: float) -> np.ndarray:
-    """(x, y, z) standard deviations of location_covariance_m2."""
-    return np.sqrt(np.diag(location_covariance_m2(position_m, heights_m, range_sigma_m)))
-
-
 def gls_advance(d: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Generalised least squares of a common translation from differences d_i (n, 3) with covariances (n, 3, 3).
 

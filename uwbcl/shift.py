@@ -35,7 +35,7 @@ from . import archive
 from . import geometry as geo
 from .atomic import csv_text, write_text_atomic
 from .model import SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters, ScanPass
-from .simulate import rail_motion, simulate_echo
+from .simulate import rail_motion, seen_ranges_m, simulate_echo
 from .utc import parse_utc
 
 SHIFT_START = dt.datetime(2026, 11, 2, 6, 0, tzinfo=dt.timezone.utc)
@@ -194,21 +194,6 @@ def _x_max(cfg: ShiftConfig, n_cycles: int) -> float:
     return 1.0 * n_cycles + 12.0  # the rig advances at most 1 m per cycle; the beam reaches < 8 m ahead
 
 
-def _seen_ranges(positions_m: np.ndarray, targets_radar_m: np.ndarray, height_m: float, angle_deg: float,
-                 cfg: ShiftConfig) -> np.ndarray:
-    """(min, max) range of each target over the pulses whose beam sees it; NaN for targets never seen."""
-    out = np.full((len(targets_radar_m), 2), np.nan)
-    for i, t in enumerate(targets_radar_m):
-        psi = geo.horizontal_look_angle_rad(positions_m, t, -1)
-        gain = geo.two_way_beam_gain(psi, math.radians(angle_deg), cfg.radar.antenna_aperture_m,
-                                     cfg.radar.wavelength_m)
-        seen = gain > 1e-3
-        if seen.any():
-            r = geo.range_history_m(positions_m[seen], t, height_m)
-            out[i] = r.min(), r.max()
-    return out
-
-
 def simulate_gated_pass(cfg: ShiftConfig, geometry: PassGeometry, targets_radar_m: np.ndarray,
                         amplitudes: np.ndarray, rng: np.random.Generator, *, direction: int, rig: str,
                         cycle: int, start_time: str) -> ScanPass:
@@ -222,7 +207,8 @@ def simulate_gated_pass(cfg: ShiftConfig, geometry: PassGeometry, targets_radar_
     n_intervals = 2 * round(0.5 * cfg.aperture_length_m / cfg.speed_m_s * prf)
     start = -direction * 0.5 * n_intervals * cfg.speed_m_s / prf
     times, positions = rail_motion(n_intervals + 1, prf, cfg.speed_m_s, start, cfg.speed_jitter, rng, direction)
-    ranges = _seen_ranges(positions, targets_radar_m, geometry.height_m, geometry.rotation_table_angle_deg, cfg)
+    ranges = seen_ranges_m(radar, positions, targets_radar_m, geometry.height_m,
+                           math.radians(geometry.rotation_table_angle_deg), -1)
     seen = np.isfinite(ranges[:, 0])
     r_lo = np.nanmin(ranges[:, 0]) - cfg.range_margin_m
     r_hi = r_lo + cfg.range_samples * radar.range_bin_m - cfg.range_margin_m

@@ -45,17 +45,37 @@ def pulse_envelope(t_s, sigma_s: float) -> np.ndarray:
     return np.exp(-0.5 * (np.asarray(t_s) / sigma_s) ** 2)
 
 
+BEAM_SEEN_GAIN = 1e-3  # two-way beam gain (-60 dB) above which a pulse counts as seeing a target
+
+
+def gate_samples(r_lo_m: float, r_hi_m: float, range_bin_m: float, power_of_two: bool = True) -> int:
+    """Samples per pulse of a range gate from r_lo_m to r_hi_m (rounded up to a power of two by default)."""
+    n = math.ceil((r_hi_m - r_lo_m) / range_bin_m)
+    return 1 << (n - 1).bit_length() if power_of_two else n
+
+
+def seen_ranges_m(radar: RadarParameters, positions_m, targets_m, height_m: float, table_angle_rad: float,
+                  boresight_y_sign: int) -> np.ndarray:
+    """(n_targets, 2) min and max range of each target over the pulses whose beam sees it (gain above
+    BEAM_SEEN_GAIN); NaN for a target no pulse sees. positions_m (n_pulses,) along the rail, targets_m (n, 3)."""
+    out = np.full((len(targets_m), 2), np.nan)
+    for i, t in enumerate(targets_m):
+        psi = geo.horizontal_look_angle_rad(positions_m, t, boresight_y_sign)
+        seen = geo.two_way_beam_gain(psi, table_angle_rad, radar.antenna_aperture_m, radar.wavelength_m) > BEAM_SEEN_GAIN
+        if seen.any():
+            r = geo.range_history_m(positions_m[seen], t, height_m)
+            out[i] = r.min(), r.max()
+    return out
+
+
 def range_window(radar: RadarParameters, positions_m, targets_m, height_m: float,
                  margin_m: float = 1.0, power_of_two: bool = True) -> tuple[float, int]:
     """(range_window_start_s, samples_per_pulse) covering every target over the aperture +- margin."""
     ranges = np.concatenate([geo.range_history_m(positions_m, t, height_m) for t in targets_m])
     r_lo = max(0.0, ranges.min() - margin_m)
     r_hi = ranges.max() + margin_m
-    n = math.ceil((r_hi - r_lo) / radar.range_bin_m)
-    if power_of_two:
-        n = 1 << (n - 1).bit_length()
     t0 = 2.0 * r_lo / SPEED_OF_LIGHT_M_S
-    return t0, n
+    return t0, gate_samples(r_lo, r_hi, radar.range_bin_m, power_of_two)
 
 
 def simulate_echo(radar: RadarParameters, geometry: PassGeometry, positions_m, targets_m, amplitudes,

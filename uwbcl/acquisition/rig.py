@@ -14,14 +14,12 @@ height and rotation-table angle the client commanded, so the client's steering d
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 
-from .. import geometry as geo
 from ..model import SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters
 from ..scenarios import SCENARIOS, Scenario
-from ..simulate import rail_motion, simulate_echo
+from ..simulate import gate_samples, rail_motion, seen_ranges_m, simulate_echo
 
 _PLATES, _CYCLE, _PASS = 1, 2, 3  # purposes in the seed sequences
 
@@ -139,21 +137,14 @@ class Campaign:
 
     def _range_gate(self, positions_m, targets_m, geometry: PassGeometry) -> tuple[float, int]:
         """Gate from the nearest plate in the beam less the margin; picosecond-exact, as the register holds it."""
-        ranges = []
-        for t in targets_m:
-            psi = geo.horizontal_look_angle_rad(positions_m, t, geometry.boresight_y_sign)
-            gain = geo.two_way_beam_gain(psi, geometry.rotation_table_angle_rad, self.radar.antenna_aperture_m,
-                                         self.radar.wavelength_m)
-            if np.any(gain > 1e-3):
-                ranges.append(geo.range_history_m(positions_m[gain > 1e-3], t, geometry.height_m))
-        if ranges:
-            r = np.concatenate(ranges)
-            r_lo, r_hi = max(0.0, r.min() - self.config.range_margin_m), r.max() + self.config.range_margin_m
+        ranges = seen_ranges_m(self.radar, positions_m, targets_m, geometry.height_m,
+                               geometry.rotation_table_angle_rad, geometry.boresight_y_sign)
+        if np.isfinite(ranges).any():
+            r_lo = max(0.0, np.nanmin(ranges[:, 0]) - self.config.range_margin_m)
+            r_hi = np.nanmax(ranges[:, 1]) + self.config.range_margin_m
         else:  # nothing in the beam: look at the rib anyway
             r_lo, r_hi = 1.0, 1.0 + 128 * self.radar.range_bin_m
-        if self.config.range_samples:
-            n = int(self.config.range_samples)
-        else:
-            n = 1 << (math.ceil((r_hi - r_lo) / self.radar.range_bin_m) - 1).bit_length()
+        n = int(self.config.range_samples) if self.config.range_samples else gate_samples(r_lo, r_hi,
+                                                                                          self.radar.range_bin_m)
         t0 = round(2.0 * r_lo / SPEED_OF_LIGHT_M_S * 1e12) / 1e12
         return t0, n
