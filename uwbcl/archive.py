@@ -4,6 +4,12 @@
 reader never sees a half-written file. ``read_pass`` validates everything and reports each problem as an
 ``ArchiveError`` naming the file and the HDF5 field ("scan.h5: /radar@sample_rate_hz: missing").
 ``read_pass_header`` reads metadata only, for cheap directory discovery.
+
+The reader is a security boundary (archives come from rigs, USB sticks and network shares): it opens regular
+files only, reads nothing but what the file itself holds (soft and external links, virtual datasets and
+external raw storage are refused by name), accepts only the standard lossless filters, and checks every
+declared shape against `ReadLimits` before any value is read, so a small file cannot declare its way to
+gigabytes of memory (a compression bomb decompresses to at most its declared, checked size).
 """
 
 from __future__ import annotations
@@ -12,6 +18,7 @@ import contextlib
 import errno
 import math
 import os
+import stat
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -21,6 +28,7 @@ import numpy as np
 
 from uwbcl.atomic import atomic_path
 from uwbcl.model import PassGeometry, RadarParameters, ScanPass
+from uwbcl.records import ReadLimits
 from uwbcl.utc import parse_utc
 
 FORMAT_NAME = "uwbcl-scan"
@@ -35,6 +43,10 @@ _LIBVER = ("v110", "v110")  # the h5py wheel bundles HDF5 2.0; "latest" would lo
 _GZIP_LEVEL = 4
 _CHUNK_TARGET_BYTES = 1 << 20
 _UNITS = {"/pulses/time_s": "s", "/pulses/position_m": "m", "/echo": "arb"}
+# HDF5 filter id -> name: the standard lossless filters a reader may decode. Anything else (a plugin, szip,
+# a filter that needs code we do not ship) is refused rather than handed to a decoder we did not choose.
+ALLOWED_FILTERS = {1: "gzip", 2: "shuffle", 3: "fletcher32", 32000: "lzf"}
+_MAX_ATTRIBUTE_ELEMENTS = 16  # the largest attribute of the format has 3; anything bigger is not ours
 
 _ROOT_STR = ("format", "rig_id", "pass_id", "pass_start_time", "created_by")
 _RADAR_FLOAT = (
@@ -209,20 +221,24 @@ def _write_dataset(f: h5py.File, name: str, data: np.ndarray) -> h5py.Dataset:
 # ----------------------------------------------------------------------------------------------- reading
 
 
-def read_pass_header(path: str | os.PathLike[str]) -> dict[str, Any]:
+def read_pass_header(path: str | os.PathLike[str], limits: ReadLimits = ReadLimits()) -> dict[str, Any]:
     """Validated metadata of a scan file without reading any dataset's values.
 
     Keys: the root, /radar and /geometry attributes under their own names (``format`` excepted), plus
     ``n_pulses``, ``echo_layout``, ``echo_scale`` and ``path``. Values are plain Python types.
     """
     with _open(path) as f:
-        return _read_header(f, path)
+        return _read_header(f, path, limits)
 
 
-def read_pass(path: str | os.PathLike[str]) -> ScanPass:
-    """Read and fully validate one scan file; the echo comes back as complex128, ``source`` = str(path)."""
+def read_pass(path: str | os.PathLike[str], limits: ReadLimits = ReadLimits()) -> ScanPass:
+    """Read and fully validate one scan file; the echo comes back as complex128, ``source`` = str(path).
+
+    Raises ArchiveError (naming the file, the object and the reason) for anything the format does not allow or
+    `limits` do not admit, OSError when the file cannot be opened at all.
+    """
     with _open(path) as f:
-        h = _read_header(f, path)
+        h = _read_header(f, path, limits)
         time_s = _read_values(f, path, "/pulses/time_s").astype(np.float64)
         position_m = _read_values(f, path, "/pulses/position_m").astype(np.float64)
         raw = _read_values(f, path, "/echo")
@@ -254,12 +270,24 @@ def read_pass(path: str | os.PathLike[str]) -> ScanPass:
     )
 
 
+def check_regular_file(path: str | os.PathLike[str]) -> None:
+    """ArchiveError unless `path` (after symlinks) is a regular file: a FIFO would block the reader forever, a
+    device could stream without end, a directory is not an archive."""
+    mode = os.stat(path).st_mode
+    if not stat.S_ISREG(mode):
+        kind = ("a FIFO" if stat.S_ISFIFO(mode) else "a directory" if stat.S_ISDIR(mode) else
+                "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "a socket" if stat.S_ISSOCK(mode)
+                else "not a regular file")
+        raise ArchiveError(path, "/", f"not a regular file ({kind}); only regular files are read")
+
+
 @contextlib.contextmanager
 def _open(path: str | os.PathLike[str]) -> Iterator[h5py.File]:
     # A missing or unreadable file is the caller's problem, not the file's: those OSErrors pass through.
     # Everything else h5py raises means "not an HDF5 file" or a damaged one.
+    check_regular_file(path)
     try:
-        f = h5py.File(path, "r")
+        f = h5py.File(path, "r", locking=False)
     except (FileNotFoundError, PermissionError, IsADirectoryError):
         raise
     except OSError as e:
@@ -281,7 +309,7 @@ def _open(path: str | os.PathLike[str]) -> Iterator[h5py.File]:
         raise ArchiveError(path, "/", f"corrupt HDF5 structure: {e}") from e
 
 
-def _read_header(f: h5py.File, path: Any) -> dict[str, Any]:
+def _read_header(f: h5py.File, path: Any, limits: ReadLimits = ReadLimits()) -> dict[str, Any]:
     # Identify the file before anything else, so a foreign or newer file gets one clear message.
     fmt = _str_attr(f, "format", path)
     if fmt != FORMAT_NAME:
@@ -315,6 +343,7 @@ def _read_header(f: h5py.File, path: Any) -> dict[str, Any]:
     time_ds = _dataset(f, "/pulses/time_s", path)
     position_ds = _dataset(f, "/pulses/position_m", path)
     echo_ds = _dataset(f, "/echo", path)
+    _check_size(path, echo_ds, time_ds, position_ds, limits)
     layout = _str_attr(echo_ds, "layout", path)
     h["echo_layout"] = layout
     h["echo_scale"] = _float_attr(echo_ds, "scale", path)
@@ -339,6 +368,43 @@ def _read_header(f: h5py.File, path: Any) -> dict[str, Any]:
     h.pop("format")
     h["path"] = str(path)
     return h
+
+
+def _check_size(path: Any, echo: h5py.Dataset, time_ds: h5py.Dataset, position_ds: h5py.Dataset,
+                limits: ReadLimits) -> None:
+    """Declared sizes against the limits, before a single value is read or decompressed."""
+    if echo.ndim < 2:
+        raise ArchiveError(path, "/echo", f"expected 2 or 3 dimensions, got shape {echo.shape}")
+    n_pulses, n_samples = int(echo.shape[0]), int(echo.shape[1])
+    if n_pulses > limits.max_pulses:
+        raise ArchiveError(path, "/echo", f"{n_pulses} pulses exceed the limit of {limits.max_pulses} "
+                           "(limits.max_pulses)")
+    if n_samples > limits.max_samples_per_pulse:
+        raise ArchiveError(path, "/echo", f"{n_samples} samples per pulse exceed the limit of "
+                           f"{limits.max_samples_per_pulse} (limits.max_samples_per_pulse)")
+    if n_pulses * n_samples > limits.max_echo_samples:
+        raise ArchiveError(path, "/echo", f"{n_pulses} x {n_samples} = {n_pulses * n_samples} samples exceed the "
+                           f"limit of {limits.max_echo_samples} (limits.max_echo_samples)")
+    for ds in (time_ds, position_ds):
+        if ds.size > limits.max_pulses:
+            raise ArchiveError(path, ds.name, f"{ds.size} values exceed the limit of {limits.max_pulses} "
+                               "(limits.max_pulses)")
+
+
+def _check_storage(path: Any, ds: h5py.Dataset) -> None:
+    """Data stored in this file, decoded by a standard lossless filter: nothing else is read."""
+    if ds.is_virtual:
+        raise ArchiveError(path, ds.name, "a virtual dataset (its data live in other files); not read")
+    dcpl = ds.id.get_create_plist()
+    if dcpl.get_external_count():
+        name = dcpl.get_external(0)[0]
+        raise ArchiveError(path, ds.name, f"external raw storage in {name!r} (data outside the file); not read")
+    for i in range(dcpl.get_nfilters()):
+        code, _, _, name = dcpl.get_filter(i)
+        if code not in ALLOWED_FILTERS:
+            label = name.decode(errors="replace") if isinstance(name, bytes) else str(name)
+            raise ArchiveError(path, ds.name, f"HDF5 filter {code} ({label}) is not one of the allowed "
+                               f"lossless filters ({', '.join(ALLOWED_FILTERS.values())})")
 
 
 def _check_echo_storage(path: Any, ds: h5py.Dataset, layout: str) -> None:
@@ -444,17 +510,44 @@ def _check_echo_finite(path: Any, echo: np.ndarray) -> None:
 # ----------------------------------------------------------------------------------------------- attributes
 
 
+def _resolve(f: h5py.File, name: str, path: Any):
+    """The object at `name`, reached through hard links only: a soft link (which may loop or point anywhere in
+    the file) or an external link (another file, anywhere on the machine) is refused by name."""
+    obj, here = f, ""
+    for part in name.strip("/").split("/"):
+        here = f"{here}/{part}"
+        try:
+            link = obj.get(part, getlink=True) if isinstance(obj, h5py.Group) else None
+        except (OSError, RuntimeError, KeyError, ValueError) as e:
+            raise ArchiveError(path, here, f"unreadable link: {e}") from e
+        if link is None:
+            return None
+        if isinstance(link, h5py.ExternalLink):
+            raise ArchiveError(path, here, f"an external link to {link.filename!r}:{link.path!r}; only objects "
+                               "stored in the file itself are read")
+        if isinstance(link, h5py.SoftLink):
+            raise ArchiveError(path, here, f"a soft link to {link.path!r}; only hard links are read")
+        if not isinstance(link, h5py.HardLink):
+            raise ArchiveError(path, here, f"an unsupported link ({type(link).__name__})")
+        try:
+            obj = obj[part]
+        except (OSError, RuntimeError, KeyError, ValueError) as e:
+            raise ArchiveError(path, here, f"unreadable object: {e}") from e
+    return obj
+
+
 def _group(f: h5py.File, name: str, path: Any) -> h5py.Group:
-    g = f.get(name)
+    g = _resolve(f, name, path)
     if not isinstance(g, h5py.Group):
         raise ArchiveError(path, f"/{name}", "missing" if g is None else "not a group")
     return g
 
 
 def _dataset(f: h5py.File, name: str, path: Any) -> h5py.Dataset:
-    ds = f.get(name)
+    ds = _resolve(f, name, path)
     if not isinstance(ds, h5py.Dataset):
         raise ArchiveError(path, name, "missing" if ds is None else "not a dataset")
+    _check_storage(path, ds)
     units = _str_attr(ds, "units", path)
     if units != _UNITS[name]:
         raise ArchiveError(path, f"{name}@units", f"expected {_UNITS[name]!r}, got {units!r}")
@@ -466,6 +559,9 @@ def _raw_attr(obj: h5py.HLObject, name: str, path: Any) -> Any:
     if name not in obj.attrs:
         raise ArchiveError(path, field, "missing")
     try:
+        n_elements = obj.attrs.get_id(name).shape
+        if n_elements and math.prod(n_elements) > _MAX_ATTRIBUTE_ELEMENTS:
+            raise ArchiveError(path, field, f"shape {n_elements} is far larger than any attribute of the format")
         return obj.attrs[name]
     except (OSError, TypeError, ValueError) as e:  # e.g. a datatype h5py cannot map to numpy
         raise ArchiveError(path, field, f"unreadable: {e}") from e

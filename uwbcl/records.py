@@ -82,6 +82,18 @@ class ProcessingSettings:
 
 
 @dataclasses.dataclass(frozen=True)
+class ReadLimits:
+    """What one archive may declare before anything is read (docs/configuration.md [limits]): a pass larger than
+    this is refused by name instead of exhausting memory. The defaults admit 8x the largest rail the method
+    needs (about 8,000 pulses of 4,096 samples) and keep one pass under ~0.5 GB as complex128."""
+
+    max_pulses: int = 1 << 20
+    max_samples_per_pulse: int = 1 << 16
+    max_echo_samples: int = 1 << 25  # pulses x samples
+    max_focus_cells: int = 1 << 26  # cells of a pass's focus grid (azimuth rows x range bins), checked before focusing
+
+
+@dataclasses.dataclass(frozen=True)
 class OutputOptions:
     hdf5: bool = True  # displacements.h5 beside displacements.csv
     targets: bool = True  # targets.csv

@@ -1,0 +1,197 @@
+"""The archive reader is a security boundary: it reads only what the file itself holds, only regular files,
+and never more than the limits admit (issue: hostile and broken input cannot hurt the nightly batch)."""
+
+from __future__ import annotations
+
+import os
+import resource
+import threading
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from uwbcl.archive import ArchiveError, read_pass, read_pass_header, write_pass
+from uwbcl.records import ReadLimits
+
+from test_archive import make_scan
+
+
+@pytest.fixture
+def good(tmp_path: Path) -> Path:
+    return write_pass(tmp_path / "tree" / "good.h5", make_scan())
+
+
+def copy_with(src: Path, dst: Path, change) -> Path:
+    dst.write_bytes(src.read_bytes())
+    with h5py.File(dst, "r+") as f:
+        change(f)
+    return dst
+
+
+def refused(path: Path, field: str, words: str) -> ArchiveError:
+    with pytest.raises(ArchiveError) as info:
+        read_pass(path)
+    assert info.value.field == field and words in info.value.reason, str(info.value)
+    assert str(path) in str(info.value)
+    return info.value
+
+
+def test_an_external_link_to_a_file_outside_the_tree_is_refused_by_name(tmp_path, good):
+    outside = write_pass(tmp_path / "outside.h5", make_scan(seed=5))
+
+    def link(f):
+        del f["echo"]
+        f["echo"] = h5py.ExternalLink(str(outside), "/echo")
+
+    bad = copy_with(good, good.with_name("ext.h5"), link)
+    refused(bad, "/echo", "external link")
+
+
+def test_an_external_link_to_etc_passwd_is_refused_without_opening_it(good):
+    def link(f):
+        del f["radar"]
+        f["radar"] = h5py.ExternalLink("/etc/passwd", "/x")
+
+    refused(copy_with(good, good.with_name("passwd.h5"), link), "/radar", "external link")
+
+
+def test_a_virtual_dataset_is_refused(tmp_path, good):
+    outside = write_pass(tmp_path / "outside.h5", make_scan(seed=5))
+
+    def virtual(f):
+        shape = f["pulses/time_s"].shape
+        layout = h5py.VirtualLayout(shape=shape, dtype="f8")
+        layout[:] = h5py.VirtualSource(str(outside), "/pulses/time_s", shape=shape)
+        del f["pulses/time_s"]
+        ds = f["pulses"].create_virtual_dataset("time_s", layout)
+        ds.attrs["units"] = "s"
+
+    refused(copy_with(good, good.with_name("vds.h5"), virtual), "/pulses/time_s", "virtual dataset")
+
+
+def test_external_raw_storage_is_refused(tmp_path, good):
+    raw = tmp_path / "raw.bin"
+    raw.write_bytes(np.arange(21, dtype="<f8").tobytes())
+
+    def external(f):
+        del f["pulses/time_s"]
+        ds = f["pulses"].create_dataset("time_s", shape=(21,), dtype="<f8", external=[(str(raw), 0, 21 * 8)])
+        ds.attrs["units"] = "s"
+
+    refused(copy_with(good, good.with_name("extraw.h5"), external), "/pulses/time_s", "external raw storage")
+
+
+def test_a_soft_link_loop_is_refused_naming_the_object(good):
+    def loop(f):
+        del f["echo"]
+        f["echo"] = h5py.SoftLink("/echo")
+
+    refused(copy_with(good, good.with_name("loop.h5"), loop), "/echo", "soft link")
+
+
+def test_a_dataset_declaring_a_trillion_samples_is_refused_before_any_read(good):
+    def huge(f):
+        del f["echo"]
+        ds = f.create_dataset("echo", shape=(1_000_000, 1_000_000), dtype="c8", chunks=(64, 64))
+        ds.attrs["units"], ds.attrs["layout"], ds.attrs["scale"] = "arb", "complex", 1.0
+
+    bad = copy_with(good, good.with_name("huge.h5"), huge)
+    assert bad.stat().st_size < 1 << 20
+    refused(bad, "/echo", "exceed the limit")
+    with pytest.raises(ArchiveError, match="exceed the limit"):
+        read_pass_header(bad)
+
+
+def test_a_compression_bomb_within_the_limits_is_refused_by_a_lower_limit_and_read_within_bounded_memory(good):
+    def bomb(f):
+        del f["echo"]
+        ds = f.create_dataset("echo", shape=(21, 4_000_000), dtype="c8", chunks=(1, 1 << 18),
+                              compression="gzip", compression_opts=9)
+        ds[...] = 0  # 670 MB of zeros in a few hundred kB
+        ds.attrs["units"], ds.attrs["layout"], ds.attrs["scale"] = "arb", "complex", 1.0
+        f["radar"].attrs["samples_per_pulse"] = np.int64(4_000_000)
+
+    bad = copy_with(good, good.with_name("bomb.h5"), bomb)
+    assert bad.stat().st_size < 8 << 20
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    refused(bad, "/echo", "exceed the limit")
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 64 << 10  # kB: nothing decompressed
+
+
+def test_filters_other_than_the_standard_lossless_ones_are_refused(good):
+    def scaleoffset(f):
+        data = f["pulses/position_m"][()]
+        del f["pulses/position_m"]
+        ds = f["pulses"].create_dataset("position_m", data=data, scaleoffset=6, chunks=(21,))
+        ds.attrs["units"] = "m"
+
+    refused(copy_with(good, good.with_name("lossy.h5"), scaleoffset), "/pulses/position_m", "not one of the allowed")
+
+
+def test_lzf_and_shuffle_are_accepted(good):
+    def lzf(f):
+        data = f["pulses/position_m"][()]
+        del f["pulses/position_m"]
+        ds = f["pulses"].create_dataset("position_m", data=data, compression="lzf", shuffle=True, chunks=(21,))
+        ds.attrs["units"] = "m"
+
+    read_pass(copy_with(good, good.with_name("lzf.h5"), lzf))
+
+
+def test_a_huge_attribute_is_refused_without_reading_it(good):
+    def attr(f):
+        del f["geometry"].attrs["reference_point_m"]
+        f["geometry"].attrs.create("reference_point_m", np.zeros(100_000))
+
+    refused(copy_with(good, good.with_name("attr.h5"), attr), "/geometry@reference_point_m", "far larger")
+
+
+def test_a_fifo_named_like_an_archive_is_refused_without_blocking(tmp_path):
+    fifo = tmp_path / "x.h5"
+    os.mkfifo(fifo)
+    box = {}
+
+    def read():
+        try:
+            read_pass(fifo)
+        except ArchiveError as e:
+            box["error"] = e
+
+    worker = threading.Thread(target=read, daemon=True)
+    worker.start()
+    worker.join(10.0)
+    assert not worker.is_alive(), "read_pass blocked on a FIFO"
+    assert "FIFO" in box["error"].reason
+
+
+def test_a_directory_named_like_an_archive_is_refused(tmp_path):
+    (tmp_path / "d.h5").mkdir()
+    with pytest.raises(ArchiveError, match="a directory"):
+        read_pass(tmp_path / "d.h5")
+
+
+def test_a_padded_compound_echo_is_refused_naming_the_dataset(good):
+    def padded(f):
+        data = f["echo"][()]
+        del f["echo"]
+        dt = np.dtype({"names": ["r", "i"], "formats": ["<f4", "<f4"], "offsets": [0, 8], "itemsize": 16})
+        arr = np.zeros(data.shape, dtype=dt)
+        arr["r"], arr["i"] = data.real, data.imag
+        ds = f.create_dataset("echo", data=arr)
+        ds.attrs["units"], ds.attrs["layout"], ds.attrs["scale"] = "arb", "complex", 1.0
+
+    bad = copy_with(good, good.with_name("padded.h5"), padded)
+    try:
+        scan = read_pass(bad)
+    except ArchiveError as e:
+        assert e.field == "/echo"
+    else:  # h5py maps it to complex: then the values must be the stored ones, not garbage
+        np.testing.assert_allclose(scan.echo, read_pass(good).echo, rtol=1e-6)
+
+
+def test_tighter_limits_refuse_a_pass_the_defaults_accept(good):
+    read_pass(good)
+    with pytest.raises(ArchiveError, match="max_echo_samples"):
+        read_pass(good, ReadLimits(max_echo_samples=100))
