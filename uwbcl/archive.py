@@ -15,6 +15,7 @@ gigabytes of memory (a compression bomb decompresses to at most its declared, ch
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import errno
 import math
 import os
@@ -26,7 +27,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from uwbcl.atomic import atomic_path
+from uwbcl.atomic import PARTIAL_SUFFIX, atomic_path
 from uwbcl.model import PassGeometry, RadarParameters, ScanPass
 from uwbcl.records import ReadLimits
 from uwbcl.utc import parse_utc
@@ -92,7 +93,125 @@ def default_relative_path(scan: ScanPass) -> Path:
 
 def find_pass_files(root: str | os.PathLike[str]) -> list[Path]:
     """Finished scan files under ``root``, sorted; hidden files (in-progress ``.partial`` writes) are skipped."""
-    return sorted(p for p in Path(root).rglob(f"*{FILE_SUFFIX}") if not p.name.startswith("."))
+    return walk_pass_files(root).files
+
+
+def display_name(text: str) -> str:
+    """A file name as text that can always be written (UTF-8 CSV, logs): undecodable bytes as \\xNN escapes."""
+    return os.fsencode(text).decode("utf-8", "backslashreplace")
+
+
+@dataclasses.dataclass
+class TreeWalk:
+    """What `walk_pass_files` found: archives to read, and findings that are not archives."""
+
+    files: list[Path]
+    problems: list[tuple[str, str, str]]  # (path relative to the root, kind, reason): skipped, reported
+    warnings: list[tuple[str, str, str]]  # accepted, but worth a word in the log
+
+
+def walk_pass_files(root: str | os.PathLike[str], *, skip: tuple[Path, ...] = (),
+                    follow_symlinks: bool = False) -> TreeWalk:
+    """Every finished archive under `root`, without ever raising for what the tree holds.
+
+    Hidden names are skipped (in-progress `.partial` writes silently, other hidden archives and directories
+    reported); undecodable names, unreadable directories, symlink loops, broken links and non-regular files
+    are reported; directories in `skip` (the output directory) are not entered. A symlink to an archive inside
+    the tree is read (with a warning); one that leaves the tree, and a symlinked directory, only with
+    follow_symlinks (then loops are cut by device and inode).
+    """
+    root = Path(root)
+    real_root = os.path.realpath(root)
+    skip_ids = set()
+    for s in skip:
+        with contextlib.suppress(OSError):
+            st = os.stat(s)
+            skip_ids.add((st.st_dev, st.st_ino))
+    walk = TreeWalk([], [], [])
+    seen_dirs: set[tuple[int, int]] = set()
+
+    def rel(p: str) -> str:
+        return display_name(os.path.relpath(p, root).replace(os.sep, "/"))
+
+    def report(p: str, kind: str, reason: str) -> None:
+        walk.problems.append((rel(p), kind, reason))
+
+    stack = [str(root)]
+    while stack:
+        directory = stack.pop()
+        try:
+            st = os.stat(directory)
+            if (st.st_dev, st.st_ino) in seen_dirs or (st.st_dev, st.st_ino) in skip_ids:
+                continue
+            seen_dirs.add((st.st_dev, st.st_ino))
+            with os.scandir(directory) as it:
+                entries = sorted(it, key=lambda e: e.name)
+        except OSError as e:
+            report(directory, "unreadable_directory", f"cannot list: {e.strerror or e}")
+            continue
+        for entry in entries:
+            name = entry.name
+            try:
+                name.encode("utf-8")
+            except UnicodeEncodeError:
+                report(entry.path, "undecodable_name", "the name is not valid UTF-8; rename it to be read")
+                continue
+            if name.startswith("."):
+                if name.endswith(PARTIAL_SUFFIX):
+                    continue  # a write in progress (or a dead one): never an archive
+                if _is_dir(entry):
+                    report(entry.path, "hidden_directory", "hidden directories are not searched")
+                elif name.endswith(FILE_SUFFIX):
+                    report(entry.path, "hidden_file", "hidden files are not read")
+                continue
+            if entry.is_symlink():
+                _walk_link(entry, real_root, follow_symlinks, walk, stack, report, rel)
+            elif _is_dir(entry):
+                stack.append(entry.path)
+            elif name.endswith(FILE_SUFFIX):
+                if entry.is_file(follow_symlinks=False):
+                    walk.files.append(Path(entry.path))
+                else:
+                    report(entry.path, "not_a_regular_file", "a FIFO, device or socket, not an archive")
+    walk.files.sort()
+    walk.problems.sort()
+    walk.warnings.sort()
+    return walk
+
+
+def _is_dir(entry: os.DirEntry) -> bool:
+    try:
+        return entry.is_dir(follow_symlinks=False)
+    except OSError:
+        return False
+
+
+def _walk_link(entry: os.DirEntry, real_root: str, follow: bool, walk: TreeWalk, stack: list, report, rel) -> None:
+    try:
+        st = os.stat(entry.path)  # follows the link
+    except OSError as e:
+        kind = "symlink_loop" if e.errno == errno.ELOOP else "broken_link"
+        report(entry.path, kind, f"symbolic link: {e.strerror or e}")
+        return
+    target = os.path.realpath(entry.path)
+    inside = os.path.commonpath([target, real_root]) == real_root
+    if stat.S_ISDIR(st.st_mode):
+        if follow:
+            stack.append(entry.path)
+        else:
+            report(entry.path, "directory_link", "a symbolic link to a directory; not followed (--follow-symlinks)")
+        return
+    if not entry.name.endswith(FILE_SUFFIX):
+        return
+    if not stat.S_ISREG(st.st_mode):
+        report(entry.path, "not_a_regular_file", "a link to a FIFO, device or socket, not an archive")
+    elif inside or follow:
+        walk.files.append(Path(entry.path))
+        where = "inside the tree" if inside else "outside the tree (--follow-symlinks)"
+        walk.warnings.append((rel(entry.path), "symlink", f"a symbolic link to {display_name(target)}, {where}"))
+    else:
+        report(entry.path, "outside_link", f"a symbolic link to {display_name(target)}, outside the input "
+                                           "directory; not read (--follow-symlinks)")
 
 
 # ----------------------------------------------------------------------------------------------- writing

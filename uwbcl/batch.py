@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
+import ctypes
 import dataclasses
+import errno
 import fcntl
 import functools
 import hashlib
@@ -22,7 +24,10 @@ import json
 import logging
 import multiprocessing
 import os
+import signal
+import stat
 import sys
+import threading
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -41,6 +46,7 @@ from .records import (
     Problem,
     ProcessingSettings,
 )
+from .utc import utc_seconds
 
 log = logging.getLogger("uwbcl")
 
@@ -53,8 +59,11 @@ PARAMETER_KEYS = ("carrier_frequency_hz", "bandwidth_hz", "sample_rate_hz", "pul
 
 # ----------------------------------------------------------------------------------------------- per pass
 def file_sha256(path: Path) -> str:
+    """SHA-256 of a regular file's bytes (O_NONBLOCK and a type check: a FIFO put in its place never blocks)."""
     h = hashlib.sha256()
-    with path.open("rb") as f:
+    with os.fdopen(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb") as f:
+        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+            raise OSError(errno.EINVAL, "not a regular file")
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
@@ -90,7 +99,7 @@ def detect_file(path: str, settings: ProcessingSettings) -> dict:
     Runs in a worker process, so it returns plain data and never raises for a bad file.
     """
     try:
-        scan = archive.read_pass(path)
+        scan = archive.read_pass(path, settings.limits)
     except archive.ArchiveError as e:
         return {"error": f"{e.field}: {e.reason}", "kind": "invalid_archive"}
     except OSError as e:
@@ -112,18 +121,52 @@ def detect_file(path: str, settings: ProcessingSettings) -> dict:
             "boresight_y_sign": scan.geometry.boresight_y_sign,
         },
     }
-    header["pass_id"] = archive.read_pass_header(path)["pass_id"]
+    try:
+        header["pass_id"] = archive.read_pass_header(path, settings.limits)["pass_id"]
+    except (archive.ArchiveError, OSError) as e:  # the file changed under us
+        return {"error": f"changed while being read: {e}", "kind": "unreadable"}
     return {"header": header, "detections": [dataclasses.asdict(d) for d in detections]}
 
 
 DETECT = detect_file  # the per-pass worker (tests substitute one that crashes)
 
 
-def _record(file: str, sha: str, entry: dict) -> PassRecord:
+_DETECTION_FIELDS = tuple(f.name for f in dataclasses.fields(Detection))
+
+
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _finite(v) -> bool:
+    return _number(v) and bool(np.isfinite(v))
+
+
+def _record(file: str, sha: str, entry) -> PassRecord:
+    """The PassRecord of a worker's or the cache's entry; ValueError naming what is wrong with a damaged one."""
+    if not isinstance(entry, dict) or not isinstance(entry.get("header"), dict):
+        raise ValueError("not a record with a header")
     h = entry["header"]
-    return PassRecord(file=file, sha256=sha, rig_id=h["rig_id"], cycle=h["cycle"], height_m=h["height_m"],
-                      pass_id=h["pass_id"], pass_start_time=h["pass_start_time"], parameters=h["parameters"],
-                      detections=tuple(Detection(**d) for d in entry["detections"]))
+    for key, ok in (("rig_id", lambda v: isinstance(v, str) and v), ("pass_id", lambda v: isinstance(v, str)),
+                    ("pass_start_time", lambda v: isinstance(v, str)), ("height_m", _finite),
+                    ("cycle", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0),
+                    ("parameters", lambda v: isinstance(v, dict) and all(k in v for k in PARAMETER_KEYS))):
+        if not ok(h.get(key)):
+            raise ValueError(f"header.{key}: {h.get(key)!r}")
+    params = h["parameters"]
+    for k in PARAMETER_KEYS:
+        values = params[k] if isinstance(params[k], list) else [params[k]]
+        if not values or not all(_finite(v) for v in values):
+            raise ValueError(f"header.parameters.{k}: {params[k]!r}")
+    dets = entry.get("detections")
+    if not isinstance(dets, list):
+        raise ValueError("detections: not a list")
+    for d in dets:
+        if not isinstance(d, dict) or set(d) != set(_DETECTION_FIELDS) or not all(_number(v) for v in d.values()):
+            raise ValueError(f"detections: {d!r:.80}")
+    return PassRecord(file=file, sha256=sha, rig_id=h["rig_id"], cycle=h["cycle"], height_m=float(h["height_m"]),
+                      pass_id=h["pass_id"], pass_start_time=h["pass_start_time"], parameters=params,
+                      detections=tuple(Detection(**{k: float(d[k]) for k in _DETECTION_FIELDS}) for d in dets))
 
 
 class PassCache:
@@ -132,29 +175,38 @@ class PassCache:
     def __init__(self, out_dir: Path, settings: ProcessingSettings, enabled: bool = True):
         self.dir = out_dir / CACHE_DIR / settings_key(settings)
         self.enabled = enabled
+        self.damaged = 0  # entries found damaged and recomputed in this run
 
-    def get(self, sha: str) -> dict | None:
+    def get(self, file: str, sha: str) -> PassRecord | None:
+        """The cached record of a file's content, or None (absent, or damaged: then recomputed, never trusted)."""
         if not self.enabled:
             return None
         path = self.dir / f"{sha}.json"
         try:
             entry = json.loads(path.read_text())
+            if not isinstance(entry, dict):
+                raise ValueError("not a JSON object")
+            if entry.get("cache_version") != CACHE_VERSION or entry.get("sha256") != sha:
+                return None
+            return _record(file, sha, entry)
         except FileNotFoundError:
             return None
-        except (OSError, ValueError) as e:  # a damaged cache entry is recomputed, never trusted
-            log.warning("ignoring damaged cache entry %s: %s", path, e)
+        except (OSError, ValueError, TypeError, RecursionError) as e:
+            self.damaged += 1
+            log.warning("damaged cache entry %s (%s): recomputing it", path, e)
             return None
-        if entry.get("cache_version") != CACHE_VERSION or entry.get("sha256") != sha:
-            return None
-        return entry
 
     def put(self, sha: str, entry: dict) -> None:
         if not self.enabled:
             return
-        self.dir.mkdir(parents=True, exist_ok=True)
-        # JSON floats round-trip float64 exactly, so a cached pass gives bit-identical results downstream.
-        write_text_atomic(self.dir / f"{sha}.json",
-                          json.dumps({"cache_version": CACHE_VERSION, "sha256": sha, **entry}, sort_keys=True))
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+            # JSON floats round-trip float64 exactly, so a cached pass gives bit-identical results downstream.
+            write_text_atomic(self.dir / f"{sha}.json",
+                              json.dumps({"cache_version": CACHE_VERSION, "sha256": sha, **entry}, sort_keys=True))
+        except OSError as e:  # a cache that cannot be written costs time next run, never this run's results
+            log.warning("cache %s not writable (%s): continuing without it", self.dir, e.strerror or e)
+            self.enabled = False
 
 
 # ----------------------------------------------------------------------------------------------- progress
@@ -185,15 +237,29 @@ class Progress:
             sys.stderr.flush()
 
 
+def cpu_count() -> int:
+    """Cores this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:
+        return max(1, os.cpu_count() or 1)
+
+
 def default_jobs(settings: ProcessingSettings) -> int:
     """All cores for numpy. Two for OpenCL, whose engine already uses every core (or a GPU) from one process:
     detection is host code, and a second worker keeps the device busy meanwhile (64 shift passes on 2 cores:
     11.2 s with one worker, 7.5 s with two; docs/opencl.md)."""
-    try:
-        cores = max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:
-        cores = max(1, os.cpu_count() or 1)
+    cores = cpu_count()
     return cores if settings.backend == "numpy" else min(2, cores)
+
+
+def worker_count(requested: int | None, settings: ProcessingSettings, pending: int) -> int:
+    """Workers to start: as requested (default_jobs when None), never more than the cores or the pending passes:
+    `--jobs 1000` must not start a thousand processes."""
+    jobs = requested or default_jobs(settings)
+    if jobs > cpu_count():
+        log.warning("--jobs %d is more than the %d cores here; using %d", jobs, cpu_count(), cpu_count())
+    return max(1, min(jobs, cpu_count(), pending))
 
 
 # ----------------------------------------------------------------------------------------------- grouping
@@ -295,15 +361,86 @@ def _exclusive(out_dir: Path):
         yield
 
 
-def discover(in_dir: Path, out_dir: Path) -> list[Path]:
-    """Archives under in_dir, sorted, minus anything under out_dir (it may live inside the input tree)."""
-    out = out_dir.resolve()
-    return [p for p in archive.find_pass_files(in_dir) if out not in p.resolve().parents]
+def discover(in_dir: Path, out_dir: Path, follow_symlinks: bool = False
+             ) -> tuple[list[Path], list[Problem], list[Problem]]:
+    """Archives under in_dir, sorted, minus anything under out_dir (it may live inside the input tree); the
+    problems of the tree (skipped, reported) and its warnings (accepted). Never raises for what the tree holds."""
+    walk = archive.walk_pass_files(in_dir, skip=(out_dir,), follow_symlinks=follow_symlinks)
+    return (walk.files, [Problem(*p) for p in walk.problems], [Problem(*w) for w in walk.warnings])
+
+
+FUTURE_TOLERANCE_S = 86400.0  # a pass dated more than a day ahead of this machine's clock is suspicious
+
+
+def suspicious(records: list[PassRecord], now_s: float | None = None) -> list[Problem]:
+    """Accepted input worth a warning: a pass id shared by different files, a start time in the future, a
+    cycle that starts before an earlier-numbered cycle of the same rig (a clock or a counter went back)."""
+    now_s = time.time() if now_s is None else now_s
+    out = []
+    by_id: dict[str, list[PassRecord]] = defaultdict(list)
+    for r in records:
+        by_id[r.pass_id].append(r)
+        try:
+            t = utc_seconds(r.pass_start_time)
+        except ValueError:
+            continue
+        if t > now_s + FUTURE_TOLERANCE_S:
+            out.append(Problem(r.file, "future_time", f"starts {r.pass_start_time}, {(t - now_s) / 86400:.0f} days "
+                                                      "after this machine's clock"))
+    for pid, rs in by_id.items():
+        if len({r.sha256 for r in rs}) > 1:
+            out.append(Problem("; ".join(sorted(r.file for r in rs)), "shared_pass_id",
+                               f"pass id {pid!r} is used by {len(rs)} different files"))
+    by_rig: dict[str, dict[int, str]] = defaultdict(dict)
+    for r in records:
+        t = by_rig[r.rig_id].get(r.cycle)
+        by_rig[r.rig_id][r.cycle] = r.pass_start_time if t is None else min(t, r.pass_start_time)
+    for rig, starts in sorted(by_rig.items()):
+        latest_cycle, latest = None, None
+        for c in sorted(starts):
+            try:
+                t = utc_seconds(starts[c])
+            except ValueError:
+                continue
+            if latest is not None and t < latest:
+                out.append(Problem(f"rig {rig} cycle {c}", "time_backwards",
+                                   f"starts {starts[c]}, before cycle {latest_cycle} of the same rig"))
+            if latest is None or t > latest:
+                latest_cycle, latest = c, t
+    return sorted(out, key=lambda p: (p.file, p.kind, p.reason))
+
+
+def _worker_init(parent_pid: int) -> None:
+    """In each worker: die with the parent (a killed `uwbcl process` leaves no orphans) and leave Ctrl-C to
+    the parent, which stops the workers itself."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    with contextlib.suppress(Exception):  # Linux: the kernel sends SIGKILL when the parent dies
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() != parent_pid:  # the parent died before prctl took effect
+        os._exit(1)
+    threading.Thread(target=_watch_parent, args=(parent_pid,), name="uwbcl-parent-watch", daemon=True).start()
+
+
+def _watch_parent(parent_pid: int, period_s: float = 1.0) -> None:
+    # Where there is no PR_SET_PDEATHSIG: a re-parented worker exits within a second.
+    while os.getppid() == parent_pid:
+        time.sleep(period_s)
+    os._exit(1)
 
 
 def _pool(jobs: int) -> cf.Executor:
     # spawn: each worker starts clean (no inherited OpenCL context, BLAS threads or locks from the parent).
-    return cf.ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"))
+    return cf.ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
+                                  initializer=_worker_init, initargs=(os.getpid(),))
+
+
+def _stop_pool(pool: cf.ProcessPoolExecutor) -> None:
+    """Kill the workers now (an interrupted run discards their partial work), then release the pool."""
+    for proc in list(getattr(pool, "_processes", {}).values()):
+        with contextlib.suppress(Exception):
+            proc.kill()
+    pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _run_pool(todo: list[tuple[Path, str, str]], settings: ProcessingSettings, jobs: int, finish) -> list:
@@ -319,7 +456,10 @@ def _run_pool(todo: list[tuple[Path, str, str]], settings: ProcessingSettings, j
                 break
             done.add(futures[fut])
             finish(*todo[futures[fut]], entry)
-    finally:
+    except BaseException:
+        _stop_pool(pool)
+        raise
+    else:
         pool.shutdown(wait=True, cancel_futures=True)
     return [item for k, item in enumerate(todo) if k not in done]
 
@@ -332,16 +472,16 @@ def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, ca
     problems: list[Problem] = []
     todo: list[tuple[Path, str, str]] = []
     for path in files:
-        rel = path.relative_to(in_dir).as_posix()
+        rel = archive.display_name(path.relative_to(in_dir).as_posix())
         try:
             sha = file_sha256(path)
         except OSError as e:
-            log.error("%s: cannot read: %s", path, e.strerror or e)
+            log.error("%s: cannot read: %s", rel, e.strerror or e)
             problems.append(Problem(rel, "unreadable", f"cannot read: {e.strerror or e}"))
             continue
-        entry = cache.get(sha)
-        if entry is not None:
-            records.append(_record(rel, sha, entry))
+        cached = cache.get(rel, sha)
+        if cached is not None:
+            records.append(cached)
         else:
             todo.append((path, rel, sha))
     if records:
@@ -351,24 +491,29 @@ def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, ca
 
     def finish(path: Path, rel: str, sha: str, entry: dict) -> None:
         nonlocal done
+        if "error" not in entry:
+            try:
+                record = _record(rel, sha, entry)
+            except ValueError as e:
+                entry = {"error": f"the worker returned an unusable record ({e})", "kind": "processing_failed"}
+            else:
+                cache.put(sha, entry)
+                records.append(record)
         if "error" in entry:
-            log.error("%s: %s", path, entry["error"])
+            log.error("%s: %s", rel, entry["error"])
             problems.append(Problem(rel, entry["kind"], entry["error"]))
-        else:
-            cache.put(sha, entry)
-            records.append(_record(rel, sha, entry))
         done += 1
         progress.step(failed="error" in entry)
         if options.on_pass_done is not None:
             options.on_pass_done(done)
 
-    jobs = options.jobs or default_jobs(settings)
+    jobs = worker_count(options.jobs, settings, len(todo))
     try:
-        if jobs <= 1 or len(todo) <= 1:
+        if jobs <= 1:
             for path, rel, sha in todo:
                 finish(path, rel, sha, DETECT(str(path), settings))
         else:
-            left = _run_pool(todo, settings, min(jobs, len(todo)), finish)
+            left = _run_pool(todo, settings, jobs, finish)
             if left:
                 # A worker died (a crash or the out-of-memory killer) and took the pool with it: redo the
                 # unfinished passes one per fresh worker, so the one that kills its worker is the one reported.
@@ -392,10 +537,16 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
     if out_opts.plots or out_opts.cycle_images:
         outputs.require_matplotlib()
     with _exclusive(out_dir):
-        files = discover(in_dir, out_dir)
+        files, problems, warnings = discover(in_dir, out_dir, options.follow_symlinks)
+        for p in problems:
+            log.error("%s: %s", p.file, p.reason)
         cache = PassCache(out_dir, settings, options.cache)
-        records, problems, focused = detect_all(files, in_dir, settings, cache, options)
+        records, pass_problems, focused = detect_all(files, in_dir, settings, cache, options)
+        problems += pass_problems
         n_detected = len(focused)
+        warnings += suspicious(records)
+        for w in warnings:
+            log.warning("%s: %s", w.file, w.reason)
         groups, group_problems = group_cycles(records, options)
         problems += group_problems
         for p in group_problems:
@@ -416,4 +567,5 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
         rows = outputs.write_all(out_dir, rows_series, cycles, problems, out_opts, groups=groups, in_dir=in_dir,
                                  settings=settings)
     n_cached = len(records) - sum(1 for r in records if r.file in focused)
-    return BatchReport(rows, problems, cycles, rows_series, len(files), n_detected, n_cached)
+    return BatchReport(rows, problems, cycles, rows_series, len(files), n_detected, n_cached, cache.damaged,
+                       warnings)

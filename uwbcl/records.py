@@ -39,6 +39,10 @@ class BatchError(RuntimeError):
     """The run cannot start (output directory locked, plotting unavailable); nothing was written."""
 
 
+class OutputError(RuntimeError):
+    """The outputs could not be written (disk full, permissions); the previous complete set is still in place."""
+
+
 # ----------------------------------------------------------------------------------------------- settings
 @dataclasses.dataclass(frozen=True)
 class DetectionSettings:
@@ -72,16 +76,6 @@ class AssociationSettings:
 
 
 @dataclasses.dataclass(frozen=True)
-class ProcessingSettings:
-    algorithm: str = "nlcs"
-    backend: str = "opencl"
-    device: str | None = None  # OpenCL device spec (`uwbcl devices`); None: PYOPENCL_CTX, else GPU first
-    ac_mode: str = "exact"  # NLCS azimuth compression: "exact" reference or "series" (eq. 17)
-    detection: DetectionSettings = dataclasses.field(default_factory=DetectionSettings)
-    association: AssociationSettings = dataclasses.field(default_factory=AssociationSettings)
-
-
-@dataclasses.dataclass(frozen=True)
 class ReadLimits:
     """What one archive may declare before anything is read (docs/configuration.md [limits]): a pass larger than
     this is refused by name instead of exhausting memory. The defaults admit 8x the largest rail the method
@@ -91,6 +85,17 @@ class ReadLimits:
     max_samples_per_pulse: int = 1 << 16
     max_echo_samples: int = 1 << 25  # pulses x samples
     max_focus_cells: int = 1 << 26  # cells of a pass's focus grid (azimuth rows x range bins), checked before focusing
+
+
+@dataclasses.dataclass(frozen=True)
+class ProcessingSettings:
+    algorithm: str = "nlcs"
+    backend: str = "opencl"
+    device: str | None = None  # OpenCL device spec (`uwbcl devices`); None: PYOPENCL_CTX, else GPU first
+    ac_mode: str = "exact"  # NLCS azimuth compression: "exact" reference or "series" (eq. 17)
+    detection: DetectionSettings = dataclasses.field(default_factory=DetectionSettings)
+    association: AssociationSettings = dataclasses.field(default_factory=AssociationSettings)
+    limits: ReadLimits = dataclasses.field(default_factory=ReadLimits)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -110,6 +115,7 @@ class BatchOptions:
     height_tolerance_m: float = 0.005
     max_bridge_cycles: int = 3
     outputs: OutputOptions = OutputOptions()
+    follow_symlinks: bool = False  # read archives linked from outside the input directory, enter linked dirs
     on_pass_done: Callable[[int], None] | None = None  # called with the count of passes detected so far
 
 
@@ -210,3 +216,5 @@ class BatchReport:
     n_passes: int
     n_detected: int  # passes focused in this run
     n_cached: int = 0  # passes whose detections came from the cache
+    n_cache_damaged: int = 0  # damaged cache entries found and recomputed
+    warnings: list[Problem] = dataclasses.field(default_factory=list)  # accepted but suspicious input
