@@ -33,7 +33,7 @@ __kernel void nlcs_scaling(__global float2 *restrict s, __global const real_t *r
     c4_store_lanes(line, j, n_range, c4_mul(c4_load_lanes(line, j, n_range), cis4(phase)));
 }
 
-/* H8, azimuth compression (eq. 17 [fix]): exp(-j sum_d a_d (f_a / f_scale)^d) inside the bin's band, zero
+/* H8, azimuth compression (eq. 17; C10, C11): exp(-j sum_d a_d (f_a / f_scale)^d) inside the bin's band, zero
  * outside; `poly` holds degree + 1 ascending coefficients per bin. The band is given as signed frequency
  * indices [band_first, band_last] (decided on the host, so band edges that fall on a grid frequency are
  * treated exactly as the reference treats them). */
@@ -57,8 +57,8 @@ __kernel void azimuth_compression(__global cplx_t *restrict s, __global const re
     s[idx] = cmul(s[idx], cis(-phase));
 }
 
-/* The slow-time signal, in range bin r, of a point target at azimuth time t_n after LRWC, SRC and RC (notes
- * 7b): w(t) exp{-j 4 pi / lambda [R(t) + v s_q t]} with r0 = r - v s_q t_n, one target per column: the
+/* The slow-time signal, in range bin r, of a point target at azimuth time t_n after LRWC, SRC and RC (C11):
+ * w(t) exp{-j 4 pi / lambda [R(t) + v s_q t]} with r0 = r - v s_q t_n, one target per column: the
  * exact-reference H8 is matched to the t_n = 0 target of each bin seen through the whole beam
  * (half_track_s < 0), detection's t_n(t_f) calibration simulates targets seen from the rail only
  * (|t| <= half_track_s). Two-way main-lobe beam sinc^2(D sin(psi - theta) / lambda) about the slant squint

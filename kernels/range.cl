@@ -45,7 +45,7 @@ __kernel void resample_to_uniform_track(__global const float2 *restrict s, __glo
     out[row * n_range + k] = acc;
 }
 
-/* eqs. (9) [fix] - (11): H3 (bulk SRC with the reference target's exact 2-D spectrum phase), the beam's
+/* eqs. (9)-(11), C5 and C6: H3 (bulk SRC with the reference target's exact 2-D spectrum phase), the beam's
  * Doppler-band mask, H4 (matched filter of the Gaussian pulse) and the delay origin of the range IFFT,
  * in one pass over the 2-D spectrum. Work item (k, row): range frequency k, azimuth frequency row (+ row_origin,
  * as in azimuth.cl). */

@@ -66,7 +66,7 @@ def test_backprojection_and_nlcs_agree_on_every_target_of_every_pass(focused, na
     scenario = SCENARIOS[name]
     for scan, by_nlcs, by_bp in focused[name]:
         for a, b in zip(_match(scenario, scan, by_nlcs), _match(scenario, scan, by_bp)):
-            # NLCS single-target errors reach ~4 mm (notes table 10, measured max 4.3 mm in R_c for D of sim2)
+            # NLCS single-target errors reach ~4 mm (method.md D4; measured max 4.3 mm in R_c for D of sim2)
             # and BP <= 1 mm, so the two may differ by up to ~5 mm: 6 mm leaves 1 mm of margin.
             assert abs(a.x_m - b.x_m) < 6e-3
             assert abs(a.rc_m - b.rc_m) < 6e-3
@@ -90,7 +90,7 @@ def test_nlcs_locates_every_target_within_five_millimetres(focused, name):
     for scan, by_nlcs, _ in focused[name]:
         x, rc = _truth(scenario, scan)
         got = _match(scenario, scan, by_nlcs)
-        # notes table 10, nlcs-exact: <= 4.2 mm along track and <= 4.6 mm in range; measured max 4.4 mm
+        # D4, nlcs-exact: <= 4.2 mm along track and <= 4.6 mm in range; measured max 4.4 mm
         np.testing.assert_allclose([d.x_m for d in got], x, rtol=0, atol=5e-3)
         np.testing.assert_allclose([d.rc_m for d in got], rc, rtol=0, atol=5e-3)
 

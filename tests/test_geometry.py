@@ -80,7 +80,7 @@ def test_eq1_linear_coefficient_is_the_range_walk_minus_v_sin_theta():
 def test_slant_squint_of_the_reference_matches_the_design_notes(scenario, cycle, expected_deg):
     ref = scenario.reference_point_m(cycle)
     got = [math.degrees(geo.slant_squint_rad(ref, 0.0, h)) for h in scenario.heights_m]
-    # notes section 1 prints two decimals: half a unit of the last digit is 0.005 deg, 0.01 leaves margin
+    # C1 prints two decimals: half a unit of the last digit is 0.005 deg, 0.01 leaves margin
     assert got == pytest.approx(list(expected_deg), abs=0.01)
 
 

@@ -1,4 +1,4 @@
-"""Specification of multi-height 3-D localisation (notes section 9) and of the advance between cycles."""
+"""Specification of multi-height 3-D localisation (docs/method.md C13) and of the advance between cycles."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Specification of the modified NLCS focusing chain on single point targets (paper section 2.2, notes 3-8)."""
+"""Specification of the modified NLCS chain on single point targets (paper section 2.2, method.md C3-C12)."""
 
 from __future__ import annotations
 
@@ -135,7 +135,7 @@ def test_azimuth_phase_series_coefficients_are_the_taylor_coefficients_of_the_ex
     c_q = math.sqrt(1 - s * s)
     f = np.linspace(-0.3, 0.3, 201)
     x = s + lam * f / (2 * v)
-    phi0 = -(4 * np.pi * r / lam) * (c_q * np.sqrt(1 - x**2) + s * x)  # notes section 6, exact under P1
+    phi0 = -(4 * np.pi * r / lam) * (c_q * np.sqrt(1 - x**2) + s * x)  # C7, exact under P1
     fit = np.polynomial.polynomial.polyfit(f, (phi0 - phi0[100]) / np.pi, 8)
     eta = coef.azimuth_phase_series(r, v, s, lam)
     # a degree-8 fit over +-0.3 Hz recovers the low coefficients to ~1e-6 relative
@@ -150,7 +150,7 @@ def test_nlcs_coefficients_at_the_sim1_reference_match_the_design_notes():
     k = coef.nlcs_coefficients(r, v, s, lam)
     ka0 = float(coef.azimuth_fm_rate(r, v, s, lam))
     b = v * s / r
-    # notes 7b print 3-4 significant figures; 1 % covers their rounding (K_a0 -0.17452 is printed -0.1746)
+    # C9 and C10 print 3-4 significant figures; 1 % covers their rounding (K_a0 -0.17452 is printed -0.1746)
     assert ka0 == pytest.approx(-0.1746, rel=0.01)
     assert b == pytest.approx(0.0270, rel=0.01)
     assert float(k.q3) == pytest.approx(1.57e-3, rel=0.01)
@@ -162,7 +162,7 @@ def test_nlcs_coefficients_at_the_sim1_reference_match_the_design_notes():
     # c3 and c4 are printed with 2 figures: half a unit of the last digit
     assert float(k.ac_c3) == pytest.approx(0.93, abs=0.005)
     assert float(k.ac_c4) == pytest.approx(0.22, abs=0.005)
-    # the identity K_a0^2 eta30 = b of notes section 6
+    # the identity K_a0^2 eta30 = b of C7
     eta30 = float(coef.azimuth_phase_series(r, v, s, lam)[2])
     assert ka0**2 * eta30 == pytest.approx(b, rel=1e-12)
 
@@ -185,7 +185,7 @@ def test_a_target_at_the_scene_centre_focuses_at_zero_azimuth_time_and_the_refer
     # within a tenth of a cell (0.1 azimuth cell = 0.75 mm, 0.1 range bin = 3.75 mm); measured 0.01 and 0.02
     assert abs(t_f) < 0.1 * grid.dt_s
     assert abs(d.image_range_m - grid.reference_range_m) < 0.1 * RADAR.range_bin_m
-    assert d.x_m == pytest.approx(REF[0], abs=1e-3)  # notes table 10: B within 0.5 mm in nlcs-exact
+    assert d.x_m == pytest.approx(REF[0], abs=1e-3)  # D4: B within 0.5 mm in nlcs-exact
     assert d.rc_m == pytest.approx(geo.closest_approach_range_m(REF, H), abs=1e-3)
 
 
@@ -198,7 +198,7 @@ def test_the_focused_point_response_has_the_expected_3db_widths(centre_products)
     # Gaussian pulse after its matched filter: sigma sqrt(2 ln 2) c = 0.100 m; 10 % for the sampling/windowing
     assert RADAR.pulse_sigma_s * math.sqrt(2 * math.log(2)) * C == pytest.approx(0.100, abs=5e-4)
     assert 0.09 <= range_width <= 0.11
-    # notes table 10: 5.9-9.3 cm for nlcs-exact (paper: 0.07 m)
+    # D4: 5.9-9.3 cm for nlcs-exact (paper: 0.07 m)
     assert 0.05 <= azimuth_width <= 0.10
 
 
@@ -211,7 +211,7 @@ def test_nlcs_focus_distortion_is_inverted_by_the_geometry_correction():
     assert t_n == pytest.approx(4.0, abs=1e-9)
     (d,) = detect.detect_nlcs(products)
     raw_shift = d.image_azimuth_m - grid.speed_m_s * t_n
-    # notes 7b: t_f = t_n + (b/2) t_n^2 + ... puts the raw peak ~30 mm further along track (series: 32 mm)
+    # C12: t_f = t_n + (b/2) t_n^2 + ... puts the raw peak ~30 mm further along track (series: 32 mm)
     assert 0.020 < raw_shift < 0.040
     # after inverting t_f(t_n) the target is back to within 3 mm (measured 0.5 mm in x, 1.2 mm in R_c)
     assert d.x_m == pytest.approx(target[0], abs=3e-3)
@@ -226,7 +226,7 @@ def test_exact_and_series_azimuth_compression_both_focus_the_centre_target(centr
     detections = detect.detect_nlcs(products)
     assert len(detections) == 1
     d = detections[0]
-    # notes table 10 gives <= 3 mm for B in either mode; measured < 1 mm
+    # D4 gives <= 3 mm for B in either mode; measured < 1 mm
     assert d.x_m == pytest.approx(REF[0], abs=3e-3)
     assert d.rc_m == pytest.approx(geo.closest_approach_range_m(REF, H), abs=3e-3)
     image = products.image

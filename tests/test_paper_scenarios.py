@@ -1,7 +1,7 @@
 """End to end on the paper's two simulation scenarios (noise-free): passes -> plates -> advance.
 
 Truth: sim1 advance (0.80, 0.10, 0), sim2 (0.70, -0.10, 0). Reference results of the independent prototype are in
-the design notes, section 10 (LS localisation, mm, X/Y/Z): nlcs-exact 0.3/0.1/-0.1 (sim1) and -0.5/1.0/1.3
+docs/method.md D4 (LS localisation, mm, X/Y/Z): nlcs-exact 0.3/0.1/-0.1 (sim1) and -0.5/1.0/1.3
 (sim2); bp 0.2/0.1/0.1 (sim1) and 0.0/2.3/1.5 (sim2), the latter limited by neighbour interference, which
 detection now cancels (detect.cancel_neighbours_bp / _nlcs). The numpy float64 reference is tested here; the
 OpenCL engine is held to it in test_opencl_engine.py.
@@ -51,7 +51,7 @@ def test_located_plates_are_the_scenario_targets(results, name, alg):
     for c in cycles:
         truth = scenario.targets_radar_m(c.cycle)
         got = np.array([p.position_m for p in c.plates]).reshape(-1, 3)
-        # nearest plate (targets are >= 0.4 m apart); per-target Z suffers the GDOP of notes section 9
+        # nearest plate (targets are >= 0.4 m apart); per-target Z suffers the geometric dilution of D2
         # (measured up to 9.3 mm for D with nlcs-exact, Y up to 3.6 mm, BP <= 1.6 mm in sim2), the displacement
         # tests are the tight ones
         for t in truth:

@@ -170,7 +170,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--ac-mode", choices=("exact", "series"), default=None,
                    help="NLCS azimuth compression: exact-reference (default) or the series of eq. 17")
     q.add_argument("--jobs", type=int, default=None,
-                   help="worker processes (default: all cores with numpy, 1 with opencl)")
+                   help="worker processes (default: all cores with numpy, 2 with opencl)")
     q.add_argument("--web-depth", type=float, default=None,
                    help="nominal advance per cycle in metres: the prior that resolves look-alike plates")
     q.add_argument("--prior-window", type=float, nargs=3, metavar=("X", "Y", "Z"),

@@ -3,7 +3,7 @@
 Both focusers give an image on (azimuth, r_LRCM) axes. Peaks are found on the pixel grid (local maxima above a
 floor relative to the strongest peak and to the image's noise level), refined to sub-cell accuracy on the
 underlying band-limited image, and mapped to the target's closest-approach coordinates (x_M, R_c) of the pass:
-for NLCS through the inverse of the focus-position map t_f(t_n) (eq. 19 [fix], notes section 8), for
+for NLCS through the inverse of the focus-position map t_f(t_n) (eq. 19 corrected, docs/method.md C12), for
 backprojection directly. Close plates bias each other's sub-cell peaks through their point responses' arms, so
 each peak is refined again with the other plates' modelled responses removed (docs/method.md section 4).
 """
@@ -295,7 +295,7 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     if not cells:
         return []
     t_f, r, t_n = _nlcs_peak_times(products, [c[0] for c in cells], [c[1] for c in cells], focuser)
-    r0 = r - grid.speed_m_s * grid.sin_squint * t_n  # eq. (19) [fix]: r_LC = r_LRCM - v sin(theta_q) t_nc
+    r0 = r - grid.speed_m_s * grid.sin_squint * t_n  # eq. (19), C12: r_LC = r_LRCM - v sin(theta_q) t_nc
     return [_detection(grid, float(t_n[i]), float(r0[i]), grid.speed_m_s * float(t_f[i]), float(r[i]), abs(val),
                        floor) for i, (_, _, val) in enumerate(cells)]
 

@@ -58,7 +58,7 @@ def location_covariance_m2(position_m, heights_m, range_sigma_m: float, along_si
     Propagates sigma_R through the least squares R_c,i^2 - h_i^2 = c0 - 2 z h_i (locate.py) and
     W = sqrt(c0 - z^2). The (y, z) errors are strongly correlated along a direction set by (z - h) / W: the
     geometric dilution that makes plates far above or below the rail poor in Y and Z, but poor in a known way.
-    Along track, x is the mean of the per-height x (along_sigma_m each, default sigma_R).
+    Along track, x is the mean of the per-height x (along_sigma_m each, default sigma_R). docs/method.md D2.
     """
     _, y, z = np.asarray(position_m, dtype=float)
     h = np.asarray(heights_m, dtype=float)
@@ -79,7 +79,8 @@ def gls_advance(d: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     """Generalised least squares of a common translation from differences d_i (n, 3) with covariances (n, 3, 3).
 
     With full covariances the z residual of a plate corrects its y: each plate errs along its own dilution
-    direction, and plates at different heights pin the common (creep, vertical) where those directions cross.
+    direction, and plates at different heights pin the common (creep, vertical) where those directions cross
+    (docs/method.md D3).
     """
     info = np.linalg.inv(cov)
     fisher = info.sum(axis=0)

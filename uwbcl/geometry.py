@@ -6,7 +6,7 @@ squint of the scene reference point), every target is described exactly by (t_n,
 
     r0 = R_c / cos(theta_q),    v t_n = (x - x_c) - R_c tan(theta_q)
 
-so that eq. (1) holds exactly with theta_s = theta_q (design notes, "P1").
+so that eq. (1) holds exactly with theta_s = theta_q (P1: docs/method.md C2).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from .model import PassGeometry
 
 
 def slant_squint_rad(reference_point_m, aperture_centre_m: float, height_m: float) -> float:
-    """Processing squint theta_q: slant-plane squint of the reference T seen from O_s (notes section 1)."""
+    """Processing squint theta_q: slant-plane squint of the reference T seen from O_s (docs/method.md C1)."""
     x, y, z = reference_point_m
     dx = x - aperture_centre_m
     return math.asin(dx / math.sqrt(dx * dx + y * y + (z - height_m) ** 2))
@@ -40,7 +40,7 @@ def target_to_p1(target_m, aperture_centre_m, height_m, theta_q_rad, speed_m_s):
 
 
 def p1_to_track(t_n_s, r0_m, aperture_centre_m, theta_q_rad, speed_m_s):
-    """Inverse of P1 (eq. 19 fixed, notes section 8.3): along-track x_M and closest-approach range R_c."""
+    """Inverse of P1 (eq. 19 corrected, C12): along-track x_M and closest-approach range R_c."""
     x_m = aperture_centre_m + speed_m_s * np.asarray(t_n_s) + np.asarray(r0_m) * math.sin(theta_q_rad)
     rc = np.asarray(r0_m) * math.cos(theta_q_rad)
     return x_m, rc
@@ -53,7 +53,7 @@ def range_history_m(positions_m, target_m, height_m: float) -> np.ndarray:
 
 
 def range_polynomial_coefficients(r0_m, speed_m_s, theta_s_rad):
-    """k1..k4 of eq. (1): R(tau) ~ r0 + sum k_i tau^i (notes section 2)."""
+    """k1..k4 of eq. (1): R(tau) ~ r0 + sum k_i tau^i (D1)."""
     s, co2 = math.sin(theta_s_rad), math.cos(theta_s_rad) ** 2
     v = speed_m_s
     k1 = -v * s
@@ -88,7 +88,7 @@ def rotation_table_angle_for(reference_point_m, aperture_centre_m: float, boresi
 
 def slant_doppler_band(geometry: PassGeometry, aperture_m: float, wavelength_m: float,
                        max_elevation_rad: float = math.radians(45.0)) -> tuple[float, float]:
-    """Support [X_lo, X_hi] of X = sine of the slant squint seen through the beam main lobe (notes section 5).
+    """Support [X_lo, X_hi] of X = sine of the slant squint seen through the beam main lobe (C6).
 
     X = cos(elevation) * sin(horizontal angle): elevation can only pull X towards zero.
     """

@@ -6,7 +6,7 @@ With the rib at distance W and the target at height z, R_c,i^2 = W^2 + (z - h_i)
     R_c,i^2 - h_i^2 = c0 - 2 z h_i,   c0 = W^2 + z^2        (linear least squares in c0, z)
 
 which is exact for any target height and any number of heights (eqs. 20-23 are the special case N = 2 with a
-common t_n; design notes section 9). P = (mean x_i, sign * W, z) in the radar frame.
+common t_n; docs/method.md C13). P = (mean x_i, sign * W, z) in the radar frame.
 """
 
 from __future__ import annotations

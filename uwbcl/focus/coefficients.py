@@ -1,4 +1,4 @@
-"""Per-range-bin coefficients of the modified NLCS chain (paper eqs. 12-17, design notes sections 6-7).
+"""Per-range-bin coefficients of the modified NLCS chain (paper eqs. 12-17; docs/method.md C7-C10).
 
 All functions take the range bin r (metres, the bin's r_LRCM), the processing speed v, the processing squint
 sin(theta_q) and the carrier wavelength, and are vectorised over r. Under the P1 parameterisation a target
@@ -25,7 +25,7 @@ def azimuth_phase_series(r_m, speed_m_s, sin_squint, wavelength_m):
 
 
 def azimuth_fm_rate(r_m, speed_m_s, sin_squint, wavelength_m):
-    """K_a0 = -1/eta_2 (eq. 14 with the sign fixed, notes section 6); negative, in Hz/s."""
+    """K_a0 = -1/eta_2 (eq. 14 with the sign fixed, C7); negative, in Hz/s."""
     return -2 * speed_m_s**2 * (1 - sin_squint**2) / (wavelength_m * np.asarray(r_m, dtype=float))
 
 
@@ -46,7 +46,7 @@ class NlcsCoefficients:
 
 
 def nlcs_coefficients(r_m, speed_m_s, sin_squint, wavelength_m) -> NlcsCoefficients:
-    """Y3, Y4, q2..q4 (alpha = 1/2, notes 7b under P1) and the fixed series AC coefficients of eq. (17)."""
+    """Y3, Y4, q2..q4 (alpha = 1/2 under P1, C9) and the series AC coefficients of eq. (17) (C10)."""
     r = np.asarray(r_m, dtype=float)
     v, s = speed_m_s, sin_squint
     eta1, _, eta30, eta40 = azimuth_phase_series(r, v, s, wavelength_m)
@@ -71,6 +71,6 @@ def nlcs_coefficients(r_m, speed_m_s, sin_squint, wavelength_m) -> NlcsCoefficie
 def enlcs_coefficient(r_m, speed_m_s, sin_squint):
     """p2 = k11 / 2 of eq. (6). Under P1 on a straight rail theta_s == theta_q along a range cell, so k11 = 0.
 
-    The hook stays for tracks whose squint varies along a cell (notes section 3).
+    The hook stays for tracks whose squint varies along a cell (C3).
     """
     return np.zeros_like(np.asarray(r_m, dtype=float))

@@ -260,7 +260,7 @@ class FocusEngine:
 
     def azimuth_compression(self, s, ac: nlcs.AzimuthCompression, grid: nlcs.FocusGrid,
                             first_row: int | None = None) -> None:
-        """H8 (eq. 17 [fix]) in place on a range-Doppler array (or band of rows)."""
+        """H8 (eq. 17; C10, C11) in place on a range-Doppler array (or band of rows)."""
         # the reference's own test f_lo <= f <= f_hi on the (increasing) centred axis, as index bounds
         f = grid.f_azimuth_hz
         first = np.searchsorted(f, ac.f_lo_hz, side="left") - grid.n_azimuth // 2

@@ -4,12 +4,12 @@ Array layout: (azimuth, range) = (pulses, fast-time samples). Range spectra are 
 absolute delay origins (S(f) = sum s(t) exp(-j 2 pi f t), t = t_r0 + k / f_s). Azimuth arrays on the padded
 grid are centred: index N/2 is t_a = 0 (resp. f_a = 0), so transforms are fftshift(fft(ifftshift(.))).
 
-The chain (eq. numbers of the paper; [fix] where the design notes correct it):
+The chain (eq. numbers of the paper; C1..C13: its corrections, docs/method.md section 8):
     range_fft -> linear_range_walk_correction (4, with the logged rail positions) -> resample_to_uniform_track
-    -> extended_nlcs (6) -> azimuth_fft -> secondary_range_compression (9 [fix], 10) -> range_ifft (11)
+    -> extended_nlcs (6) -> azimuth_fft -> secondary_range_compression (9-10, C5) -> range_ifft (11)
     -> azimuth_compensation (13) -> nlcs_filter (15: H6) -> azimuth_ifft -> nlcs_scaling (15: H7)
-    -> azimuth_fft -> azimuth_compression (17 [fix]) -> azimuth_ifft
-The geometry correction (eqs. 18-19 [fix]) lives in `FocusedImage.to_track`.
+    -> azimuth_fft -> azimuth_compression (17; C10, C11) -> azimuth_ifft
+The geometry correction (eqs. 18-19, C12) lives in `FocusedImage.to_track`.
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ class FocusGrid:
     track_spacing_m: float  # uniform resampled pulse spacing
     n_track: int  # resampled pulses (odd; the middle one is at the aperture centre)
     n_azimuth: int  # padded azimuth FFT length (even)
-    sin_squint: float  # theta_q: slant squint of the reference point (notes section 1)
+    sin_squint: float  # theta_q: slant squint of the reference point (C1)
     reference_range_m: float  # r_ref = |T - O_s|
     range_window_start_s: float
     sample_rate_hz: float
@@ -176,7 +176,7 @@ def resample_to_uniform_track(s: np.ndarray, x_rel_m: np.ndarray, grid: FocusGri
 
 
 def extended_nlcs(s: np.ndarray, p2: np.ndarray | float, grid: FocusGrid) -> np.ndarray:
-    """H2 = exp(+j 4 pi (f_c + f_r) p2 t_a^2 / c)  (eq. 6). p2 = 0 on a straight rail under P1 (notes 3)."""
+    """H2 = exp(+j 4 pi (f_c + f_r) p2 t_a^2 / c)  (eq. 6). p2 = 0 on a straight rail under P1 (C3)."""
     if np.all(np.asarray(p2) == 0):
         return s
     f = grid.carrier_frequency_hz + grid.f_range_hz
@@ -193,20 +193,20 @@ def pad_azimuth(s: np.ndarray, grid: FocusGrid) -> np.ndarray:
 
 
 def slant_squint_sine(grid: FocusGrid, f_hz=None) -> np.ndarray:
-    """X(f_r, f_a) = sin(theta_q) + c f_a / (2 v F): the slant squint of each 2-D frequency (notes 4), at the
+    """X(f_r, f_a) = sin(theta_q) + c f_a / (2 v F): the slant squint of each 2-D frequency (C4), at the
     absolute frequencies F = f_c + f_r (default, shape (n_azimuth, n_range)) or at the given F."""
     f = grid.carrier_frequency_hz + grid.f_range_hz if f_hz is None else np.atleast_1d(f_hz)
     return grid.sin_squint + C * grid.f_azimuth_hz[:, None] / (2.0 * grid.speed_m_s * f[None, :])
 
 
 def reference_spectrum_phase(x_sine: np.ndarray, f_hz: np.ndarray, grid: FocusGrid) -> np.ndarray:
-    """Exact phi(f_r, f_a) of the reference target (r0 = r_ref, t_n = 0), eq. (7) under P1 (notes 4)."""
+    """Exact phi(f_r, f_a) of the reference target (r0 = r_ref, t_n = 0), eq. (7) under P1 (C4)."""
     g = grid.cos_squint * np.sqrt(np.clip(1.0 - x_sine**2, 0.0, None)) + grid.sin_squint * x_sine
     return -4.0 * np.pi * grid.reference_range_m * f_hz / C * g
 
 
 def secondary_range_compression(s2: np.ndarray, grid: FocusGrid) -> np.ndarray:
-    """H3 * H4 (eqs. 9-10 [fix]): bulk SRC with the reference's exact phase, matched filter, Doppler band mask."""
+    """H3 * H4 (eqs. 9-10, C5-C6): bulk SRC with the reference's exact phase, matched filter, band mask."""
     x = slant_squint_sine(grid)
     f = grid.carrier_frequency_hz + grid.f_range_hz
     x0 = slant_squint_sine(grid, grid.carrier_frequency_hz)
@@ -279,7 +279,7 @@ def doppler_band_hz(grid: FocusGrid) -> tuple[float, float]:
 
 
 def series_azimuth_compression(k: coef.NlcsCoefficients, grid: FocusGrid) -> AzimuthCompression:
-    """H8 of eq. (17) with the fixed coefficients (notes 7b)."""
+    """H8 of eq. (17) with the corrected coefficients (C10)."""
     lo, hi = doppler_band_hz(grid)
     n = k.r_m.size
     poly = np.zeros((n, 5))
@@ -289,7 +289,7 @@ def series_azimuth_compression(k: coef.NlcsCoefficients, grid: FocusGrid) -> Azi
 
 def slow_time_point_response(r_bin_m, t_n_s, grid: FocusGrid, aperture_m: float, rail_only: bool = True
                              ) -> np.ndarray:
-    """Slow-time signal, in range bin r, of a target at azimuth time t_n after LRWC, SRC and RC (notes 7b):
+    """Slow-time signal, in range bin r, of a target at azimuth time t_n after LRWC, SRC and RC (C11):
     w(t_a) exp{-j 4 pi / lambda [R(t_a) + v s_q t_a]} with r0 = r - v s_q t_n.  Shape (n_azimuth, n)."""
     r = np.atleast_1d(np.asarray(r_bin_m, dtype=float))[None, :]
     tn = np.atleast_1d(np.asarray(t_n_s, dtype=float))[None, :]
@@ -321,7 +321,7 @@ def select_bins(obj, j):
 
 
 def reference_spectra(k: coef.NlcsCoefficients, grid: FocusGrid, aperture_m: float) -> np.ndarray:
-    """X_ref: the t_n = 0 reference target of each bin of `k` after H6/H7, centred f_a (notes 7b).
+    """X_ref: the t_n = 0 reference target of each bin of `k` after H6/H7, centred f_a (C11).
     The reference sees the whole beam (no rail ends): its spectrum is then smooth, and the fit is of the
     stationary-phase law rather than of the Gibbs ripple of one particular truncation."""
     ref = az_fft(slow_time_point_response(k.r_m, 0.0, grid, aperture_m, rail_only=False))
@@ -334,9 +334,9 @@ STRONG_REFERENCE_FRACTION = 1e-2
 
 def exact_reference_azimuth_compression(k: coef.NlcsCoefficients, grid: FocusGrid, aperture_m: float,
                                         degree: int = 8) -> AzimuthCompression:
-    """H8 matched to the simulated t_n = 0 reference of each bin after H6/H7 (notes 7b, "exact-reference AC"),
+    """H8 matched to the simulated t_n = 0 reference of each bin after H6/H7 (C11, "exact-reference AC"),
     carried as a polynomial in f_a so a kernel can evaluate it from a few scalars. The carrier phase
-    arg X_ref(0) is removed (pitfall 7)."""
+    arg X_ref(0) is removed (C11)."""
     # The reference sees the whole beam (no rail ends): its spectrum is then smooth, and the fit is of the
     # stationary-phase law rather than of the Gibbs ripple of one particular truncation.
     ref = az_fft(slow_time_point_response(k.r_m, 0.0, grid, aperture_m, rail_only=False))
@@ -428,7 +428,7 @@ def fit_azimuth_compression(x_ref: np.ndarray, k: coef.NlcsCoefficients, grid: F
 
 
 def azimuth_compression(s: np.ndarray, ac: AzimuthCompression, grid: FocusGrid) -> np.ndarray:
-    """H8 (eq. 17 [fix])."""
+    """H8 (eq. 17; C10, C11)."""
     return s * ac.filter(grid.f_azimuth_hz)
 
 

@@ -151,7 +151,7 @@ def exact_reference_azimuth_compression(k: coef.NlcsCoefficients, grid: nlcs.Foc
 
 
 def azimuth_compression(s: np.ndarray, ac: nlcs.AzimuthCompression, grid: nlcs.FocusGrid) -> np.ndarray:
-    """H8 (eq. 17 [fix]) in FFT order, evaluated only on the rows inside some bin's [f_lo, f_hi]."""
+    """H8 (eq. 17; C10, C11) in FFT order, evaluated only on the rows inside some bin's [f_lo, f_hi]."""
     f = natural_f_azimuth_hz(grid)
     rows = np.flatnonzero((f >= ac.f_lo_hz.min()) & (f <= ac.f_hi_hz.max()))
     fr = f[rows]
