@@ -355,9 +355,11 @@ def _exclusive(out_dir: Path):
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             raise BatchError(f"{out_dir}: another uwbcl process is writing here") from None
-        # Temporary files of a run that was killed mid-write; nobody else writes here while we hold the lock.
+        # Temporary files and unpublished output sets of a run that was killed mid-write; nobody else writes
+        # here while we hold the lock.
         for stale in [*out_dir.glob(".*.partial"), *(out_dir / CACHE_DIR).rglob(".*.partial")]:
             stale.unlink(missing_ok=True)
+        outputs.prune_generations(out_dir)
         yield
 
 

@@ -3,22 +3,34 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
+import math
+import signal
 import sys
 from pathlib import Path
 
 from . import __version__, archive, batch, config
 from .atomic import write_text_atomic
-from .records import ALGORITHMS, BACKENDS, BatchError, ConfigError
+from .records import ALGORITHMS, BACKENDS, BatchError, ConfigError, OutputError
 from .scenarios import SCENARIOS
 
 
 def _heights(values) -> tuple[float, ...] | None:
-    """--heights 0.2 0.6 or --heights 0.2,0.6."""
+    """--heights 0.2 0.6 or --heights 0.2,0.6; ConfigError (a usage error) for anything but finite numbers."""
     if not values:
         return None
-    return tuple(float(v) for item in values for v in str(item).split(",") if v.strip())
+    out = []
+    for text in (v for item in values for v in str(item).split(",") if v.strip()):
+        try:
+            h = float(text)
+        except ValueError:
+            raise ConfigError(None, "--heights", f"{text!r} is not a number") from None
+        if not math.isfinite(h):
+            raise ConfigError(None, "--heights", f"{text!r} is not a finite height")
+        out.append(h)
+    return tuple(out)
 
 
 def _simulate_shift(args: argparse.Namespace) -> int:
@@ -84,26 +96,75 @@ def _process(args: argparse.Namespace) -> int:
         return 2
     if settings.backend == "opencl" and not _engine_ready(settings.device):
         return 2
-    in_dir = Path(args.in_dir)
-    if not in_dir.is_dir():
-        print(f"uwbcl process: {in_dir}: not a directory", file=sys.stderr)
+    in_dir, out_dir = Path(args.in_dir), Path(args.out)
+    usage = _directories_problem(in_dir, out_dir)
+    if usage:
+        print(f"uwbcl process: {usage}", file=sys.stderr)
         return 2
     try:
-        report = batch.process_directory(in_dir, Path(args.out), settings, site.batch_options(
-            progress=False if args.no_progress else None))
+        with _signals_as_interrupts():
+            report = batch.process_directory(in_dir, out_dir, settings, site.batch_options(
+                progress=False if args.no_progress else None, follow_symlinks=args.follow_symlinks))
     except BatchError as exc:
         print(f"uwbcl process: {exc}", file=sys.stderr)
         return 2
+    except OutputError as exc:
+        print(f"uwbcl process: {exc}", file=sys.stderr)
+        return 1
+    except Interrupted as exc:
+        print(f"uwbcl process: stopped by {exc.name}; workers stopped, partial work discarded, the previous "
+              "outputs are intact", file=sys.stderr)
+        return 128 + exc.signum
     flagged = sum(r["status"] != "ok" for r in report.rows)
-    print(f"{report.n_passes} passes ({report.n_detected} focused, {report.n_cached} from the cache), "
+    extra = "".join([f", {len(report.warnings)} warnings" if report.warnings else "",
+                     f", {report.n_cache_damaged} damaged cache entries recomputed" if report.n_cache_damaged
+                     else ""])
+    print(f"{report.n_passes} passes ({report.n_detected} focused, {report.n_cached} from the cache{extra}), "
           f"{len(report.cycles)} cycles located, {len(report.rows)} displacements ({flagged} flagged) "
-          f"written to {Path(args.out)}")
+          f"written to {out_dir}")
     if report.errors:
         print(f"{len(report.errors)} problems, see {Path(args.out) / 'errors.csv'}:", file=sys.stderr)
         for p in report.errors:
             print(f"  {p.file}: {p.reason}", file=sys.stderr)
         return 1
     return 0
+
+
+def _directories_problem(in_dir: Path, out_dir: Path) -> str:
+    """Why ARCHIVE_DIR and --out cannot be used together ("" when they can)."""
+    if not in_dir.is_dir():
+        return f"{in_dir}: not a directory"
+    for parent in (out_dir, *out_dir.parents):
+        if parent.exists() and not parent.is_dir():
+            return f"--out {out_dir}: {parent} is not a directory"
+    real_in, real_out = in_dir.resolve(), out_dir.resolve()
+    if real_in == real_out:
+        return f"--out {out_dir} is the archive directory itself; give the outputs a directory of their own"
+    if real_out in real_in.parents:
+        return f"the archive directory {in_dir} lies inside --out {out_dir}; its archives would be skipped"
+    return ""
+
+
+class Interrupted(Exception):
+    """SIGINT or SIGTERM during a run."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum, self.name = signum, signal.Signals(signum).name
+
+
+@contextlib.contextmanager
+def _signals_as_interrupts():
+    """SIGINT and SIGTERM raise Interrupted in the main thread: the batch stops its workers on the way out."""
+    def handler(signum, frame):
+        raise Interrupted(signum)
+
+    old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
 
 
 def _engine_ready(device: str | None) -> bool:
@@ -181,6 +242,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write a focused image per pass with the detections marked (slow: refocuses)")
     q.add_argument("--no-cache", action="store_true", help="refocus every pass, ignoring OUT/.uwbcl-cache")
     q.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
+    q.add_argument("--follow-symlinks", action="store_true",
+                   help="read archives linked from outside ARCHIVE_DIR and enter linked directories")
     q.set_defaults(func=_process)
 
     d = sub.add_parser("devices", help="list the OpenCL platforms and devices (specs for --device)")
@@ -195,7 +258,14 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(message)s")
-    return args.func(args)
+    try:
+        return args.func(args)
+    except ConfigError as exc:  # a flag value no subcommand caught itself: still a usage error, not a traceback
+        print(f"uwbcl {args.command}: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"uwbcl {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@ from .records import (
     DetectionSettings,
     OutputOptions,
     ProcessingSettings,
+    ReadLimits,
 )
 
 try:
@@ -52,6 +53,7 @@ class SiteConfig:
     max_bridge_cycles: int = 3  # how many cycles a displacement may span after an untrusted one
     association: dict[str, Any] = dataclasses.field(default_factory=dict)  # AssociationSettings overrides
     detection: dict[str, Any] = dataclasses.field(default_factory=dict)  # DetectionSettings overrides
+    limits: dict[str, Any] = dataclasses.field(default_factory=dict)  # ReadLimits overrides
     output: OutputOptions = OutputOptions()
 
     def association_settings(self) -> AssociationSettings:
@@ -76,7 +78,7 @@ class SiteConfig:
         chosen = {k: getattr(self, k) for k in ("algorithm", "backend", "device", "ac_mode")
                   if getattr(self, k) is not None}
         return dataclasses.replace(ProcessingSettings(), **chosen, detection=self.detection_settings(),
-                                   association=self.association_settings())
+                                   association=self.association_settings(), limits=ReadLimits(**self.limits))
 
     def batch_options(self, **extra):
         return BatchOptions(jobs=self.jobs, cache=self.cache, heights_m=self.heights_m,
@@ -124,6 +126,7 @@ _SCHEMA = {
                     "weighted": _bool, "range_sigma_m": _number, "outlier_chi2": _number,
                     "max_bridge_cycles": _int},
     "output": {f.name: _bool for f in dataclasses.fields(OutputOptions)},
+    "limits": {f.name: _int for f in dataclasses.fields(ReadLimits)},
 }
 
 
@@ -163,31 +166,75 @@ def parse_config(data: dict[str, Any], path: str | os.PathLike[str] | None = Non
     assoc = dict(values.get("association", {}))
     max_bridge = assoc.pop("max_bridge_cycles", SiteConfig.max_bridge_cycles)
     cfg = SiteConfig(**proc, **site, max_bridge_cycles=max_bridge, association=assoc,
-                     detection=values.get("detection", {}), output=OutputOptions(**values.get("output", {})))
+                     detection=values.get("detection", {}), limits=values.get("limits", {}),
+                     output=OutputOptions(**values.get("output", {})))
     validate(cfg, path)
     return cfg
 
 
+def _positive(v) -> bool:
+    return all(math.isfinite(x) and x > 0 for x in (v if isinstance(v, tuple) else (v,)))
+
+
+# Values of the effective settings that would make the maths singular, an index negative or a loop unbounded:
+# "section.key" -> (check, what the value must be). Every other number must at least be finite.
+_RANGES = {
+    "association.tolerance_m": (_positive, "finite and > 0 on every axis"),
+    "association.prior_window_m": (_positive, "finite and > 0 on every axis"),
+    "association.min_targets": (lambda v: v >= 1, ">= 1"),
+    "association.min_confident_targets": (lambda v: v >= 1, ">= 1"),
+    "association.range_sigma_m": (_positive, "finite and > 0"),
+    "association.outlier_chi2": (_positive, "finite and > 0"),
+    "detection.separation_m": (_positive, "finite and > 0"),
+    "detection.range_separation_m": (_positive, "finite and > 0"),
+    "detection.max_targets": (lambda v: 1 <= v <= 4096, "between 1 and 4096"),
+    "detection.relative_floor_db": (lambda v: math.isfinite(v) and v <= 0, "finite and <= 0"),
+    "detection.neighbour_cancellation_passes": (lambda v: 0 <= v <= 16, "between 0 and 16"),
+    "detection.neighbour_cancellation_tol_m": (_positive, "finite and > 0"),
+    "detection.neighbour_gain_degree": (lambda v: 0 <= v <= 32, "between 0 and 32"),
+    **{f"limits.{f.name}": (lambda v: v >= 1, ">= 1") for f in dataclasses.fields(ReadLimits)},
+}
+
+
+def _check_ranges(settings: ProcessingSettings, path) -> None:
+    for section, obj in (("association", settings.association), ("detection", settings.detection),
+                         ("limits", settings.limits)):
+        for f in dataclasses.fields(obj):
+            key, value = f"{section}.{f.name}", getattr(obj, f.name)
+            if value is None or isinstance(value, (bool, str)):
+                continue
+            check, want = _RANGES.get(key, (lambda v: all(math.isfinite(x) for x in (
+                v if isinstance(v, tuple) else (v,))), "finite"))
+            if not check(value):
+                raise ConfigError(path, key, f"must be {want}, got {value!r}")
+
+
 def validate(cfg: SiteConfig, path=None) -> None:
     def positive(key, v):
-        if v is not None and not v > 0:
-            raise ConfigError(path, key, f"must be > 0, got {v}")
+        if v is not None and not _positive(v):
+            raise ConfigError(path, key, f"must be finite and > 0, got {v}")
 
     positive("site.web_depth_m", cfg.web_depth_m)
     positive("site.height_tolerance_m", cfg.height_tolerance_m)
     positive("processing.jobs", cfg.jobs)
-    if cfg.prior_window_m is not None and not all(v > 0 for v in cfg.prior_window_m):
-        raise ConfigError(path, "site.prior_window_m", f"must be > 0, got {list(cfg.prior_window_m)}")
+    for key in ("site.prior_creep_m", "site.prior_vertical_m"):
+        if not math.isfinite(getattr(cfg, key.split(".")[1])):
+            raise ConfigError(path, key, "must be finite")
+    if cfg.prior_window_m is not None and not _positive(tuple(cfg.prior_window_m)):
+        raise ConfigError(path, "site.prior_window_m", f"must be finite and > 0, got {list(cfg.prior_window_m)}")
+    if cfg.heights_m is not None and not all(math.isfinite(h) for h in cfg.heights_m):
+        raise ConfigError(path, "site.heights_m", f"must be finite, got {list(cfg.heights_m)}")
     if cfg.heights_m is not None and len(set(cfg.heights_m)) < 2:
         raise ConfigError(path, "site.heights_m", "needs two or more distinct heights")
     if cfg.max_bridge_cycles < 1:
         raise ConfigError(path, "association.max_bridge_cycles", f"must be >= 1, got {cfg.max_bridge_cycles}")
     try:
-        cfg.processing_settings()
+        settings = cfg.processing_settings()
     except ConfigError as e:
         raise ConfigError(path, e.key, e.reason) from None
     except (TypeError, ValueError) as e:
-        raise ConfigError(path, "association/detection", str(e)) from e
+        raise ConfigError(path, "association/detection/limits", str(e)) from e
+    _check_ranges(settings, path)
 
 
 def load_config(path: str | os.PathLike[str]) -> SiteConfig:
@@ -200,6 +247,8 @@ def load_config(path: str | os.PathLike[str]) -> SiteConfig:
         raise ConfigError(path, "-", f"cannot read: {e.strerror or e}") from e
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(path, "-", f"not valid TOML: {e}") from e
+    except UnicodeDecodeError as e:  # binary, UTF-16, Latin-1: TOML is UTF-8
+        raise ConfigError(path, "-", f"not a UTF-8 text file (TOML must be UTF-8): {e.reason} at byte {e.start}") from e
     return parse_config(data, path)
 
 

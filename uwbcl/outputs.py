@@ -7,16 +7,19 @@ errors.csv: every problem; plots/ (on request): time series per rig and focused 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import io
 import logging
+import os
+import shutil
 from pathlib import Path
 
 import numpy as np
 
 from . import __version__, archive
-from .atomic import atomic_path, csv_bytes, write_bytes_atomic
+from .atomic import PARTIAL_SUFFIX, atomic_path, csv_bytes, fsync_directory, write_bytes_atomic
 from .focus import backprojection, nlcs
-from .records import TRUSTED_STATUSES, BatchError, CycleResult, Problem, SeriesRow
+from .records import TRUSTED_STATUSES, BatchError, CycleResult, OutputError, Problem, SeriesRow
 from .utc import parse_utc
 
 log = logging.getLogger("uwbcl")
@@ -139,25 +142,173 @@ def write_h5_atomic(path: Path, tables: dict[str, tuple[tuple[str, ...], list[di
 
 def write_all(out_dir: Path, rows: list[SeriesRow], cycles: list[CycleResult], problems: list[Problem], opts,
               *, groups: dict, in_dir: Path, settings) -> list[dict]:
-    """Every output of a run; returns the displacements.csv rows (text)."""
-    disp = displacement_records(rows)
-    disp_text = write_displacements_csv(out_dir / "displacements.csv", rows)
-    targets = target_records(rows, cycles) if (opts.targets or opts.hdf5) else []
-    if opts.targets:
-        write_bytes_atomic(out_dir / "targets.csv", csv_bytes(TARGET_COLUMNS, _text(targets)))
-    if opts.hdf5:
-        write_h5_atomic(out_dir / "displacements.h5",
-                        {"displacements": (DISPLACEMENT_COLUMNS, disp), "targets": (TARGET_COLUMNS, targets)})
-    write_bytes_atomic(out_dir / "errors.csv",
-                       csv_bytes(ERROR_COLUMNS, [dataclasses.asdict(p) for p in problems]))
-    if opts.plots:
-        plot_time_series(out_dir / "plots", disp)
-    if opts.cycle_images:
-        plot_cycle_images(out_dir / "plots" / "cycles", groups, in_dir, settings)
+    """Every output of a run, published as one set (see `publish`); returns the displacements.csv rows (text).
+
+    Raises OutputError naming the path when a file cannot be written (disk full, permissions): the previous
+    complete set stays in place.
+    """
+    gen = new_generation(out_dir)
+    try:
+        disp = displacement_records(rows)
+        disp_text = write_displacements_csv(gen / "displacements.csv", rows)
+        targets = target_records(rows, cycles) if (opts.targets or opts.hdf5) else []
+        if opts.targets:
+            write_bytes_atomic(gen / "targets.csv", csv_bytes(TARGET_COLUMNS, _text(targets)))
+        if opts.hdf5:
+            write_h5_atomic(gen / "displacements.h5",
+                            {"displacements": (DISPLACEMENT_COLUMNS, disp), "targets": (TARGET_COLUMNS, targets)})
+        write_bytes_atomic(gen / "errors.csv",
+                           csv_bytes(ERROR_COLUMNS, [dataclasses.asdict(p) for p in problems]))
+        if opts.plots:
+            plot_time_series(gen / "plots", disp)
+        if opts.cycle_images:
+            _reuse_cycle_images(out_dir, gen)
+            plot_cycle_images(gen / "plots" / "cycles", groups, in_dir, settings)
+        publish(out_dir, gen)
+    except OSError as e:
+        shutil.rmtree(gen, ignore_errors=True)
+        where = e.filename or gen
+        raise OutputError(f"cannot write the outputs: {where}: {e.strerror or e}; the previous outputs are "
+                          "intact") from e
+    except BaseException:
+        shutil.rmtree(gen, ignore_errors=True)
+        raise
     return disp_text
 
 
+# ----------------------------------------------------------------------------------------------- one set
+# The files of a run become visible together: they are written into a new generation directory, and one
+# symbolic link, OUT/.uwbcl-current, is switched to it by rename(2), which is atomic. The names users read
+# (OUT/displacements.csv, ...) are fixed links through .uwbcl-current, so a kill at any instant leaves
+# either the old complete set or the new one (docs/outputs.md, "One set").
+GENERATIONS_DIR = ".uwbcl-generations"
+CURRENT_LINK = ".uwbcl-current"
+OUTPUT_NAMES = ("displacements.csv", "displacements.h5", "targets.csv", "errors.csv", "plots")
+KEEP_GENERATIONS = 2  # the current set and the one before it (a reader may still be reading it)
+
+
+def _generation_number(name: str) -> int:
+    return int(name[2:]) if name.startswith("g-") and name[2:].isdigit() else -1
+
+
+def _current_generation(out_dir: Path) -> str | None:
+    try:
+        return Path(os.readlink(out_dir / CURRENT_LINK)).name
+    except OSError:
+        return None
+
+
+def new_generation(out_dir: Path) -> Path:
+    """An empty generation directory numbered after every existing one."""
+    root = out_dir / GENERATIONS_DIR
+    root.mkdir(parents=True, exist_ok=True)
+    numbers = [_generation_number(p.name) for p in root.iterdir()]
+    gen = root / f"g-{max(numbers, default=0) + 1:06d}"
+    gen.mkdir()
+    return gen
+
+
+def _replace_with_link(path: Path, target: str) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}{PARTIAL_SUFFIX}")
+    tmp.unlink(missing_ok=True)
+    os.symlink(target, tmp)
+    os.replace(tmp, path)
+
+
+def publish(out_dir: Path, gen: Path) -> None:
+    """Make generation `gen` the visible output set of out_dir in one atomic step."""
+    _adopt_plain_outputs(out_dir)
+    for path in sorted(gen.rglob("*"), reverse=True):  # files, then the directories holding them
+        if path.is_dir():
+            fsync_directory(path)
+    fsync_directory(gen)
+    fsync_directory(gen.parent)
+    _replace_with_link(out_dir / CURRENT_LINK, f"{GENERATIONS_DIR}/{gen.name}")
+    fsync_directory(out_dir)
+    for name in OUTPUT_NAMES:
+        link = out_dir / name
+        if (gen / name).exists():
+            if not (link.is_symlink() and os.readlink(link) == f"{CURRENT_LINK}/{name}"):
+                _replace_with_link(link, f"{CURRENT_LINK}/{name}")
+        elif link.is_symlink():
+            link.unlink()
+    fsync_directory(out_dir)
+    prune_generations(out_dir)
+
+
+def _adopt_plain_outputs(out_dir: Path) -> None:
+    """Outputs of a version before generations (plain files): moved into a generation of their own first, so
+    that replacing them by links never shows a mixed set."""
+    current = out_dir / CURRENT_LINK
+    if current.exists() and not current.is_symlink():  # copied with links dereferenced: keep it as a generation
+        os.rename(current, new_generation(out_dir))
+    plain = [n for n in OUTPUT_NAMES if (out_dir / n).exists() and not (out_dir / n).is_symlink()]
+    if not plain:
+        return
+    gen = new_generation(out_dir)
+    for name in plain:
+        src = out_dir / name
+        if src.is_dir():
+            shutil.copytree(src, gen / name)
+        else:
+            shutil.copy2(src, gen / name)
+    fsync_directory(gen)
+    _replace_with_link(out_dir / CURRENT_LINK, f"{GENERATIONS_DIR}/{gen.name}")
+    for name in plain:
+        path = out_dir / name
+        if path.is_dir():
+            shutil.rmtree(path)
+        _replace_with_link(path, f"{CURRENT_LINK}/{name}")
+    fsync_directory(out_dir)
+
+
+def prune_generations(out_dir: Path) -> None:
+    """Remove generations older than the KEEP_GENERATIONS newest, and any newer than the current one (a run
+    killed before it published). Called with the output directory locked."""
+    root = out_dir / GENERATIONS_DIR
+    if not root.is_dir():
+        return
+    current = _current_generation(out_dir)
+    cur_n = _generation_number(current) if current else -1
+    gens = sorted((p for p in root.iterdir() if _generation_number(p.name) >= 0),
+                  key=lambda p: _generation_number(p.name))
+    keep = {p.name for p in gens if _generation_number(p.name) <= cur_n}
+    keep = set(sorted(keep, key=_generation_number)[-KEEP_GENERATIONS:])
+    for p in gens:
+        if p.name not in keep:
+            shutil.rmtree(p, ignore_errors=True)
+
+
+def _reuse_cycle_images(out_dir: Path, gen: Path) -> None:
+    """Focused-image PNGs of the current set carried into the new one (hard links: refocusing is slow)."""
+    current = out_dir / CURRENT_LINK / "plots" / "cycles"
+    if not current.is_dir():
+        return
+    for src in current.rglob("*.png"):
+        dst = gen / "plots" / "cycles" / src.relative_to(current)
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(src, dst)
+        except OSError:
+            shutil.copy2(src, dst)
+
+
 # ----------------------------------------------------------------------------------------------- plots
+SAFE_NAME_CHARACTERS = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789._-")
+MAX_NAME_LENGTH = 64
+
+
+def safe_name(text: str) -> str:
+    """A file-name component derived from file content (a rig id): the characters docs/archive-format.md calls
+    safe, other characters as '_', no leading dot, at most MAX_NAME_LENGTH characters. A name that had to be
+    changed gets a hash of the original, so two ids never share a file. Never a path: no '/', never '..'."""
+    clean = "".join(c if c in SAFE_NAME_CHARACTERS else "_" for c in text).lstrip(".") or "_"
+    if clean == text and len(text) <= MAX_NAME_LENGTH:
+        return text
+    digest = hashlib.sha256(text.encode("utf-8", "surrogateescape")).hexdigest()[:8]
+    return f"{clean[:MAX_NAME_LENGTH - 9]}-{digest}"
+
+
 def require_matplotlib() -> None:
 
     try:
@@ -205,7 +356,7 @@ def plot_time_series(plot_dir: Path, records: list[dict]) -> None:
         fig.suptitle(f"{rig}: {len(recs)} displacements, {sum(flagged)} flagged")
         fig.autofmt_xdate()
         fig.tight_layout()
-        _save(fig, plot_dir / f"timeseries_{rig}.png")
+        _save(fig, plot_dir / f"timeseries_{safe_name(rig)}.png")
         plt.close(fig)
 
 
@@ -217,7 +368,7 @@ def plot_cycle_images(plot_dir: Path, groups: dict, in_dir: Path, settings) -> N
     plt = _pyplot()
     for (rig, cycle), recs in sorted(groups.items()):
         for hmm, rec in sorted(recs.items()):
-            path = plot_dir / rig / f"c{cycle:06d}_h{hmm:04d}.png"
+            path = plot_dir / safe_name(rig) / f"c{cycle:06d}_h{hmm:04d}.png"
             if path.exists():
                 continue
             scan = archive.read_pass(in_dir / rec.file)

@@ -1,0 +1,373 @@
+"""No single bad thing aborts the nightly batch or hurts the server it runs on: hostile trees, damaged caches,
+names that try to be paths, bad flags, kills at any instant, a full disk (issues: hostile input; whole-run
+failures). Each case: a named problem (errors.csv, exit 1) or a usage error (exit 2), the rest processed, no
+traceback, nothing read outside the tree or written outside OUT_DIR."""
+
+from __future__ import annotations
+
+import csv
+import errno
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import pytest
+
+from uwbcl import archive, batch, outputs, shift
+from uwbcl.cli import main
+from uwbcl.records import AssociationSettings, BatchOptions, OutputOptions, ProcessingSettings
+
+SETTINGS = ProcessingSettings(backend="numpy", association=AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0)))
+CONFIG = shift.ShiftConfig(rigs=1, cycles=3, seed=5)
+OUTPUTS = ("displacements.csv", "displacements.h5", "targets.csv", "errors.csv")
+
+
+def options(**kw) -> BatchOptions:
+    return BatchOptions(**{"jobs": 1, "progress": False, **kw})
+
+
+def problems(out: Path) -> dict[str, str]:
+    with (out / "errors.csv").open(encoding="utf-8") as f:
+        return {r["file"]: r["kind"] for r in csv.DictReader(f)}
+
+
+def outputs_of(out: Path) -> dict[str, bytes]:
+    return {name: (out / name).read_bytes() for name in OUTPUTS}
+
+
+@pytest.fixture(scope="module")
+def archive_dir(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("shift")
+    shift.write_shift(out, CONFIG)
+    return out
+
+
+@pytest.fixture(scope="module")
+def clean(archive_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("clean-out")
+    report = batch.process_directory(archive_dir, out, SETTINGS, options())
+    return out, report
+
+
+@pytest.fixture
+def tree(archive_dir, clean, tmp_path) -> tuple[Path, Path]:
+    """A copy of the archive tree and an output directory holding the clean run's cache (so only what a test
+    adds is focused)."""
+    src = tmp_path / "in"
+    shutil.copytree(archive_dir, src)
+    out = tmp_path / "out"
+    shutil.copytree(clean[0] / batch.CACHE_DIR, out / batch.CACHE_DIR)
+    return src, out
+
+
+def a_pass(root: Path) -> Path:
+    return sorted(root.rglob("*.h5"))[0]
+
+
+# ----------------------------------------------------------------------------------------------- the tree
+def test_an_in_tree_external_link_between_two_passes_is_refused_and_the_rest_processed(tree, clean):
+    src, out = tree
+    first, second = sorted(src.rglob("*.h5"))[:2]
+    bad = first.with_name("linked.h5")
+    shutil.copy(first, bad)
+    with h5py.File(bad, "r+") as f:
+        del f["echo"]
+        f["echo"] = h5py.ExternalLink(str(second), "/echo")
+    report = batch.process_directory(src, out, SETTINGS, options())
+    assert any(p.kind == "invalid_archive" and "external link" in p.reason for p in report.errors)
+    assert (out / "displacements.csv").read_bytes() == (clean[0] / "displacements.csv").read_bytes()
+
+
+def test_a_fifo_a_symlink_loop_and_a_broken_link_are_reported_without_hanging(tree):
+    src, out = tree
+    os.mkfifo(src / "fifo.h5")
+    os.symlink("loop.h5", src / "loop.h5")
+    os.symlink("nowhere.h5", src / "broken.h5")
+    report = batch.process_directory(src, out, SETTINGS, options())
+    kinds = {p.file: p.kind for p in report.errors}
+    assert kinds == {"fifo.h5": "not_a_regular_file", "loop.h5": "symlink_loop", "broken.h5": "broken_link"}
+    assert len(report.rows) == CONFIG.cycles - 1
+
+
+def test_a_name_that_is_not_utf8_is_reported_and_errors_csv_stays_writable(tree):
+    src, out = tree
+    bad = os.path.join(os.fsencode(src), b"bad\xff.h5")
+    shutil.copy(a_pass(src), os.fsdecode(bad))
+    report = batch.process_directory(src, out, SETTINGS, options())
+    assert [p.kind for p in report.errors] == ["undecodable_name"]
+    assert problems(out) == {"bad\\xff.h5": "undecodable_name"}
+
+
+def test_hidden_directories_are_neither_searched_nor_silently_skipped(tree):
+    src, out = tree
+    hidden = src / ".trash" / "rig-x"
+    hidden.mkdir(parents=True)
+    shutil.copy(a_pass(src), hidden / "copy.h5")
+    report = batch.process_directory(src, out, SETTINGS, options())
+    assert [(p.file, p.kind) for p in report.errors] == [(".trash", "hidden_directory")]
+    assert report.n_passes == CONFIG.cycles * 2
+
+
+def test_a_link_leaving_the_tree_is_read_only_with_follow_symlinks(tree, tmp_path):
+    src, out = tree
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    target = outside / "x.h5"
+    shutil.move(a_pass(src), target)
+    os.symlink(target, src / "x.h5")
+    report = batch.process_directory(src, out, SETTINGS, options())
+    assert ("x.h5", "outside_link") in [(p.file, p.kind) for p in report.errors]  # (its cycle: single_height)
+    report = batch.process_directory(src, out, SETTINGS, options(follow_symlinks=True))
+    assert report.errors == [] and [w.kind for w in report.warnings] == ["symlink"]
+
+
+def test_a_linked_directory_is_reported_not_followed_and_followed_on_request_without_looping(tree, tmp_path):
+    src, out = tree
+    moved = tmp_path / "rig-dir"
+    rig = next(p for p in src.iterdir() if p.is_dir())
+    shutil.move(rig, moved)
+    os.symlink(moved, src / rig.name)
+    os.symlink(src, moved / "back")  # a loop through the link
+    report = batch.process_directory(src, out, SETTINGS, options())
+    assert [(p.file, p.kind) for p in report.errors] == [(rig.name, "directory_link")]
+    report = batch.process_directory(src, out, SETTINGS, options(follow_symlinks=True))
+    assert report.errors == [] and report.n_passes == CONFIG.cycles * 2
+
+
+# ----------------------------------------------------------------------------------------------- the cache
+@pytest.mark.parametrize("damage", ["null", "not_a_list", "string_field", "directory", "cache_is_a_file"])
+def test_a_damaged_cache_is_recomputed_and_counted_never_fatal(tree, clean, damage):
+    src, out = tree
+    key_dir = next((out / batch.CACHE_DIR).iterdir())
+    entry = sorted(key_dir.glob("*.json"))[0]
+    record = json.loads(entry.read_text())
+    if damage == "null":
+        entry.write_text("null")
+    elif damage == "not_a_list":
+        entry.write_text(json.dumps({**record, "detections": {"a": 1}}))
+    elif damage == "string_field":
+        record["detections"][0]["x_m"] = "1.0"
+        entry.write_text(json.dumps(record))
+    elif damage == "directory":
+        entry.unlink()
+        entry.mkdir()
+    else:
+        shutil.rmtree(out / batch.CACHE_DIR)
+        (out / batch.CACHE_DIR).write_text("not a directory")
+    report = batch.process_directory(src, out, SETTINGS, options())
+    assert report.errors == []
+    assert (out / "displacements.csv").read_bytes() == (clean[0] / "displacements.csv").read_bytes()
+    if damage != "cache_is_a_file":
+        assert report.n_cache_damaged == 1 and report.n_detected == 1
+
+
+# ----------------------------------------------------------------------------------------------- names
+@pytest.mark.parametrize("rig_id", ["../escaped", "/tmp/absolute-rig", "r" * 300, "rig-é/../ü"])
+def test_rig_ids_never_become_paths_outside_the_output_directory(tmp_path, rig_id):
+    src, out = tmp_path / "in", tmp_path / "sub" / "out"
+    cfg = shift.ShiftConfig(rigs=1, cycles=2, seed=5)
+    for scan in shift.simulate_shift(cfg):
+        scan = scan.__class__(**{**scan.__dict__, "rig_id": rig_id})
+        archive.write_pass(src / f"c{scan.cycle}_h{archive.height_mm(scan.geometry.height_m)}.h5", scan)
+    before = {p for p in tmp_path.rglob("*")} | set(Path("/tmp").glob("timeseries_*"))
+    report = batch.process_directory(src, out, SETTINGS, options(outputs=OutputOptions(plots=True)))
+    assert report.errors == []
+    new = {p for p in tmp_path.rglob("*")} | set(Path("/tmp").glob("timeseries_*"))
+    allowed = {out.resolve(), *out.resolve().parents}
+    escaped = [p for p in new - before if p.resolve() not in allowed and out.resolve() not in p.resolve().parents]
+    assert escaped == []
+    pngs = list((out / "plots").glob("*.png"))
+    assert len(pngs) == 1 and len(pngs[0].name) <= outputs.MAX_NAME_LENGTH + 20
+
+
+def test_safe_names_keep_safe_ids_and_make_every_other_one_a_distinct_plain_name():
+    assert outputs.safe_name("rig-1") == "rig-1"
+    names = {outputs.safe_name(s) for s in ("../x", "/x", ".x", "x/..", "x" * 300, "é")}
+    assert len(names) == 6
+    assert all("/" not in n and not n.startswith(".") and len(n) <= outputs.MAX_NAME_LENGTH for n in names)
+
+
+# ----------------------------------------------------------------------------------------------- flags
+@pytest.mark.parametrize("toml, key", [
+    ("[association]\nmin_targets = -1\n", "association.min_targets"),
+    ("[association]\noutlier_chi2 = -3.0\n", "association.outlier_chi2"),
+    ("[association]\nrange_sigma_m = 0.0\n", "association.range_sigma_m"),
+    ("[detection]\nmax_targets = 0\n", "detection.max_targets"),
+    ("[detection]\nseparation_m = -0.15\n", "detection.separation_m"),
+    ("[limits]\nmax_echo_samples = 0\n", "limits.max_echo_samples"),
+])
+def test_config_values_that_break_the_maths_are_usage_errors_naming_the_key(archive_dir, tmp_path, capsys, toml,
+                                                                            key):
+    cfg = tmp_path / "site.toml"
+    cfg.write_text(toml)
+    assert main(["process", str(archive_dir), "--out", str(tmp_path / "o"), "--backend", "numpy",
+                 "--config", str(cfg)]) == 2
+    assert key in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("content", [b"\x00\xff\xfe binary", "[site]\nweb_depth_m = 0.9\n".encode("utf-16")])
+def test_a_binary_or_utf16_config_is_a_usage_error(archive_dir, tmp_path, capsys, content):
+    cfg = tmp_path / "site.toml"
+    cfg.write_bytes(content)
+    assert main(["process", str(archive_dir), "--out", str(tmp_path / "o"), "--config", str(cfg)]) == 2
+    assert "UTF-8" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flags", [["--web-depth", "inf"], ["--heights", "nan", "0.6"], ["--heights", "low"]])
+def test_non_finite_or_non_numeric_flags_are_usage_errors(archive_dir, tmp_path, capsys, flags):
+    assert main(["process", str(archive_dir), "--out", str(tmp_path / "o"), "--backend", "numpy", *flags]) == 2
+    assert "Traceback" not in capsys.readouterr().err
+
+
+def test_out_equal_to_or_containing_the_archive_directory_or_at_a_file_is_a_usage_error(archive_dir, tmp_path,
+                                                                                         capsys):
+    src = tmp_path / "o" / "in"
+    shutil.copytree(archive_dir, src)
+    (tmp_path / "file").write_text("x")
+    for out in (src, tmp_path / "o", tmp_path / "file", tmp_path / "file" / "below"):
+        assert main(["process", str(src), "--out", str(out), "--backend", "numpy"]) == 2, out
+    assert capsys.readouterr().err.count("uwbcl process:") == 4
+
+
+def test_jobs_is_capped_at_the_cores_and_the_pending_passes():
+    assert batch.worker_count(1000, SETTINGS, 12) == min(batch.cpu_count(), 12)
+    assert batch.worker_count(1000, SETTINGS, 1) == 1
+
+
+# ----------------------------------------------------------------------------------------------- warnings
+def test_shared_pass_ids_future_times_and_cycles_going_back_in_time_are_warnings(tmp_path):
+    src = tmp_path / "in"
+    scans = list(shift.simulate_shift(shift.ShiftConfig(rigs=1, cycles=3, seed=5)))
+    late = {0: "2026-11-02T08:00:00Z", 1: "2026-11-02T07:00:00Z", 2: "2099-01-01T00:00:00Z"}
+    for scan in scans:
+        scan = scan.__class__(**{**scan.__dict__, "pass_start_time": late[scan.cycle]})
+        archive.write_pass(src / f"c{scan.cycle}_h{archive.height_mm(scan.geometry.height_m)}.h5", scan,
+                           pass_id="same-id")
+    report = batch.process_directory(src, tmp_path / "out", SETTINGS, options())
+    kinds = sorted({w.kind for w in report.warnings})
+    assert kinds == ["future_time", "shared_pass_id", "time_backwards"]
+
+
+# ----------------------------------------------------------------------------------------------- one set
+KILL_AT = '''
+import os, signal, sys
+from pathlib import Path
+from uwbcl import batch
+from uwbcl.records import AssociationSettings, BatchOptions, ProcessingSettings
+n = int(sys.argv[3]); calls = [0]
+real_replace = os.replace
+def replace(a, b):
+    calls[0] += 1
+    if calls[0] == n:
+        os.kill(os.getpid(), signal.SIGKILL)
+    return real_replace(a, b)
+os.replace = replace
+s = ProcessingSettings(backend="numpy", association=AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0)))
+batch.process_directory(Path(sys.argv[1]), Path(sys.argv[2]), s, BatchOptions(jobs=1, progress=False))
+print("renames", calls[0])
+'''
+
+
+def test_a_kill_at_every_rename_leaves_one_complete_set_and_a_rerun_gives_the_uninterrupted_outputs(tree, clean,
+                                                                                                    tmp_path):
+    src, out = tree
+    extra = tmp_path / "extra"
+    shift.write_shift(extra, shift.ShiftConfig(rigs=1, cycles=5, seed=5))
+    ref = tmp_path / "ref"
+    batch.process_directory(extra, ref, SETTINGS, options())  # the uninterrupted run over 5 cycles
+    batch.process_directory(src, out, SETTINGS, options())  # the old set: 3 cycles
+    old, new = outputs_of(out), outputs_of(ref)
+    assert old != new
+    # Every pass already cached: the killed runs only write outputs (and are fast).
+    shutil.rmtree(out / batch.CACHE_DIR)
+    shutil.copytree(ref / batch.CACHE_DIR, out / batch.CACHE_DIR)
+    template, full = tmp_path / "template", tmp_path / "full"
+    shutil.copytree(out, template, symlinks=True)
+    script = tmp_path / "kill.py"
+    script.write_text(KILL_AT)
+
+    def run(n: int) -> subprocess.CompletedProcess:
+        shutil.rmtree(full, ignore_errors=True)
+        shutil.copytree(template, full, symlinks=True)
+        return subprocess.run([sys.executable, str(script), str(extra), str(full), str(n)], capture_output=True,
+                              text=True)
+
+    n_renames = int(run(0).stdout.split()[-1])
+    assert n_renames >= 5
+    for n in range(1, n_renames + 1):
+        killed = run(n)
+        assert killed.returncode == -signal.SIGKILL, killed.stderr
+        assert outputs_of(full) in (old, new), f"a mixed output set after a kill at rename {n}"
+        batch.process_directory(extra, full, SETTINGS, options())
+        assert outputs_of(full) == new
+        assert not list(full.glob(".*.partial"))
+
+
+def test_a_full_disk_names_the_path_keeps_the_old_outputs_and_exits_1(tree, clean, monkeypatch, capsys):
+    src, out = tree
+    batch.process_directory(src, out, SETTINGS, options())
+    old = outputs_of(out)
+    real = outputs.write_bytes_atomic
+
+    def full(path, data):
+        if Path(path).name == "errors.csv":
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return real(path, data)
+
+    monkeypatch.setattr(outputs, "write_bytes_atomic", full)
+    assert main(["process", str(src), "--out", str(out), "--backend", "numpy", "--jobs", "1", "--no-cache"]) == 1
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "errors.csv" in err and "Traceback" not in err
+    assert outputs_of(out) == old
+
+
+# ----------------------------------------------------------------------------------------------- stops
+def _children(pid: int) -> list[int]:
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143), (signal.SIGKILL, -9)])
+def test_a_signal_stops_the_run_cleanly_and_no_worker_outlives_it(archive_dir, tmp_path, sig, code):
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "uwbcl.cli", "process", str(archive_dir), "--out", str(out),
+                             "--backend", "numpy", "--jobs", "2", "--no-cache"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    workers: list[int] = []
+    while time.monotonic() < deadline and len(workers) < 2:
+        workers = [c for c in _children(proc.pid) if "spawn_main" in Path(f"/proc/{c}/cmdline").read_text()
+                   .replace("\0", " ")] if proc.poll() is None else []
+        time.sleep(0.05)
+    assert len(workers) == 2, "the workers never started"
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == code, err
+    if sig != signal.SIGKILL:
+        assert "Traceback" not in err and err.strip().count("\n") == 0 and "stopped by" in err
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and any(_alive(w) for w in workers):
+        time.sleep(0.1)
+    assert not any(_alive(w) for w in workers), "a worker outlived the run"
+    assert not (out / "displacements.csv").exists()
