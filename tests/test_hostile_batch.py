@@ -371,3 +371,16 @@ def test_a_signal_stops_the_run_cleanly_and_no_worker_outlives_it(archive_dir, t
         time.sleep(0.1)
     assert not any(_alive(w) for w in workers), "a worker outlived the run"
     assert not (out / "displacements.csv").exists()
+
+
+def test_a_pass_whose_positions_are_off_by_orders_of_magnitude_is_refused_before_any_allocation(tmp_path):
+    import dataclasses
+    import resource
+
+    scan = next(iter(shift.simulate_shift(shift.ShiftConfig(rigs=1, cycles=1, seed=5))))
+    bad = dataclasses.replace(scan, pulse_position_m=scan.pulse_position_m * 1e-7)
+    path = archive.write_pass(tmp_path / "in" / "scaled.h5", bad)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    entry = batch.detect_file(str(path), SETTINGS)
+    assert entry["kind"] == "exceeds_limits", entry
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 200 << 10  # kB

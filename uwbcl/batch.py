@@ -42,6 +42,7 @@ from .records import (
     BatchReport,
     CycleResult,
     Detection,
+    LimitExceeded,
     PassRecord,
     Problem,
     ProcessingSettings,
@@ -106,6 +107,8 @@ def detect_file(path: str, settings: ProcessingSettings) -> dict:
         return {"error": f"cannot read: {e.strerror or e}", "kind": "unreadable"}
     try:
         detections = pipeline.detect_pass(scan, settings)
+    except LimitExceeded as e:
+        return {"error": str(e), "kind": "exceeds_limits"}
     except Exception as e:  # noqa: BLE001 - a numerical failure in one pass must not stop the night's run
         return {"error": f"focusing failed: {type(e).__name__}: {e}", "kind": "processing_failed"}
     header = {

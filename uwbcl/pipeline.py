@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from . import chain, detect
 from .focus import backprojection, nlcs
 from .model import ScanPass
-from .records import ALGORITHMS, BACKENDS, CycleResult, Detection, ProcessingSettings
+from .records import ALGORITHMS, BACKENDS, CycleResult, Detection, LimitExceeded, ProcessingSettings
 
 log = logging.getLogger("uwbcl")
 
@@ -30,10 +30,38 @@ def _focuser(settings: ProcessingSettings):
     raise ValueError(f"unknown backend {settings.backend!r}; available: {', '.join(BACKENDS)}")
 
 
+BP_PIXEL_M = 0.01  # backprojection image pixel (backprojection.backprojection_focus's default)
+BP_RANGE_MARGIN_M = 0.1
+
+
+def check_plan(scan: ScanPass, settings: ProcessingSettings) -> None:
+    """LimitExceeded when focusing or detecting this pass would allocate more cells than
+    settings.limits.max_focus_cells: the arrays are sized from the pass's metadata (rail length, pulse spacing,
+    range window), so a pass whose positions are off by orders of magnitude is refused before any allocation."""
+    limit = settings.limits.max_focus_cells
+    grid = nlcs.focus_grid(scan)
+    range_bin_m = grid.range_bins_m[1] - grid.range_bins_m[0] if grid.n_range > 1 else 1.0
+    if settings.algorithm == "bp":
+        u, r = backprojection.image_axes(grid, BP_PIXEL_M, BP_RANGE_MARGIN_M)
+        cells, what, pixel_m = u.size * r.size, "backprojection image", (BP_PIXEL_M, BP_PIXEL_M)
+    else:
+        cells, what, pixel_m = grid.n_azimuth * grid.n_range, "NLCS focus grid", (grid.track_spacing_m, range_bin_m)
+    if cells > limit:
+        raise LimitExceeded(f"the {what} would have {cells} cells (limit {limit}, limits.max_focus_cells): rail "
+                            f"{grid.n_track} pulses {grid.track_spacing_m:.3g} m apart, {grid.n_range} range bins")
+    d = settings.detection
+    footprint = (2 * int(d.separation_m / pixel_m[0]) + 1) * (2 * int(d.range_separation_m / pixel_m[1]) + 1)
+    if footprint > limit:
+        raise LimitExceeded(f"detection's separation ellipse would span {footprint} cells (limit {limit}): pulses "
+                            f"{grid.track_spacing_m:.3g} m apart for a {d.separation_m} m separation")
+
+
 def detect_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSettings()) -> list[Detection]:
-    """Focus one pass and return its point targets in closest-approach coordinates."""
+    """Focus one pass and return its point targets in closest-approach coordinates (LimitExceeded, before any
+    allocation, for a pass too large for settings.limits)."""
     if settings.algorithm not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {settings.algorithm!r}; available: {', '.join(ALGORITHMS)}")
+    check_plan(scan, settings)
     nlcs_focuser, bp_focuser = _focuser(settings)
     if settings.algorithm == "nlcs":
         products = nlcs_focuser.nlcs_focus(scan, ac_mode=settings.ac_mode)

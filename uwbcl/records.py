@@ -39,6 +39,10 @@ class BatchError(RuntimeError):
     """The run cannot start (output directory locked, plotting unavailable); nothing was written."""
 
 
+class LimitExceeded(ValueError):
+    """A pass whose processing would need more memory than `ReadLimits` admit (named, never attempted)."""
+
+
 class OutputError(RuntimeError):
     """The outputs could not be written (disk full, permissions); the previous complete set is still in place."""
 
