@@ -11,6 +11,8 @@ SUDO=""
 if [ "$(id -u)" != 0 ] && command -v sudo >/dev/null 2>&1; then SUDO=sudo; fi
 packages=(pocl-opencl-icd ocl-icd-libopencl1 opencl-headers ocl-icd-opencl-dev g++ clinfo)
 python3 -c "import ensurepip" 2>/dev/null || packages+=(python3-venv)
+# the test extras: strace lets the fuzz test see every file `uwbcl process` opens
+case ",${1:-}," in *,test,*) packages+=(strace) ;; esac
 missing=()
 for p in "${packages[@]}"; do dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p"); done
 if [ "${#missing[@]}" -gt 0 ]; then
