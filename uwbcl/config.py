@@ -135,7 +135,7 @@ def _detection_schema() -> dict:
     return out
 
 
-OTHER_COMMANDS_SECTIONS = ("acquire",)
+OTHER_COMMANDS_SECTIONS = ("acquire", "import")  # `uwbcl import` checks [import]
 
 
 def parse_config(data: dict[str, Any], path: str | os.PathLike[str] | None = None) -> SiteConfig:
@@ -191,6 +191,11 @@ def validate(cfg: SiteConfig, path=None) -> None:
 
 
 def load_config(path: str | os.PathLike[str]) -> SiteConfig:
+    return parse_config(read_toml(path), path)
+
+
+def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The parsed tables of a site file; ConfigError for a missing, unreadable or invalid one."""
     if tomllib is None:
         raise ConfigError(path, "-", "reading TOML needs Python >= 3.11 or the 'tomli' package")
     try:
@@ -200,7 +205,7 @@ def load_config(path: str | os.PathLike[str]) -> SiteConfig:
         raise ConfigError(path, "-", f"cannot read: {e.strerror or e}") from e
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(path, "-", f"not valid TOML: {e}") from e
-    return parse_config(data, path)
+    return data
 
 
 def override(cfg: SiteConfig, **flags: Any) -> SiteConfig:

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..model import PassGeometry, RadarParameters, RawRF, ScanPass
+from ..records import ConfigError
 from . import RawRecording, RecordingError, baseband
 
 log = logging.getLogger("uwbcl")
@@ -269,3 +270,52 @@ def _start_from_mtime(mtime_s: float | None, before_end_s: float) -> str:
         return "1970-01-01T00:00:00Z"
     start = dt.datetime.fromtimestamp(mtime_s - float(before_end_s), tz=dt.timezone.utc)
     return start.isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+def options_from_table(table: dict, path: str | os.PathLike[str] | None = None) -> dict:
+    """ImportOptions values from the ``[import]`` table of a site TOML, checked: ConfigError names the key."""
+    if not isinstance(table, dict):
+        raise ConfigError(path, "import", "must be a table ([import])")
+    out = {}
+    for key, value in table.items():
+        if key not in OPTION_TYPES:
+            raise ConfigError(path, f"import.{key}", f"unknown key; expected one of {', '.join(sorted(OPTION_TYPES))}")
+        kind = OPTION_TYPES[key]
+        number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if "tuple" in kind:
+            ok = isinstance(value, list) and len(value) == 3 and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+            value = tuple(float(v) for v in value) if ok else value
+        elif kind.startswith("bool"):
+            ok = isinstance(value, bool)
+        elif kind.startswith("int"):
+            ok = isinstance(value, int) and not isinstance(value, bool)
+        elif kind.startswith("float"):
+            ok = number and math.isfinite(value)
+            value = float(value) if ok else value
+        else:
+            ok = isinstance(value, str)
+        if not ok:
+            raise ConfigError(path, f"import.{key}", f"expected {kind.replace(' | None', '')}, got {value!r}")
+        out[key] = value
+    return out
+
+
+def check_options(options: ImportOptions, path: str | os.PathLike[str] | None = None) -> None:
+    """ConfigError for values no archive could hold (checked before any file is read)."""
+    def fail(key: str, reason: str) -> None:
+        raise ConfigError(path, key, reason)
+
+    if options.boresight_y_sign not in (-1, 1):
+        fail("boresight_y_sign", f"must be -1 or +1, got {options.boresight_y_sign}")
+    if not abs(options.rotation_table_angle_deg) < 90.0:
+        fail("rotation_table_angle_deg", f"must be within (-90, 90), got {options.rotation_table_angle_deg}")
+    for key in ("antenna_aperture_m", "reference_range_m", "oversampling", "min_step_m",
+                "pulse_repetition_frequency_hz", "carrier_frequency_hz"):
+        value = getattr(options, key)
+        if value is not None and not (math.isfinite(value) and value > 0):
+            fail(key, f"must be > 0, got {value}")
+    if options.decimation is not None and options.decimation < 1:
+        fail("decimation", f"must be >= 1, got {options.decimation}")
+    if not math.isfinite(options.range_delay_s):
+        fail("range_delay_s", f"must be finite, got {options.range_delay_s}")
