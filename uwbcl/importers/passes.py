@@ -30,7 +30,7 @@ from . import RawRecording, RecordingError, baseband
 
 log = logging.getLogger("uwbcl")
 
-MOTION_THRESHOLD_M = 0.002  # a position this far from the first one has moved (encoders resolve < 1 mm)
+MOTION_THRESHOLD_M = 0.002  # a position this far from the first one has moved (about where the echo shows it)
 _REST_SCANS = 8  # scans at the start assumed at rest for the radar's motion detector
 
 
@@ -106,7 +106,7 @@ def read_positions_csv(path: str | os.PathLike[str]) -> Positions:
     return Positions(time_s=t, x_m=arr["x_m"], y_m=arr.get("y_m"), z_m=arr.get("z_m"))
 
 
-def radar_first_motion_s(recording: RawRecording, factor: float = 10.0) -> float | None:
+def radar_first_motion_s(recording: RawRecording, factor: float = 5.0) -> float | None:
     """Time (radar clock) of the first scan whose echo departs from the rest echo, or None.
 
     The first `_REST_SCANS` scans are taken as the rest echo and its scan-to-scan spread as the noise level; the
