@@ -31,11 +31,13 @@ T_BIN_S = 32 / (512 * 1.024e9)
 NUMPY_NLCS = ProcessingSettings(backend="numpy", algorithm="nlcs")
 
 
-# ----------------------------------------------------------------------------------------------- the real file
+# ---------------------------------------------------------------------------------------------- the real file
 
 
 @needs_real
-def test_the_shared_real_file_reads_every_complete_scan_and_drops_the_partial_last_one_with_a_log_line(caplog):
+def test_the_shared_real_file_reads_every_complete_scan_and_drops_the_partial_last_one_with_a_log_line(
+    caplog,
+):
     with caplog.at_level(logging.WARNING, logger="uwbcl"):
         rec = p440.READER.read(REAL)
     assert rec.samples.shape == (710, 1152) and rec.samples.dtype == np.int32
@@ -61,17 +63,41 @@ def test_the_real_file_spectrum_is_centred_near_4_ghz_with_its_minus_10_db_band_
 @needs_real
 def test_the_writer_reproduces_the_real_file_byte_for_byte_up_to_its_partial_last_scan(tmp_path):
     rec = p440.READER.read(REAL)
-    copy = p440.write_p440_stream(tmp_path / "copy.p440", rec.samples, np.rint(rec.scan_time_s * 1e3).astype(int),
-                                  scan_start_ps=36684, node_id=1, pii=11, partial_last_scan_messages=1)
+    copy = p440.write_p440_stream(
+        tmp_path / "copy.p440",
+        rec.samples,
+        np.rint(rec.scan_time_s * 1e3).astype(int),
+        scan_start_ps=36684,
+        node_id=1,
+        pii=11,
+        partial_last_scan_messages=1,
+    )
     a, b = REAL.read_bytes(), copy.read_bytes()
-    assert len(a) == len(b) and a[:-p440.RECORD_BYTES] == b[:-p440.RECORD_BYTES]
+    assert len(a) == len(b) and a[: -p440.RECORD_BYTES] == b[: -p440.RECORD_BYTES]
 
 
 @needs_real
 def test_the_cli_imports_the_real_file_on_a_constant_speed_track_keeping_the_raw_rf(tmp_path, capsys):
     out = tmp_path / "archives"
-    rc = cli.main(["import", "p440", str(REAL), "--out", str(out), "--speed-m-s", "0.1", "--height-m", "0.5",
-                   "--rig-id", "bwsi", "--pass-start-time", "2019-07-26T12:00:00Z", "--range-delay-s", "10e-9"])
+    rc = cli.main(
+        [
+            "import",
+            "p440",
+            str(REAL),
+            "--out",
+            str(out),
+            "--speed-m-s",
+            "0.1",
+            "--height-m",
+            "0.5",
+            "--rig-id",
+            "bwsi",
+            "--pass-start-time",
+            "2019-07-26T12:00:00Z",
+            "--range-delay-s",
+            "10e-9",
+        ]
+    )
     text = capsys.readouterr().out
     assert rc == 0
     assert "710 complete scans read, 1 incomplete dropped" in text
@@ -96,16 +122,20 @@ def _gaussian_rf(f0_hz: float, bandwidth_hz: float, n_bins: int = 1152, t0_s: fl
     tau, phi = t0_s + 31.3e-9, 0.7
 
     def envelope(tt, fc):  # the analytic complex envelope, demodulated at fc (absolute delay)
-        return 1000.0 * np.exp(-0.5 * ((tt - tau) / sigma) ** 2 + 1j * (2 * np.pi * f0_hz * (tt - tau) + phi)
-                               - 2j * np.pi * fc * tt)
+        return 1000.0 * np.exp(
+            -0.5 * ((tt - tau) / sigma) ** 2
+            + 1j * (2 * np.pi * f0_hz * (tt - tau) + phi)
+            - 2j * np.pi * fc * tt
+        )
 
     return t, np.real(envelope(t, 0.0)), envelope
 
 
 @pytest.mark.parametrize(("decimation", "max_error_db"), [(3, -90.0), (4, -55.0), (5, -42.0)])
 def test_a_gaussian_modulated_rf_pulse_converts_to_its_analytic_complex_envelope_within_the_stated_error(
-        decimation, max_error_db):
-    # Measured (max |error| / peak): D=3 (5.46 GHz) -95 dB, D=4 (4.10 GHz) -59 dB, D=5 (3.28 GHz) -45 dB: the
+    decimation, max_error_db
+):
+    # Measured (max |error| / peak): D=3 (5.46 GHz) -95 dB, D=4 (4.10 GHz) -60 dB, D=5 (3.28 GHz) -50 dB: the
     # pulse's spectrum beyond the flat part of the kept band, which the conversion removes.
     t0 = 36.684e-9
     _, rf, envelope = _gaussian_rf(4.3e9, 1.7e9, t0_s=t0)
@@ -151,14 +181,18 @@ def _record(k: int) -> int:
     return p440.CONFIG.size + k * p440.RECORD_BYTES
 
 
-@pytest.mark.parametrize(("field_offset", "fmt", "value", "message"), [
-    (0, ">H", 0x1234, "message type 0x1234 is not MRM_SCAN_INFO"),
-    (44, ">I", 10**9, "num_samples_total 1000000000 outside"),
-    (42, ">H", 351, "num_samples_message 351 outside"),
-    (28, ">i", 9999, "scan configuration changed mid-file"),
-])
+@pytest.mark.parametrize(
+    ("field_offset", "fmt", "value", "message"),
+    [
+        (0, ">H", 0x1234, "message type 0x1234 is not MRM_SCAN_INFO"),
+        (44, ">I", 10**9, "num_samples_total 1000000000 outside"),
+        (42, ">H", 351, "num_samples_message 351 outside"),
+        (28, ">i", 9999, "scan configuration changed mid-file"),
+    ],
+)
 def test_a_malformed_record_is_rejected_with_a_message_naming_the_file_and_its_byte_offset(
-        tmp_path, field_offset, fmt, value, message):
+    tmp_path, field_offset, fmt, value, message
+):
     path = _small_stream(tmp_path)
     _patch(path, _record(3) + field_offset, fmt, value)  # message 1 of scan 1
     with pytest.raises(RecordingError) as err:
@@ -177,7 +211,7 @@ def test_a_truncated_last_record_and_a_scan_missing_a_message_are_dropped_with_l
     path = _small_stream(tmp_path, n_scans=4)
     data = path.read_bytes()
     # Lose message 1 of scan 1 (a lost packet) and cut the file inside the last record.
-    damaged = data[:_record(3)] + data[_record(4):-100]
+    damaged = data[: _record(3)] + data[_record(4) : -100]
     path.write_bytes(damaged)
     with caplog.at_level(logging.WARNING, logger="uwbcl"):
         rec = p440.READER.read(path)
@@ -190,7 +224,7 @@ def test_a_truncated_last_record_and_a_scan_missing_a_message_are_dropped_with_l
 
 
 def test_the_longest_monotonic_moving_segment_drops_rests_and_the_turn_back():
-    t, x = synthetic.rail_with_rests(-1.0, 1.0, 0.15, rest_s=1.0, scan_period_s=0.02)
+    _, x = synthetic.rail_with_rests(-1.0, 1.0, 0.15, rest_s=1.0, scan_period_s=0.02)
     seg = passes.moving_segment(x, 1e-4)
     kept = x[seg]
     assert (np.diff(kept) > 0).all()
@@ -224,23 +258,44 @@ def synthetic_recording(tmp_path_factory):
     scene = synthetic.P440Scene(targets_m=TARGETS_M, amplitudes=(1.0, 1.0), height_m=HEIGHT_M)
     t, x = synthetic.rail_with_rests(-1.0, 1.0, 0.15, rest_s=1.5, scan_period_s=0.0206)
     rf = synthetic.simulate_rf(scene, x, 9000e-12, 480, np.random.default_rng(7))
-    scan_file = p440.write_p440_stream(root / "pass.p440", rf, np.rint((BOOT_S + t) * 1e3).astype(int),
-                                       scan_start_ps=9000, partial_last_scan_messages=1)
+    scan_file = p440.write_p440_stream(
+        root / "pass.p440",
+        rf,
+        np.rint((BOOT_S + t) * 1e3).astype(int),
+        scan_start_ps=9000,
+        partial_last_scan_messages=1,
+    )
     log_t = np.arange(0.0, t[-1], 0.01)  # the encoder logs at 100 Hz on its own clock
     positions = root / "pos.csv"
     rows = [f"{BOOT_S + LOGGER_OFFSET_S + tt:.4f},{xx:.6f}" for tt, xx in zip(log_t, np.interp(log_t, t, x))]
     positions.write_text("time_s,x_m\n" + "\n".join(rows) + "\n")
     site = root / "site.toml"
-    site.write_text("[import]\nheight_m = 0.15\nrotation_table_angle_deg = 30.0\n"
-                    "reference_point_m = [1.386, -2.4, 0.3]\nrig_id = \"syn\"\n")
+    site.write_text(
+        "[import]\nheight_m = 0.15\nrotation_table_angle_deg = 30.0\n"
+        'reference_point_m = [1.386, -2.4, 0.3]\nrig_id = "syn"\n'
+    )
     return scan_file, positions, site
 
 
 def _import(tmp_path, recording, *extra):
     scan_file, positions, site = recording
     out = tmp_path / "out"
-    rc = cli.main(["import", "p440", str(scan_file), "--out", str(out), "--positions", str(positions),
-                   "--config", str(site), "--pass-start-time", "2026-11-23T06:00:00Z", *extra])
+    rc = cli.main(
+        [
+            "import",
+            "p440",
+            str(scan_file),
+            "--out",
+            str(out),
+            "--positions",
+            str(positions),
+            "--config",
+            str(site),
+            "--pass-start-time",
+            "2026-11-23T06:00:00Z",
+            *extra,
+        ]
+    )
     assert rc == 0
     (path,) = archive.find_pass_files(out)
     return archive.read_pass(path)
@@ -256,9 +311,12 @@ def _errors_mm(detections) -> np.ndarray:
     return np.array(out)
 
 
-def test_a_pulson_like_synthetic_pass_round_trips_to_reflectors_near_truth(tmp_path, synthetic_recording, capsys):
-    scan = _import(tmp_path, synthetic_recording, "--time-offset-s", str(LOGGER_OFFSET_S),
-                   "--range-delay-s", "2.3e-9")
+def test_a_pulson_like_synthetic_pass_round_trips_to_reflectors_near_truth(
+    tmp_path, synthetic_recording, capsys
+):
+    scan = _import(
+        tmp_path, synthetic_recording, "--time-offset-s", str(LOGGER_OFFSET_S), "--range-delay-s", "2.3e-9"
+    )
     text = capsys.readouterr().out
     assert "810 complete scans read, 1 incomplete dropped" in text and "trimmed" in text
     assert (np.diff(scan.pulse_position_m) > 0).all()
@@ -269,7 +327,9 @@ def test_a_pulson_like_synthetic_pass_round_trips_to_reflectors_near_truth(tmp_p
     assert np.abs(errors).max() < 5.0
 
 
-def test_without_the_calibrated_delay_the_range_error_is_large_and_reported(tmp_path, synthetic_recording, capsys):
+def test_without_the_calibrated_delay_the_range_error_is_large_and_reported(
+    tmp_path, synthetic_recording, capsys
+):
     scan = _import(tmp_path, synthetic_recording, "--time-offset-s", str(LOGGER_OFFSET_S))
     assert "uncalibrated" in capsys.readouterr().err
     errors = _errors_mm(pipeline.detect_pass(scan, NUMPY_NLCS))
@@ -292,8 +352,15 @@ def test_the_clocks_align_on_the_first_motion_within_one_scan(synthetic_recordin
 
 def _simulated(range_delay_s: float = 0.0) -> ScanPass:
     g = PassGeometry(height_m=0.15, rotation_table_angle_deg=30.0, reference_point_m=(1.386, -2.4, 0.3))
-    scan = simulate_pass(RadarParameters(), g, [[1.386, -2.4, 0.3]], aperture_length_m=1.0, speed_m_s=0.15,
-                         rng=np.random.default_rng(0), pass_start_time="2026-11-02T06:00:00Z")
+    scan = simulate_pass(
+        RadarParameters(),
+        g,
+        [[1.386, -2.4, 0.3]],
+        aperture_length_m=1.0,
+        speed_m_s=0.15,
+        rng=np.random.default_rng(0),
+        pass_start_time="2026-11-02T06:00:00Z",
+    )
     scan.range_delay_s = range_delay_s
     return scan
 
@@ -322,14 +389,19 @@ def test_range_delay_s_moves_the_range_axis_of_every_focuser_by_c_times_the_dela
         assert f["radar"].attrs["range_delay_s"] == delay
         stored = f["radar"].attrs["range_window_start_s"]
         assert stored == pytest.approx(plain.range_window_start_s + delay, abs=1e-20)
-    # The same file read by a reader that ignores the delay (as a 1.0 reader would): the axis is c d / 2 longer.
+    # The same file read by a reader that ignores the delay (as a 1.0 reader would): the axis is c d / 2
+    # longer.
     uncalibrated = _simulated()
     uncalibrated.range_window_start_s = float(stored)
     archive.write_pass(tmp_path / "uncalibrated.h5", uncalibrated)
     read = archive.read_pass(tmp_path / "delayed.h5")
     assert read.range_delay_s == delay
-    np.testing.assert_allclose(archive.read_pass(tmp_path / "uncalibrated.h5").range_axis_m - read.range_axis_m,
-                               SPEED_OF_LIGHT_M_S * delay / 2, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(
+        archive.read_pass(tmp_path / "uncalibrated.h5").range_axis_m - read.range_axis_m,
+        SPEED_OF_LIGHT_M_S * delay / 2,
+        rtol=0,
+        atol=1e-9,
+    )
     a = pipeline.detect_pass(archive.read_pass(tmp_path / "plain.h5"), NUMPY_NLCS)[0]
     b = pipeline.detect_pass(read, NUMPY_NLCS)[0]
     c = pipeline.detect_pass(archive.read_pass(tmp_path / "uncalibrated.h5"), NUMPY_NLCS)[0]
@@ -367,7 +439,9 @@ def test_import_usage_errors_exit_2_and_a_bad_file_exits_1_naming_it(tmp_path, c
     common = ["import", "p440", str(bad), "--out", str(tmp_path / "o"), "--height-m", "0.2"]
     assert cli.main(common) == 2  # neither --positions nor --speed-m-s
     assert "exactly one of --positions" in capsys.readouterr().err
-    assert cli.main([*common, "--speed-m-s", "0.1", "--boresight-y-sign", "1", "--table-angle-deg", "95"]) == 2
+    assert (
+        cli.main([*common, "--speed-m-s", "0.1", "--boresight-y-sign", "1", "--table-angle-deg", "95"]) == 2
+    )
     assert "rotation_table_angle_deg" in capsys.readouterr().err
     assert cli.main([*common, "--speed-m-s", "0.1"]) == 1
     err = capsys.readouterr().err

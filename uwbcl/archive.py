@@ -520,7 +520,7 @@ def _vector_attr(obj: h5py.HLObject, name: str, path: Any, length: int) -> tuple
     return tuple(float(v) for v in value)
 
 
-# ----------------------------------------------------------------------------------------------- 1.1 additions
+# ------------------------------------------------------------------------------------------- 1.1 additions
 # Optional additions of format 1.1 (docs/archive-format.md section 9), kept apart from the 1.0 reader above.
 # A file without them is written exactly as 1.0 (no format_minor_version attribute).
 
@@ -571,13 +571,13 @@ def _check_raw_rf(path: Any, raw: RawRF, n_pulses: int) -> None:
 
 
 def _read_additions(f: h5py.File, path: Any, h: dict[str, Any]) -> None:
-    """format_minor_version and range_delay_s into ``h`` (0 and 0.0 when absent); warns about what it skips."""
+    """format_minor_version and range_delay_s into ``h`` (0 and 0.0 if absent); warns of skipped names."""
     minor = _int_attr(f, "format_minor_version", path) if "format_minor_version" in f.attrs else 0
     if minor < 0:
         raise ArchiveError(path, "/@format_minor_version", f"must be >= 0, got {minor}")
     if minor > FORMAT_MINOR_VERSION:
-        log.warning("%s: format 1.%d is newer than this reader (1.%d): additions it does not know are ignored",
-                    path, minor, FORMAT_MINOR_VERSION)
+        log.warning("%s: format 1.%d is newer than this reader (1.%d): additions it does not know are "
+                    "ignored", path, minor, FORMAT_MINOR_VERSION)
     h["format_minor_version"] = minor
     radar = f["radar"]
     delay = _float_attr(radar, "range_delay_s", path) if "range_delay_s" in radar.attrs else 0.0
@@ -590,7 +590,8 @@ def _read_additions(f: h5py.File, path: Any, h: dict[str, Any]) -> None:
 def _warn_unknown(f: h5py.File, path: Any) -> None:
     # An unknown name in /radar, /geometry or /pulses may change where targets are (as range_delay_s does for
     # a 1.0 reader): say so instead of ignoring it silently. Elsewhere extras are free-form metadata.
-    unknown = [f"{g}@{name}" for g, known in _KNOWN_ATTRIBUTES.items() for name in f[g].attrs if name not in known]
+    unknown = [f"{g}@{name}" for g, known in _KNOWN_ATTRIBUTES.items()
+               for name in f[g].attrs if name not in known]
     pulses = f.get("pulses")
     if isinstance(pulses, h5py.Group):
         unknown += [f"/pulses/{name}" for name in pulses if name not in _KNOWN_PULSE_DATASETS]
@@ -600,7 +601,7 @@ def _warn_unknown(f: h5py.File, path: Any) -> None:
 
 
 def read_raw_rf(path: str | os.PathLike[str]) -> RawRF | None:
-    """The raw real RF kept beside the baseband (format 1.1 ``/raw/rf``), validated; None if the file has none."""
+    """The raw real RF kept beside the baseband (format 1.1 ``/raw/rf``), validated; None if there is none."""
     with _open(path) as f:
         n_pulses = int(_dataset(f, "/echo", path).shape[0])
         if "raw" not in f or "rf" not in f["raw"]:
@@ -611,7 +612,8 @@ def read_raw_rf(path: str | os.PathLike[str]) -> RawRF | None:
         units = _str_attr(ds, "units", path)
         if units != _RAW_UNITS:
             raise ArchiveError(path, "/raw/rf@units", f"expected {_RAW_UNITS!r}, got {units!r}")
-        raw = RawRF(samples=_read_values(f, path, "/raw/rf"), bin_period_s=_float_attr(ds, "bin_period_s", path),
+        raw = RawRF(samples=_read_values(f, path, "/raw/rf"),
+                    bin_period_s=_float_attr(ds, "bin_period_s", path),
                     scan_start_s=_float_attr(ds, "scan_start_s", path))
     _check_raw_rf(path, raw, n_pulses)
     return raw

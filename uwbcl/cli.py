@@ -188,10 +188,11 @@ def _import(args: argparse.Namespace) -> int:
     band, scan = result.band, result.scan
     print(f"{source}: {recording.n_scans} complete scans read, {recording.n_dropped} incomplete dropped")
     if track.time_offset_s is not None:
-        print(f"positions: time offset {track.time_offset_s:+.3f} s; {track.n_outside_log} scans outside the log, "
-              f"{track.n_rest} at rest or turning back trimmed")
+        print(f"positions: time offset {track.time_offset_s:+.3f} s; {track.n_outside_log} scans outside "
+              f"the log, {track.n_rest} at rest or turning back trimmed")
     print(f"spectrum: centre {band.centre_hz / 1e9:.3f} GHz, -10 dB band {band.low_hz / 1e9:.3f}-"
-          f"{band.high_hz / 1e9:.3f} GHz ({band.bandwidth_hz / 1e9:.3f} GHz), peak {band.peak_hz / 1e9:.3f} GHz")
+          f"{band.high_hz / 1e9:.3f} GHz ({band.bandwidth_hz / 1e9:.3f} GHz), "
+          f"peak {band.peak_hz / 1e9:.3f} GHz")
     print(f"baseband: {scan.radar.sample_rate_hz / 1e9:.4g} GHz complex (RF / {result.decimation}), "
           f"{scan.samples_per_pulse} samples x {scan.n_pulses} pulses, x {scan.pulse_position_m[0]:+.3f} to "
           f"{scan.pulse_position_m[-1]:+.3f} m")
@@ -203,12 +204,14 @@ def _import(args: argparse.Namespace) -> int:
 
 
 def _add_import_commands(sub) -> None:
-    imp = sub.add_parser("import", help="convert a radar's own recording into scan archives (docs/importing.md)")
+    imp = sub.add_parser("import", help="convert a radar's own recording into a scan archive "
+                                        "(docs/importing.md)")
     readers = imp.add_subparsers(dest="reader", required=True)
     for reader in registry.READERS.values():
         r = readers.add_parser(reader.name, help=reader.description)
         r.add_argument("scan_file")
-        r.add_argument("--out", required=True, help="archive root; the pass goes to its default relative path")
+        r.add_argument("--out", required=True,
+                       help="archive root; the pass goes to its default relative path")
         r.add_argument("--positions", help="rail positions CSV: time_s,x_m[,y_m,z_m] (docs/importing.md)")
         r.add_argument("--time-offset-s", type=float,
                        help="positions time = scan time + this (default: align the first motion)")
@@ -229,7 +232,8 @@ def _add_import_commands(sub) -> None:
         r.add_argument("--cycle", type=int)
         r.add_argument("--pass-start-time", help="ISO 8601 UTC (default: file time minus the recording)")
         r.add_argument("--carrier-hz", type=float, help="mix-down frequency (default: measured band centre)")
-        r.add_argument("--decimation", type=int, help="complex rate = RF rate / this (default: from the band)")
+        r.add_argument("--decimation", type=int,
+                       help="complex rate = RF rate / this (default: from the band)")
         r.add_argument("--min-step-m", type=float, help="smaller moves per scan are rest (default 1e-4)")
         r.add_argument("--no-raw-rf", action="store_true", help="do not keep /raw/rf beside the baseband")
         r.add_argument("--overwrite", action="store_true", help="replace an existing archive")

@@ -57,7 +57,7 @@ class PassGeometry:
 class RawRF:
     """Real RF scans kept beside the baseband for provenance (archive 1.1 ``/raw/rf``), one row per pulse."""
 
-    samples: np.ndarray  # (N_a, K) integer ADC counts, sample k at two-way delay scan_start_s + k bin_period_s
+    samples: np.ndarray  # (N_a, K) integer ADC counts; sample k at delay scan_start_s + k bin_period_s
     bin_period_s: float
     scan_start_s: float  # on the radar's delay axis: the calibrated range_delay_s not removed
 
@@ -76,7 +76,7 @@ class ScanPass:
     cycle: int = 0
     pass_start_time: str = "1970-01-01T00:00:00Z"  # ISO 8601, UTC
     source: str = ""  # file the pass was read from, for error messages
-    range_delay_s: float = 0.0  # calibrated two-way antenna/cable delay, already removed from the window start
+    range_delay_s: float = 0.0  # calibrated two-way antenna/cable delay, removed from the window start
     raw_rf: RawRF | None = None  # the radar's real RF, when an importer kept it (archive 1.1)
 
     @property

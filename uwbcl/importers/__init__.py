@@ -1,11 +1,11 @@
 """Import layer: a radar's own recording format -> one common `RawRecording` -> archives (docs/importing.md).
 
-A module that reads one radar's byte stream is a `Reader`: it turns a file into a `RawRecording` (scan times on
-the radar's clock, the samples of every complete scan, the fast-time sampling) and knows nothing of rails,
-archives or focusing. Everything after that (real RF to complex baseband, pairing with rail positions, trimming
-rest periods, building a `ScanPass`) is shared, in `uwbcl.importers.baseband` and `uwbcl.importers.passes`.
-Adding a radar (e.g. a Novelda X4 baseband stream) is one more module with a `Reader`, listed in
-`uwbcl.importers.registry`.
+A module that reads one radar's byte stream is a `Reader`: it turns a file into a `RawRecording` (scan times
+on the radar's clock, the samples of every complete scan, the fast-time sampling) and knows nothing of rails,
+archives or focusing. Everything after that (real RF to complex baseband, pairing with rail positions,
+trimming rest periods, building a `ScanPass`) is shared, in `uwbcl.importers.baseband` and
+`uwbcl.importers.passes`. Adding a radar (e.g. a Novelda X4 baseband stream) is one more module with a
+`Reader`, listed in `uwbcl.importers.registry`.
 """
 
 from __future__ import annotations
@@ -43,7 +43,8 @@ class RawRecording:
     bin_period_s : float
         Fast-time sampling period (s of two-way delay per bin).
     scan_start_s : float
-        Two-way delay of bin 0 on the radar's delay axis, before any calibrated antenna/cable delay is removed.
+        Two-way delay of bin 0 on the radar's delay axis, before any calibrated antenna/cable delay is
+        removed.
     source : str
         The file read, for messages.
     radar : str

@@ -8,19 +8,20 @@ x(t) = Re{s(t) exp(j 2 pi f_c t)}; the archive wants s(t), sampled at a complex 
 2. mix-down at the carrier f_c: the spectrum is read from f_c - fs/2 to f_c + fs/2 and the phase is
    referenced to zero two-way delay on the radar's axis, so that s(t) = a(t) exp(-j 2 pi f_c t) with t the
    absolute delay of each sample (not its index);
-3. band-limited decimation: only those bins are kept (an inverse FFT of M = Np / D bins gives every D-th sample
-   of the band-limited analytic signal exactly), with a raised-cosine taper over the outer `taper` fraction of
-   the kept band so that the time-domain kernel is short and the zero padding absorbs it;
-4. scaling: |s| is the RF envelope in the input's units (ADC counts): a tone of amplitude A in the flat part of
-   the band comes out with |s| = A.
+3. band-limited decimation: only those bins are kept (an inverse FFT of M = Np / D bins gives every D-th
+   sample of the band-limited analytic signal exactly), with a raised-cosine taper over the outer `taper`
+   fraction of the kept band so that the time-domain kernel is short and the zero padding absorbs it;
+4. scaling: |s| is the RF envelope in the input's units (ADC counts): a tone of amplitude A in the flat
+   part of the band comes out with |s| = A.
 
 Conversion error: nil (to rounding) for a signal whose spectrum lies inside the flat part of the kept band,
-|f - f_c| <= (1 - taper) fs / 2; what lies outside is attenuated or removed, and the removed part is the error.
-For a Gaussian-modulated RF pulse with a 1.7 GHz -10 dB bandwidth at 4.3 GHz, converted at the rate `choose_decimation`
-picks (4.096 GHz, D = 4), the error against the analytic complex envelope is measured at about -130 dB of the
-peak (tests/test_p440_import.py); at 2.7 GHz (D = 6) it is about -48 dB, the pulse spectrum's own level at the
-band edge. Near the ends of the scan window (within ~1 / (taper fs / 2) of them) a signal that does not start
-and end at zero is smoothed by the kernel: the window edge is a step in the RF, which has no finite band.
+|f - f_c| <= (1 - taper) fs / 2; what lies outside is attenuated or removed, and the removed part is the
+error. Measured (tests/test_p440_import.py), max |error| / peak for a Gaussian-modulated RF pulse of 1.7 GHz
+-10 dB bandwidth at 4.3 GHz, demodulated at 4.27 GHz, against its analytic complex envelope: -95 dB at D = 3
+(5.46 GHz), -60 dB at D = 4 (4.10 GHz, what `choose_decimation` picks for it), -50 dB at D = 5 (3.28 GHz);
+in energy -91, -55 and -43 dB. A tone in the flat band keeps its amplitude within 1e-5. Within about 1 /
+(taper fs / 2) of the ends of the scan window a signal that does not start and end at zero is smoothed: the
+window edge is a step in the RF, which has no finite band.
 """
 
 from __future__ import annotations
@@ -57,14 +58,15 @@ class Band:
         return self.high_hz - self.low_hz
 
 
-def mean_power_spectrum(rf: np.ndarray, bin_period_s: float, block: int = _BLOCK_SCANS
-                        ) -> tuple[np.ndarray, np.ndarray]:
+def mean_power_spectrum(
+    rf: np.ndarray, bin_period_s: float, block: int = _BLOCK_SCANS
+) -> tuple[np.ndarray, np.ndarray]:
     """(f_hz (K,), power (K,)): the mean over scans of |rfft|^2 of each Hann-windowed, mean-removed scan."""
     n = rf.shape[1]
     window = np.hanning(n)
     power = np.zeros(n // 2 + 1)
     for i in range(0, rf.shape[0], block):
-        x = rf[i:i + block].astype(np.float64)
+        x = rf[i : i + block].astype(np.float64)
         x -= x.mean(axis=1, keepdims=True)  # ADC offset: DC, outside any band
         power += (np.abs(np.fft.rfft(x * window, axis=1)) ** 2).sum(axis=0)
     return np.fft.rfftfreq(n, bin_period_s), power / max(1, rf.shape[0])
@@ -99,21 +101,36 @@ def measure_band(rf: np.ndarray, bin_period_s: float, smooth_hz: float = 50e6) -
     lo20, hi20 = _edges(f, db, -20.0)
     inside = (f >= lo) & (f <= hi)
     centroid = float((f[inside] * p[inside]).sum() / p[inside].sum())
-    return Band(centre_hz=0.5 * (lo + hi), low_hz=lo, high_hz=hi, peak_hz=float(f[peak]), centroid_hz=centroid,
-                low_20db_hz=lo20, high_20db_hz=hi20)
+    return Band(
+        centre_hz=0.5 * (lo + hi),
+        low_hz=lo,
+        high_hz=hi,
+        peak_hz=float(f[peak]),
+        centroid_hz=centroid,
+        low_20db_hz=lo20,
+        high_20db_hz=hi20,
+    )
 
 
-def choose_decimation(rf_rate_hz: float, band: Band, oversampling: float = DEFAULT_OVERSAMPLING,
-                      taper: float = DEFAULT_TAPER) -> int:
-    """The largest integer D whose complex rate rf_rate / D is >= oversampling x the -10 dB bandwidth and keeps
-    the whole -20 dB band inside the flat part of the kept band (|f - f_c| <= (1 - taper) rate / 2)."""
+def choose_decimation(
+    rf_rate_hz: float, band: Band, oversampling: float = DEFAULT_OVERSAMPLING, taper: float = DEFAULT_TAPER
+) -> int:
+    """The largest integer D whose complex rate rf_rate / D is >= oversampling x the -10 dB bandwidth and
+    keeps the whole -20 dB band inside the flat part of the kept band (|f - f_c| <= (1 - taper) rate / 2)."""
     half_20 = max(band.centre_hz - band.low_20db_hz, band.high_20db_hz - band.centre_hz)
     need_hz = max(oversampling * band.bandwidth_hz, 2.0 * half_20 / (1.0 - taper))
     return max(1, math.floor(rf_rate_hz / need_hz))
 
 
-def to_baseband(rf: np.ndarray, bin_period_s: float, scan_start_s: float, carrier_hz: float, decimation: int,
-                taper: float = DEFAULT_TAPER, block: int = _BLOCK_SCANS) -> tuple[np.ndarray, float]:
+def to_baseband(
+    rf: np.ndarray,
+    bin_period_s: float,
+    scan_start_s: float,
+    carrier_hz: float,
+    decimation: int,
+    taper: float = DEFAULT_TAPER,
+    block: int = _BLOCK_SCANS,
+) -> tuple[np.ndarray, float]:
     """Complex baseband of real RF scans (the module docstring gives the method and its error).
 
     Parameters
@@ -152,8 +169,10 @@ def to_baseband(rf: np.ndarray, bin_period_s: float, scan_start_s: float, carrie
     k_lo = math.floor(k0) - m // 2
     bins = k_lo + np.arange(m)
     if bins[0] < 1 or bins[-1] >= n_pad // 2:
-        raise ValueError(f"carrier {carrier_hz:.4g} Hz +- {rf_rate / decimation / 2:.4g} Hz does not fit between "
-                         f"0 and the RF Nyquist frequency {rf_rate / 2:.4g} Hz")
+        raise ValueError(
+            f"carrier {carrier_hz:.4g} Hz +- {rf_rate / decimation / 2:.4g} Hz does not fit between "
+            f"0 and the RF Nyquist frequency {rf_rate / 2:.4g} Hz"
+        )
     f_rel = (bins - k0) * df  # baseband frequency of each kept bin
     half = 0.5 * m * df
     flat = (1.0 - taper) * half
@@ -168,12 +187,13 @@ def to_baseband(rf: np.ndarray, bin_period_s: float, scan_start_s: float, carrie
     t_out = scan_start_s + np.arange(n_out) * decimation * bin_period_s
     # exp(-j 2 pi f_c t): the integer part of the shift was done on the bins relative to sample 0, so the
     # remaining phase is the fractional carrier over the output samples plus the integer part at scan_start.
-    residual = np.exp(-2j * np.pi * ((k0 - math.floor(k0)) * df * (t_out - scan_start_s)
-                                     + carrier_hz * scan_start_s))
+    residual = np.exp(
+        -2j * np.pi * ((k0 - math.floor(k0)) * df * (t_out - scan_start_s) + carrier_hz * scan_start_s)
+    )
     out = np.empty((n_scans, n_out), dtype=np.complex128)
     for i in range(0, n_scans, block):
-        x = rf[i:i + block].astype(np.float64)
+        x = rf[i : i + block].astype(np.float64)
         spec = np.fft.rfft(x, n=n_pad, axis=1)[:, bins] * gain
         z = np.fft.ifft(np.roll(spec, -shift, axis=1), axis=1)[:, :n_out]
-        out[i:i + block] = z * residual
+        out[i : i + block] = z * residual
     return out, rf_rate / decimation

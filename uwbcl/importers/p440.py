@@ -83,18 +83,26 @@ class P440Reader:
     description = "Time Domain PulsON 440 scan file (MRM_SCAN_INFO message stream, real RF int32)"
 
     def read(self, path: str | os.PathLike[str]) -> RawRecording:
-        """Every complete scan of ``path``; RecordingError (file, byte offset, reason) for a malformed record."""
+        """Every complete scan of ``path``; RecordingError (file, byte offset, reason) for a bad record."""
         path = Path(path)
         size = path.stat().st_size
         with path.open("rb") as f:
             head = f.read(CONFIG.size)
             if len(head) < CONFIG.size:
-                raise RecordingError(path, 0, f"truncated configuration header: {len(head)} of {CONFIG.size} "
-                                              "bytes (not a PulsON 440 scan file?)")
+                raise RecordingError(
+                    path,
+                    0,
+                    f"truncated configuration header: {len(head)} of {CONFIG.size} "
+                    "bytes (not a PulsON 440 scan file?)",
+                )
             cfg = _parse_config(head)
             if cfg["scan_res"] == 0 or cfg["scan_stop_ps"] <= cfg["scan_start_ps"]:
-                raise RecordingError(path, 0, f"configuration header: scan_res {cfg['scan_res']}, scan window "
-                                              f"{cfg['scan_start_ps']}..{cfg['scan_stop_ps']} ps is not a scan")
+                raise RecordingError(
+                    path,
+                    0,
+                    f"configuration header: scan_res {cfg['scan_res']}, scan window "
+                    f"{cfg['scan_start_ps']}..{cfg['scan_stop_ps']} ps is not a scan",
+                )
             n_records, tail = divmod(size - CONFIG.size, RECORD_BYTES)
             state = _StreamState(path, n_records)
             offset = CONFIG.size
@@ -107,7 +115,9 @@ class P440Reader:
                 if len(block) < RECORD_BYTES * _RECORDS_PER_READ:
                     break
         if tail:
-            log.warning("%s: %d trailing bytes at byte %d are a truncated record; dropped", path, tail, offset)
+            log.warning(
+                "%s: %d trailing bytes at byte %d are a truncated record; dropped", path, tail, offset
+            )
         return state.finish(cfg)
 
 
@@ -131,8 +141,27 @@ class _StreamState:
         raise RecordingError(self.path, offset, reason)
 
     def message(self, block: bytes, at: int, offset: int) -> None:
-        (mtype, mid, _node, stamp, _r0, _r1, _r2, _r3, start, stop, res, _stype, _r, _ant, _op, n_msg, n_total,
-         index, n_messages) = HEADER.unpack_from(block, at)
+        (
+            mtype,
+            mid,
+            _node,
+            stamp,
+            _r0,
+            _r1,
+            _r2,
+            _r3,
+            start,
+            stop,
+            res,
+            _stype,
+            _r,
+            _ant,
+            _op,
+            n_msg,
+            n_total,
+            index,
+            n_messages,
+        ) = HEADER.unpack_from(block, at)
         if mtype != MRM_SCAN_INFO:
             self.fail(offset, f"message type 0x{mtype:04X} is not MRM_SCAN_INFO (0x{MRM_SCAN_INFO:04X})")
         if not 1 <= n_total <= MAX_SAMPLES_PER_SCAN:
@@ -140,8 +169,11 @@ class _StreamState:
         if not 1 <= n_msg <= MAX_SAMPLES_PER_MESSAGE:
             self.fail(offset, f"num_samples_message {n_msg} outside 1..{MAX_SAMPLES_PER_MESSAGE}")
         if n_messages != math.ceil(n_total / MAX_SAMPLES_PER_MESSAGE) or index >= n_messages:
-            self.fail(offset, f"message {index} of {n_messages} cannot carry {n_total} samples "
-                              f"({MAX_SAMPLES_PER_MESSAGE} per message)")
+            self.fail(
+                offset,
+                f"message {index} of {n_messages} cannot carry {n_total} samples "
+                f"({MAX_SAMPLES_PER_MESSAGE} per message)",
+            )
         if res <= 0 or stop <= start:
             self.fail(offset, f"scan_res {res}, scan window {start}..{stop} ps is not a scan")
         shape = (start, stop, res, n_total, n_messages)
@@ -150,22 +182,34 @@ class _StreamState:
             # At most one scan per n_messages records: the output never grows.
             self.rf = np.empty((self.n_records // n_messages + 1, n_total), dtype=np.int32)
         elif shape != self.shape:
-            self.fail(offset, f"scan configuration changed mid-file: (scan_start, scan_stop, scan_res, "
-                              f"num_samples_total, num_messages_total) {shape}, was {self.shape}")
+            self.fail(
+                offset,
+                f"scan configuration changed mid-file: (scan_start, scan_stop, scan_res, "
+                f"num_samples_total, num_messages_total) {shape}, was {self.shape}",
+            )
 
         scan = self.scan
         if index == 0:
             if scan is not None:
-                self.drop(f"scan {scan.message_id} at byte {scan.offset} stops after message "
-                          f"{scan.next_index - 1} of {scan.n_messages}")
+                self.drop(
+                    f"scan {scan.message_id} at byte {scan.offset} stops after message "
+                    f"{scan.next_index - 1} of {scan.n_messages}"
+                )
             scan = self.scan = _Scan(mid, stamp, n_messages, offset)
         elif scan is None or index != scan.next_index or mid != scan.message_id:
             if scan is not None:
-                self.drop(f"scan {scan.message_id} at byte {scan.offset} is interrupted at byte {offset} by "
-                          f"message {index} of scan {mid}")
+                self.drop(
+                    f"scan {scan.message_id} at byte {scan.offset} is interrupted at byte {offset} by "
+                    f"message {index} of scan {mid}"
+                )
             else:
-                log.warning("%s: message %d of scan %d at byte %d has no message 0; skipped",
-                            self.path, index, mid, offset)
+                log.warning(
+                    "%s: message %d of scan %d at byte %d has no message 0; skipped",
+                    self.path,
+                    index,
+                    mid,
+                    offset,
+                )
             self.scan = None
             return
         else:
@@ -174,7 +218,7 @@ class _StreamState:
         if end > n_total or (index == n_messages - 1 and end != n_total):
             self.fail(offset, f"messages of scan {mid} carry {end} samples, num_samples_total is {n_total}")
         row = self.rf[self.n_complete]
-        row[scan.filled:end] = np.frombuffer(block, dtype=">i4", count=n_msg, offset=at + HEADER.size)
+        row[scan.filled : end] = np.frombuffer(block, dtype=">i4", count=n_msg, offset=at + HEADER.size)
         scan.filled = end
         if index == n_messages - 1:
             self.times_ms.append(scan.timestamp_ms)
@@ -190,8 +234,14 @@ class _StreamState:
         if self.scan is not None:
             s = self.scan
             self.n_dropped += 1
-            log.warning("%s: dropped the incomplete last scan (scan %d at byte %d: %d of %d messages)",
-                        self.path, s.message_id, s.offset, s.next_index, s.n_messages)
+            log.warning(
+                "%s: dropped the incomplete last scan (scan %d at byte %d: %d of %d messages)",
+                self.path,
+                s.message_id,
+                s.offset,
+                s.next_index,
+                s.n_messages,
+            )
         if self.n_complete == 0:
             raise RecordingError(self.path, None, "no complete scan in the file")
         start, stop, res, n_total, _ = self.shape
@@ -201,18 +251,33 @@ class _StreamState:
         rf = self.rf[: self.n_complete]
         self.rf = None
         metadata = dict(cfg, scan_stop_ps=stop, num_samples_total=n_total)
-        return RawRecording(samples=rf, scan_time_s=ms * 1e-3, bin_period_s=bin_period_s(res),
-                            scan_start_s=start * 1e-12, source=str(self.path), radar="p440",
-                            n_dropped=self.n_dropped, scan_id=np.asarray(self.ids, dtype=np.int64),
-                            metadata=metadata)
+        return RawRecording(
+            samples=rf,
+            scan_time_s=ms * 1e-3,
+            bin_period_s=bin_period_s(res),
+            scan_start_s=start * 1e-12,
+            source=str(self.path),
+            radar="p440",
+            n_dropped=self.n_dropped,
+            scan_id=np.asarray(self.ids, dtype=np.int64),
+            metadata=metadata,
+        )
 
 
 # ----------------------------------------------------------------------------------------------- writing
 
 
-def write_p440_stream(path: str | os.PathLike[str], rf: np.ndarray, timestamp_ms, *, scan_start_ps: int,
-                      scan_res: int = 32, node_id: int = 100, pii: int = 11,
-                      partial_last_scan_messages: int = 0) -> Path:
+def write_p440_stream(
+    path: str | os.PathLike[str],
+    rf: np.ndarray,
+    timestamp_ms,
+    *,
+    scan_start_ps: int,
+    scan_res: int = 32,
+    node_id: int = 100,
+    pii: int = 11,
+    partial_last_scan_messages: int = 0,
+) -> Path:
     """Write scans in the PulsON 440 scan-file layout (the same bytes `P440Reader` reads).
 
     Parameters
@@ -237,7 +302,9 @@ def write_p440_stream(path: str | os.PathLike[str], rf: np.ndarray, timestamp_ms
     if not 0 <= partial_last_scan_messages < n_messages:
         raise ValueError(f"partial_last_scan_messages must be in 0..{n_messages - 1}")
     scan_stop_ps = scan_start_ps + round(n_bins * bin_period_s(scan_res) * 1e12)
-    config = CONFIG.pack(node_id, scan_start_ps, scan_stop_ps, scan_res, pii, 0, 0, 0, 0, 0, 0, 0, 0, 2, 63, 6, 0)
+    config = CONFIG.pack(
+        node_id, scan_start_ps, scan_stop_ps, scan_res, pii, 0, 0, 0, 0, 0, 0, 0, 0, 2, 63, 6, 0
+    )
     path = Path(path)
     with path.open("wb") as f:
         f.write(config)
@@ -248,9 +315,28 @@ def write_p440_stream(path: str | os.PathLike[str], rf: np.ndarray, timestamp_ms
         for scan_id, row, stamp, n_write in rows:
             samples = row.astype(">i4")
             for index in range(n_write):
-                chunk = samples[index * MAX_SAMPLES_PER_MESSAGE:(index + 1) * MAX_SAMPLES_PER_MESSAGE]
-                header = HEADER.pack(MRM_SCAN_INFO, scan_id & 0xFFFF, node_id, stamp, 0, 0, 0, 0, scan_start_ps,
-                                     scan_stop_ps, scan_res, 1, 3, 2, 1, chunk.size, n_bins, index, n_messages)
+                chunk = samples[index * MAX_SAMPLES_PER_MESSAGE : (index + 1) * MAX_SAMPLES_PER_MESSAGE]
+                header = HEADER.pack(
+                    MRM_SCAN_INFO,
+                    scan_id & 0xFFFF,
+                    node_id,
+                    stamp,
+                    0,
+                    0,
+                    0,
+                    0,
+                    scan_start_ps,
+                    scan_stop_ps,
+                    scan_res,
+                    1,
+                    3,
+                    2,
+                    1,
+                    chunk.size,
+                    n_bins,
+                    index,
+                    n_messages,
+                )
                 record = header + chunk.tobytes()
                 f.write(record + bytes(RECORD_BYTES - len(record)))
     return path

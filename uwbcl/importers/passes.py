@@ -2,8 +2,8 @@
 
 * Clock alignment: scan times are on the radar's clock (P440: ms since boot), positions on the logger's. A
   position log time is ``scan_time_s + time_offset_s``; without an offset the two clocks are aligned on the
-  first motion (the first position that moved `MOTION_THRESHOLD_M` from the first one, and the first scan whose
-  echo departs from the rest echoes, `radar_first_motion_s`).
+  first motion (the first position that moved `MOTION_THRESHOLD_M` from the first one, and the first scan
+  whose echo departs from the rest echoes, `radar_first_motion_s`).
 * Positions are interpolated linearly to the scan times; scans outside the log are dropped (no
   extrapolation).
 * Rest periods: the pass is the longest run of scans whose rail position moves strictly one way by more than
@@ -41,7 +41,9 @@ class ImportOptions:
     height_m: float | None = None  # rail (antenna phase centre) height; default: median z_m of the positions
     rotation_table_angle_deg: float = 0.0
     boresight_y_sign: int = -1
-    reference_point_m: tuple[float, float, float] | None = None  # default: on boresight, reference_range_m away
+    reference_point_m: tuple[float, float, float] | None = (
+        None  # default: on boresight, reference_range_m away
+    )
     reference_range_m: float = 3.0
     antenna_aperture_m: float = 0.14
     pulse_repetition_frequency_hz: float | None = None  # default: 1 / median scan interval
@@ -91,8 +93,9 @@ def read_positions_csv(path: str | os.PathLike[str]) -> Positions:
             try:
                 v = float(row[i])
             except (IndexError, ValueError):
-                raise RecordingError(path, None, f"line {line}: {name}: not a number: "
-                                                 f"{row[i] if i < len(row) else ''!r}") from None
+                raise RecordingError(
+                    path, None, f"line {line}: {name}: not a number: {row[i] if i < len(row) else ''!r}"
+                ) from None
             if not math.isfinite(v):
                 raise RecordingError(path, None, f"line {line}: {name}: not finite")
             values[name].append(v)
@@ -109,9 +112,9 @@ def read_positions_csv(path: str | os.PathLike[str]) -> Positions:
 def radar_first_motion_s(recording: RawRecording, factor: float = 5.0) -> float | None:
     """Time (radar clock) of the first scan whose echo departs from the rest echo, or None.
 
-    The first `_REST_SCANS` scans are taken as the rest echo and its scan-to-scan spread as the noise level; the
-    first scan from which three in a row differ from the rest echo by more than ``factor`` x that level is the
-    first motion (the phases of the scene's echoes change within a fraction of a wavelength).
+    The first `_REST_SCANS` scans are taken as the rest echo and its scan-to-scan spread as the noise level;
+    the first scan from which three in a row differ from the rest echo by more than ``factor`` x that level
+    is the first motion (the phases of the scene's echoes change within a fraction of a wavelength).
     """
     x = recording.samples[: min(recording.n_scans, 2000)].astype(np.float64)
     if x.shape[0] <= _REST_SCANS + 3:
@@ -163,23 +166,32 @@ class Track:
     z_m: np.ndarray | None = None
 
 
-def track_from_positions(recording: RawRecording, positions: Positions, time_offset_s: float | None,
-                         min_step_m: float) -> Track:
+def track_from_positions(
+    recording: RawRecording, positions: Positions, time_offset_s: float | None, min_step_m: float
+) -> Track:
     """Scans paired with interpolated positions, rest periods cut (module docstring)."""
     if time_offset_s is None:
         t_pos, t_radar = positions_first_motion_s(positions), radar_first_motion_s(recording)
         if t_pos is None or t_radar is None:
-            raise RecordingError(recording.source, None, "cannot align the clocks on the first motion ("
-                                 + ("the positions never move" if t_pos is None else "no motion seen in the echo")
-                                 + "); give --time-offset-s")
+            raise RecordingError(
+                recording.source,
+                None,
+                "cannot align the clocks on the first motion ("
+                + ("the positions never move" if t_pos is None else "no motion seen in the echo")
+                + "); give --time-offset-s",
+            )
         time_offset_s = t_pos - t_radar
         log.info("clocks aligned on the first motion: positions time = scan time %+.3f s", time_offset_s)
     t = recording.scan_time_s + time_offset_s
     inside = np.flatnonzero((t >= positions.time_s[0]) & (t <= positions.time_s[-1]))
     if inside.size < 2:
-        raise RecordingError(recording.source, None, f"the positions ({positions.time_s[0]:.3f}.."
-                             f"{positions.time_s[-1]:.3f} s) cover {inside.size} scans at a time offset of "
-                             f"{time_offset_s:.3f} s; check --time-offset-s")
+        raise RecordingError(
+            recording.source,
+            None,
+            f"the positions ({positions.time_s[0]:.3f}.."
+            f"{positions.time_s[-1]:.3f} s) cover {inside.size} scans at a time offset of "
+            f"{time_offset_s:.3f} s; check --time-offset-s",
+        )
 
     def at(v):
         return None if v is None else np.interp(t[inside], positions.time_s, v)
@@ -187,12 +199,21 @@ def track_from_positions(recording: RawRecording, positions: Positions, time_off
     x = at(positions.x_m)
     seg = moving_segment(x, min_step_m)
     if seg.stop - seg.start < 2:
-        raise RecordingError(recording.source, None, "no moving segment: the positions never move "
-                             f"by more than {min_step_m} m per scan")
+        raise RecordingError(
+            recording.source,
+            None,
+            f"no moving segment: the positions never move by more than {min_step_m} m per scan",
+        )
     y, z = at(positions.y_m), at(positions.z_m)
-    return Track(scans=inside[seg], x_m=x[seg], time_offset_s=time_offset_s,
-                 n_outside_log=recording.n_scans - inside.size, n_rest=inside.size - (seg.stop - seg.start),
-                 y_m=None if y is None else y[seg], z_m=None if z is None else z[seg])
+    return Track(
+        scans=inside[seg],
+        x_m=x[seg],
+        time_offset_s=time_offset_s,
+        n_outside_log=recording.n_scans - inside.size,
+        n_rest=inside.size - (seg.stop - seg.start),
+        y_m=None if y is None else y[seg],
+        z_m=None if z is None else z[seg],
+    )
 
 
 def constant_speed_track(recording: RawRecording, speed_m_s: float) -> Track:
@@ -221,8 +242,13 @@ class ImportResult:
     track: Track
 
 
-def build_pass(recording: RawRecording, track: Track, options: ImportOptions, band: baseband.Band | None = None,
-               file_mtime_s: float | None = None) -> ImportResult:
+def build_pass(
+    recording: RawRecording,
+    track: Track,
+    options: ImportOptions,
+    band: baseband.Band | None = None,
+    file_mtime_s: float | None = None,
+) -> ImportResult:
     """Convert the kept scans to complex baseband and assemble the archive pass (with the raw RF if asked)."""
     if not recording.is_real_rf:
         raise NotImplementedError("complex (already demodulated) recordings: not yet")  # e.g. a Novelda X4
@@ -231,8 +257,9 @@ def build_pass(recording: RawRecording, track: Track, options: ImportOptions, ba
     rf = recording.samples[track.scans]
     band = band or baseband.measure_band(rf, recording.bin_period_s)
     carrier = options.carrier_frequency_hz or band.centre_hz
-    decimation = options.decimation or baseband.choose_decimation(1.0 / recording.bin_period_s, band,
-                                                                  options.oversampling)
+    decimation = options.decimation or baseband.choose_decimation(
+        1.0 / recording.bin_period_s, band, options.oversampling
+    )
     echo, rate = baseband.to_baseband(rf, recording.bin_period_s, recording.scan_start_s, carrier, decimation)
     height = options.height_m
     if height is None:
@@ -241,26 +268,47 @@ def build_pass(recording: RawRecording, track: Track, options: ImportOptions, ba
         height = float(np.median(track.z_m))
     for name, dev in (("y_m", track.y_m), ("z_m", track.z_m)):
         if dev is not None and np.ptp(dev) > 0.005:
-            log.warning("%s: the rail deviates by %.1f mm in %s; per-pulse deviations are not compensated yet",
-                        recording.source, 1e3 * np.ptp(dev), name)
+            log.warning(
+                "%s: the rail deviates by %.1f mm in %s; per-pulse deviations are not compensated yet",
+                recording.source,
+                1e3 * np.ptp(dev),
+                name,
+            )
     times = recording.scan_time_s[track.scans]
     prf = options.pulse_repetition_frequency_hz or 1.0 / float(np.median(np.diff(times)))
     x_centre = 0.5 * float(track.x_m[0] + track.x_m[-1])
     reference = options.reference_point_m or default_reference_point(x_centre, options, height)
-    radar = RadarParameters(carrier_frequency_hz=carrier, bandwidth_hz=band.bandwidth_hz, sample_rate_hz=rate,
-                            pulse_repetition_frequency_hz=prf, antenna_aperture_m=options.antenna_aperture_m)
-    geometry = PassGeometry(height_m=height, rotation_table_angle_deg=options.rotation_table_angle_deg,
-                            reference_point_m=tuple(float(v) for v in reference),
-                            boresight_y_sign=options.boresight_y_sign)
+    radar = RadarParameters(
+        carrier_frequency_hz=carrier,
+        bandwidth_hz=band.bandwidth_hz,
+        sample_rate_hz=rate,
+        pulse_repetition_frequency_hz=prf,
+        antenna_aperture_m=options.antenna_aperture_m,
+    )
+    geometry = PassGeometry(
+        height_m=height,
+        rotation_table_angle_deg=options.rotation_table_angle_deg,
+        reference_point_m=tuple(float(v) for v in reference),
+        boresight_y_sign=options.boresight_y_sign,
+    )
     raw = None
     if options.keep_raw_rf:
         raw = RawRF(samples=rf, bin_period_s=recording.bin_period_s, scan_start_s=recording.scan_start_s)
-    scan = ScanPass(radar=radar, geometry=geometry,
-                    range_window_start_s=recording.scan_start_s - options.range_delay_s,
-                    pulse_time_s=times - times[0], pulse_position_m=track.x_m, echo=echo, rig_id=options.rig_id,
-                    cycle=options.cycle, pass_start_time=options.pass_start_time
-                    or _start_from_mtime(file_mtime_s, recording.scan_time_s[-1] - times[0]), source=recording.source,
-                    range_delay_s=options.range_delay_s, raw_rf=raw)
+    scan = ScanPass(
+        radar=radar,
+        geometry=geometry,
+        range_window_start_s=recording.scan_start_s - options.range_delay_s,
+        pulse_time_s=times - times[0],
+        pulse_position_m=track.x_m,
+        echo=echo,
+        rig_id=options.rig_id,
+        cycle=options.cycle,
+        pass_start_time=options.pass_start_time
+        or _start_from_mtime(file_mtime_s, recording.scan_time_s[-1] - times[0]),
+        source=recording.source,
+        range_delay_s=options.range_delay_s,
+        raw_rf=raw,
+    )
     return ImportResult(scan=scan, band=band, decimation=decimation, track=track)
 
 
@@ -279,12 +327,17 @@ def options_from_table(table: dict, path: str | os.PathLike[str] | None = None) 
     out = {}
     for key, value in table.items():
         if key not in OPTION_TYPES:
-            raise ConfigError(path, f"import.{key}", f"unknown key; expected one of {', '.join(sorted(OPTION_TYPES))}")
+            raise ConfigError(
+                path, f"import.{key}", f"unknown key; expected one of {', '.join(sorted(OPTION_TYPES))}"
+            )
         kind = OPTION_TYPES[key]
         number = isinstance(value, (int, float)) and not isinstance(value, bool)
         if "tuple" in kind:
-            ok = isinstance(value, list) and len(value) == 3 and all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+            ok = (
+                isinstance(value, list)
+                and len(value) == 3
+                and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+            )
             value = tuple(float(v) for v in value) if ok else value
         elif kind.startswith("bool"):
             ok = isinstance(value, bool)
@@ -303,6 +356,7 @@ def options_from_table(table: dict, path: str | os.PathLike[str] | None = None) 
 
 def check_options(options: ImportOptions, path: str | os.PathLike[str] | None = None) -> None:
     """ConfigError for values no archive could hold (checked before any file is read)."""
+
     def fail(key: str, reason: str) -> None:
         raise ConfigError(path, key, reason)
 
@@ -310,8 +364,14 @@ def check_options(options: ImportOptions, path: str | os.PathLike[str] | None = 
         fail("boresight_y_sign", f"must be -1 or +1, got {options.boresight_y_sign}")
     if not abs(options.rotation_table_angle_deg) < 90.0:
         fail("rotation_table_angle_deg", f"must be within (-90, 90), got {options.rotation_table_angle_deg}")
-    for key in ("antenna_aperture_m", "reference_range_m", "oversampling", "min_step_m",
-                "pulse_repetition_frequency_hz", "carrier_frequency_hz"):
+    for key in (
+        "antenna_aperture_m",
+        "reference_range_m",
+        "oversampling",
+        "min_step_m",
+        "pulse_repetition_frequency_hz",
+        "carrier_frequency_hz",
+    ):
         value = getattr(options, key)
         if value is not None and not (math.isfinite(value) and value > 0):
             fail(key, f"must be > 0, got {value}")

@@ -1,10 +1,12 @@
-"""PulsON-like synthetic recordings: a rail pass over point reflectors as a P440 would record it (real RF int32).
+"""PulsON-like synthetic recordings: a rail pass over point reflectors as a P440 would record it (real RF
+int32).
 
 Unlike `uwbcl.simulate` (complex baseband of a Gaussian pulse, the archive's own model), this makes what the
-importer must cope with: real RF at 61.035 ps bins, a non-Gaussian pulse (the derivative of a Gaussian-modulated
-carrier, whose spectrum f G(f - f0) is skewed upwards and whose -3 dB width is narrower than a Gaussian's of
-the same -10 dB width), the radar's internal delay, the antenna's direct coupling (the same echo in every scan),
-static clutter at fixed ranges, rest periods at both rail ends, receiver noise and integer quantization.
+importer must cope with: real RF at 61.035 ps bins, a non-Gaussian pulse (the derivative of a
+Gaussian-modulated carrier, whose spectrum f G(f - f0) is skewed upwards and whose -3 dB width is narrower
+than a Gaussian's of the same -10 dB width), the radar's internal delay, the antenna's direct coupling (the
+same echo in every scan), static clutter at fixed ranges, rest periods at both rail ends, receiver noise and
+integer quantization.
 """
 
 from __future__ import annotations
@@ -49,10 +51,17 @@ def rf_pulse(t_s: np.ndarray, centre_hz: float, bandwidth_hz: float) -> np.ndarr
     return d / w
 
 
-def rail_with_rests(x_start_m: float, x_stop_m: float, speed_m_s: float, rest_s: float, scan_period_s: float,
-                    ramp_s: float = 0.2, turn_back_m: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
-    """(time_s, x_m) of the antenna at each scan: rest, accelerate, constant speed, stop, turn back a little (the
-    carriage's backlash at the end stop), rest. Times from 0."""
+def rail_with_rests(
+    x_start_m: float,
+    x_stop_m: float,
+    speed_m_s: float,
+    rest_s: float,
+    scan_period_s: float,
+    ramp_s: float = 0.2,
+    turn_back_m: float = 0.01,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(time_s, x_m) of the antenna at each scan: rest, accelerate, constant speed, stop, turn back a little
+    (the carriage's backlash at the end stop), rest. Times from 0."""
     length = abs(x_stop_m - x_start_m)
     direction = 1.0 if x_stop_m > x_start_m else -1.0
     cruise_s = length / speed_m_s  # ramps are symmetric: they cost the same distance as cruising ramp_s
@@ -74,8 +83,14 @@ def rail_with_rests(x_start_m: float, x_stop_m: float, speed_m_s: float, rest_s:
     return t, x - direction * back
 
 
-def simulate_rf(scene: P440Scene, positions_m: np.ndarray, scan_start_s: float, n_bins: int,
-                rng: np.random.Generator, scan_res: int = 32) -> np.ndarray:
+def simulate_rf(
+    scene: P440Scene,
+    positions_m: np.ndarray,
+    scan_start_s: float,
+    n_bins: int,
+    rng: np.random.Generator,
+    scan_res: int = 32,
+) -> np.ndarray:
     """(n_scans, n_bins) int32 RF: reflectors through the two-way beam, coupling, clutter, noise."""
     period = p440.bin_period_s(scan_res)
     t = scan_start_s + np.arange(n_bins) * period  # radar delay axis
@@ -89,13 +104,18 @@ def simulate_rf(scene: P440Scene, positions_m: np.ndarray, scan_start_s: float, 
         psi = geo.horizontal_look_angle_rad(positions_m, target, scene.boresight_y_sign)
         gain = amplitude * geo.two_way_beam_gain(psi, theta, scene.antenna_aperture_m, wavelength)
         for k in np.flatnonzero(gain > 1e-6):
-            rf[k] += gain[k] * rf_pulse(t - scene.internal_delay_s - 2.0 * r[k] / c, scene.pulse_centre_hz,
-                                        scene.pulse_bandwidth_hz)
-    static = scene.coupling_amplitude * rf_pulse(t - scene.internal_delay_s - 2.0 * scene.coupling_range_m / c,
-                                                 scene.pulse_centre_hz, scene.pulse_bandwidth_hz)
+            rf[k] += gain[k] * rf_pulse(
+                t - scene.internal_delay_s - 2.0 * r[k] / c, scene.pulse_centre_hz, scene.pulse_bandwidth_hz
+            )
+    static = scene.coupling_amplitude * rf_pulse(
+        t - scene.internal_delay_s - 2.0 * scene.coupling_range_m / c,
+        scene.pulse_centre_hz,
+        scene.pulse_bandwidth_hz,
+    )
     for r in scene.clutter_ranges_m:
-        static += scene.clutter_amplitude * rf_pulse(t - scene.internal_delay_s - 2.0 * r / c,
-                                                     scene.pulse_centre_hz, scene.pulse_bandwidth_hz)
+        static += scene.clutter_amplitude * rf_pulse(
+            t - scene.internal_delay_s - 2.0 * r / c, scene.pulse_centre_hz, scene.pulse_bandwidth_hz
+        )
     rf += static[None, :]
     rf += scene.noise_std * rng.standard_normal(rf.shape)
     return np.rint(rf * scene.counts_per_unit).astype(np.int32)
