@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import errno
+import logging
 import math
 import os
 import stat
@@ -28,12 +29,13 @@ import h5py
 import numpy as np
 
 from uwbcl.atomic import PARTIAL_SUFFIX, atomic_path
-from uwbcl.model import PassGeometry, RadarParameters, ScanPass
+from uwbcl.model import PassGeometry, RadarParameters, RawRF, ScanPass
 from uwbcl.records import ReadLimits
 from uwbcl.utc import parse_utc
 
 FORMAT_NAME = "uwbcl-scan"
 FORMAT_VERSION = 1  # major version: bumped only by changes an existing reader would misread
+FORMAT_MINOR_VERSION = 1  # additions this reader knows (section 5): 1.1 = range_delay_s, /raw/rf
 BANDWIDTH_DEFINITION = "-10 dB"
 PULSE_SHAPE = "gaussian"
 ECHO_DTYPES = ("complex64", "complex128", "int16")
@@ -256,6 +258,7 @@ def write_pass(
         ds = _write_dataset(f, "/echo", stored)
         ds.attrs["layout"] = layout
         ds.attrs["scale"] = np.float64(scale)
+        _write_additions(f, path, scan)
     return path
 
 
@@ -378,7 +381,9 @@ def read_pass(path: str | os.PathLike[str], limits: ReadLimits = ReadLimits()) -
     return ScanPass(
         radar=radar,
         geometry=geometry,
-        range_window_start_s=h["range_window_start_s"],
+        # 1.1: the calibrated delay is removed here, so every focuser uses it unchanged.
+        range_window_start_s=h["range_window_start_s"] - h["range_delay_s"],
+        range_delay_s=h["range_delay_s"],
         pulse_time_s=time_s,
         pulse_position_m=position_m,
         echo=echo,
@@ -484,6 +489,7 @@ def _read_header(f: h5py.File, path: Any, limits: ReadLimits = ReadLimits()) -> 
         if ds.dtype.kind not in "fiu":
             raise ArchiveError(path, ds.name, f"expected a real numeric dtype, got {ds.dtype}")
     _check_header(path, h)
+    _read_additions(f, path, h)
     h.pop("format")
     h["path"] = str(path)
     return h
@@ -727,3 +733,102 @@ def _vector_attr(obj: h5py.HLObject, name: str, path: Any, length: int) -> tuple
             path, f"{obj.name}@{name}", f"expected {length} real numbers, got {value.dtype} {value.shape}"
         )
     return tuple(float(v) for v in value)
+
+
+# ------------------------------------------------------------------------------------------- 1.1 additions
+# Optional additions of format 1.1 (docs/archive-format.md section 9), kept apart from the 1.0 reader above.
+# A file without them is written exactly as 1.0 (no format_minor_version attribute).
+
+log = logging.getLogger("uwbcl")
+
+_RAW_UNITS = "counts"
+_KNOWN_ATTRIBUTES = {
+    "/radar": {*_RADAR_FLOAT, "bandwidth_definition", "pulse_shape", "samples_per_pulse", "range_delay_s"},
+    "/geometry": {"height_m", "rotation_table_angle_deg", "reference_point_m", "boresight_y_sign"},
+}
+_KNOWN_PULSE_DATASETS = {"time_s", "position_m"}
+
+
+def _write_additions(f: h5py.File, path: Path, scan: ScanPass) -> None:
+    """range_delay_s (the stored window start keeps it: stored = effective + delay) and /raw/rf."""
+    delay = float(scan.range_delay_s)
+    if not math.isfinite(delay):
+        raise ArchiveError(path, "/radar@range_delay_s", f"must be finite, got {delay}")
+    raw = scan.raw_rf
+    if delay == 0.0 and raw is None:
+        return
+    f.attrs["format_minor_version"] = np.int64(FORMAT_MINOR_VERSION)
+    if delay != 0.0:
+        f["radar"].attrs["range_window_start_s"] = np.float64(scan.range_window_start_s + delay)
+        f["radar"].attrs["range_delay_s"] = np.float64(delay)
+    if raw is not None:
+        _check_raw_rf(path, raw, scan.n_pulses)
+        rows = int(min(raw.samples.shape[0], max(1, _CHUNK_TARGET_BYTES // max(1, raw.samples[:1].nbytes))))
+        ds = f.create_dataset("/raw/rf", data=np.asarray(raw.samples, dtype=np.int32),
+                              chunks=(rows, raw.samples.shape[1]), compression="gzip",
+                              compression_opts=_GZIP_LEVEL, shuffle=True, fletcher32=True)
+        ds.attrs["units"] = _RAW_UNITS
+        ds.attrs["bin_period_s"] = np.float64(raw.bin_period_s)
+        ds.attrs["scan_start_s"] = np.float64(raw.scan_start_s)
+
+
+def _check_raw_rf(path: Any, raw: RawRF, n_pulses: int) -> None:
+    samples = np.asarray(raw.samples)
+    if samples.ndim != 2 or samples.shape[0] != n_pulses or samples.dtype.kind not in "iu":
+        raise ArchiveError(path, "/raw/rf", f"expected integers of shape ({n_pulses}, K), got "
+                                            f"{samples.dtype} {samples.shape}")
+    if samples.size and (samples.min() < np.iinfo(np.int32).min or samples.max() > np.iinfo(np.int32).max):
+        raise ArchiveError(path, "/raw/rf", "values do not fit int32")
+    if not (math.isfinite(raw.bin_period_s) and raw.bin_period_s > 0):
+        raise ArchiveError(path, "/raw/rf@bin_period_s", f"must be finite and > 0, got {raw.bin_period_s}")
+    if not math.isfinite(raw.scan_start_s):
+        raise ArchiveError(path, "/raw/rf@scan_start_s", f"must be finite, got {raw.scan_start_s}")
+
+
+def _read_additions(f: h5py.File, path: Any, h: dict[str, Any]) -> None:
+    """format_minor_version and range_delay_s into ``h`` (0 and 0.0 if absent); warns of skipped names."""
+    minor = _int_attr(f, "format_minor_version", path) if "format_minor_version" in f.attrs else 0
+    if minor < 0:
+        raise ArchiveError(path, "/@format_minor_version", f"must be >= 0, got {minor}")
+    if minor > FORMAT_MINOR_VERSION:
+        log.warning("%s: format 1.%d is newer than this reader (1.%d): additions it does not know are "
+                    "ignored", path, minor, FORMAT_MINOR_VERSION)
+    h["format_minor_version"] = minor
+    radar = f["radar"]
+    delay = _float_attr(radar, "range_delay_s", path) if "range_delay_s" in radar.attrs else 0.0
+    if not math.isfinite(delay):
+        raise ArchiveError(path, "/radar@range_delay_s", f"must be finite, got {delay}")
+    h["range_delay_s"] = delay
+    _warn_unknown(f, path)
+
+
+def _warn_unknown(f: h5py.File, path: Any) -> None:
+    # An unknown name in /radar, /geometry or /pulses may change where targets are (as range_delay_s does for
+    # a 1.0 reader): say so instead of ignoring it silently. Elsewhere extras are free-form metadata.
+    unknown = [f"{g}@{name}" for g, known in _KNOWN_ATTRIBUTES.items()
+               for name in f[g].attrs if name not in known]
+    pulses = f.get("pulses")
+    if isinstance(pulses, h5py.Group):
+        unknown += [f"/pulses/{name}" for name in pulses if name not in _KNOWN_PULSE_DATASETS]
+    if unknown:
+        log.warning("%s: ignored (not known to this reader, format 1.%d): %s", path, FORMAT_MINOR_VERSION,
+                    ", ".join(sorted(unknown)))
+
+
+def read_raw_rf(path: str | os.PathLike[str]) -> RawRF | None:
+    """The raw real RF kept beside the baseband (format 1.1 ``/raw/rf``), validated; None if there is none."""
+    with _open(path) as f:
+        n_pulses = int(_dataset(f, "/echo", path).shape[0])
+        if "raw" not in f or "rf" not in f["raw"]:
+            return None
+        ds = f["/raw/rf"]
+        if not isinstance(ds, h5py.Dataset) or ds.ndim != 2 or ds.dtype.kind not in "iu":
+            raise ArchiveError(path, "/raw/rf", "expected a 2-D integer dataset")
+        units = _str_attr(ds, "units", path)
+        if units != _RAW_UNITS:
+            raise ArchiveError(path, "/raw/rf@units", f"expected {_RAW_UNITS!r}, got {units!r}")
+        raw = RawRF(samples=_read_values(f, path, "/raw/rf"),
+                    bin_period_s=_float_attr(ds, "bin_period_s", path),
+                    scan_start_s=_float_attr(ds, "scan_start_s", path))
+    _check_raw_rf(path, raw, n_pulses)
+    return raw

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from . import __version__, archive, batch, config
 from .atomic import write_text_atomic
+from .importers import RecordingError, passes, registry
 from .records import ALGORITHMS, BACKENDS, BatchError, ConfigError, OutputError
 from .scenarios import SCENARIOS
 
@@ -193,6 +194,113 @@ def _devices(args: argparse.Namespace) -> int:
     return 0
 
 
+def _import_options(args: argparse.Namespace) -> passes.ImportOptions:
+    """[import] of --config, then the flags given; ConfigError for a bad value."""
+    values = {}
+    if args.config:
+        site = config.read_toml(args.config)
+        values = passes.options_from_table(site.get("import", {}), args.config)
+    flags = {"height_m": args.height_m, "rotation_table_angle_deg": args.table_angle_deg,
+             "boresight_y_sign": args.boresight_y_sign, "reference_range_m": args.reference_range_m,
+             "reference_point_m": tuple(args.reference_point) if args.reference_point else None,
+             "antenna_aperture_m": args.aperture_m, "pulse_repetition_frequency_hz": args.prf_hz,
+             "range_delay_s": args.range_delay_s, "rig_id": args.rig_id, "cycle": args.cycle,
+             "pass_start_time": args.pass_start_time, "carrier_frequency_hz": args.carrier_hz,
+             "decimation": args.decimation, "min_step_m": args.min_step_m,
+             "keep_raw_rf": False if args.no_raw_rf else None}
+    values.update({k: v for k, v in flags.items() if v is not None})
+    options = passes.ImportOptions(**values)
+    passes.check_options(options, args.config or "command line")
+    return options
+
+
+def _import(args: argparse.Namespace) -> int:
+    """`uwbcl import <radar> FILE --out DIR`: exit 2 on usage errors, 1 on a file that cannot be imported."""
+    name = f"uwbcl import {args.reader}"
+    if (args.positions is None) == (args.speed_m_s is None):
+        print(f"{name}: give exactly one of --positions POS.csv and --speed-m-s V", file=sys.stderr)
+        return 2
+    if args.time_offset_s is not None and args.positions is None:
+        print(f"{name}: --time-offset-s needs --positions", file=sys.stderr)
+        return 2
+    try:
+        options = _import_options(args)
+    except ConfigError as exc:
+        print(f"{name}: {exc}", file=sys.stderr)
+        return 2
+    source = Path(args.scan_file)
+    try:
+        recording = registry.get_reader(args.reader).read(source)
+        if args.positions:
+            track = passes.track_from_positions(recording, passes.read_positions_csv(args.positions),
+                                                args.time_offset_s, options.min_step_m)
+        else:
+            track = passes.constant_speed_track(recording, args.speed_m_s)
+        result = passes.build_pass(recording, track, options, file_mtime_s=source.stat().st_mtime)
+        path = Path(args.out) / archive.default_relative_path(result.scan)
+        archive.write_pass(path, result.scan, overwrite=args.overwrite,
+                           created_by=f"uwbcl {__version__} import {args.reader} {source.name}")
+    except (RecordingError, archive.ArchiveError, ValueError) as exc:
+        print(f"{name}: {exc}", file=sys.stderr)
+        return 1
+    except OSError as exc:
+        print(f"{name}: {exc.filename or source}: {exc.strerror or exc}", file=sys.stderr)
+        return 1
+    band, scan = result.band, result.scan
+    print(f"{source}: {recording.n_scans} complete scans read, {recording.n_dropped} incomplete dropped")
+    if track.time_offset_s is not None:
+        print(f"positions: time offset {track.time_offset_s:+.3f} s; {track.n_outside_log} scans outside "
+              f"the log, {track.n_rest} at rest or turning back trimmed")
+    print(f"spectrum: centre {band.centre_hz / 1e9:.3f} GHz, -10 dB band {band.low_hz / 1e9:.3f}-"
+          f"{band.high_hz / 1e9:.3f} GHz ({band.bandwidth_hz / 1e9:.3f} GHz), "
+          f"peak {band.peak_hz / 1e9:.3f} GHz")
+    print(f"baseband: {scan.radar.sample_rate_hz / 1e9:.4g} GHz complex (RF / {result.decimation}), "
+          f"{scan.samples_per_pulse} samples x {scan.n_pulses} pulses, x {scan.pulse_position_m[0]:+.3f} to "
+          f"{scan.pulse_position_m[-1]:+.3f} m")
+    if options.range_delay_s == 0.0:
+        print("warning: range_delay_s = 0 (uncalibrated): ranges include the radar's internal delay",
+              file=sys.stderr)
+    print(f"wrote 1 archive: {path}")
+    return 0
+
+
+def _add_import_commands(sub) -> None:
+    imp = sub.add_parser("import", help="convert a radar's own recording into a scan archive "
+                                        "(docs/importing.md)")
+    readers = imp.add_subparsers(dest="reader", required=True)
+    for reader in registry.READERS.values():
+        r = readers.add_parser(reader.name, help=reader.description)
+        r.add_argument("scan_file")
+        r.add_argument("--out", required=True,
+                       help="archive root; the pass goes to its default relative path")
+        r.add_argument("--positions", help="rail positions CSV: time_s,x_m[,y_m,z_m] (docs/importing.md)")
+        r.add_argument("--time-offset-s", type=float,
+                       help="positions time = scan time + this (default: align the first motion)")
+        r.add_argument("--speed-m-s", type=float,
+                       help="no positions: a straight constant-speed track (commissioning and tests only)")
+        r.add_argument("--config", help="site TOML; its [import] table gives defaults for the flags below")
+        r.add_argument("--height-m", type=float, help="rail height (default: median z_m of the positions)")
+        r.add_argument("--table-angle-deg", type=float, help="rotation table angle (squint), default 0")
+        r.add_argument("--boresight-y-sign", type=int, choices=(-1, 1), help="side of the rib, default -1")
+        r.add_argument("--reference-point", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                       help="scene centre in the radar frame (default: on boresight at --reference-range-m)")
+        r.add_argument("--reference-range-m", type=float, help="default 3.0")
+        r.add_argument("--aperture-m", type=float, help="antenna aperture along the rail, default 0.14")
+        r.add_argument("--prf-hz", type=float, help="nominal PRF (default: 1 / median scan interval)")
+        r.add_argument("--range-delay-s", type=float,
+                       help="calibrated two-way antenna/cable delay, s (default 0: uncalibrated)")
+        r.add_argument("--rig-id")
+        r.add_argument("--cycle", type=int)
+        r.add_argument("--pass-start-time", help="ISO 8601 UTC (default: file time minus the recording)")
+        r.add_argument("--carrier-hz", type=float, help="mix-down frequency (default: measured band centre)")
+        r.add_argument("--decimation", type=int,
+                       help="complex rate = RF rate / this (default: from the band)")
+        r.add_argument("--min-step-m", type=float, help="smaller moves per scan are rest (default 1e-4)")
+        r.add_argument("--no-raw-rf", action="store_true", help="do not keep /raw/rf beside the baseband")
+        r.add_argument("--overwrite", action="store_true", help="replace an existing archive")
+        r.set_defaults(func=_import)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="uwbcl", description="UWB SAR measurement of longwall retreat and creep.")
     p.add_argument("--version", action="version", version=f"uwbcl {__version__}")
@@ -245,6 +353,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--follow-symlinks", action="store_true",
                    help="read archives linked from outside ARCHIVE_DIR and enter linked directories")
     q.set_defaults(func=_process)
+
+    _add_import_commands(sub)
 
     d = sub.add_parser("devices", help="list the OpenCL platforms and devices (specs for --device)")
     d.set_defaults(func=_devices)

@@ -138,7 +138,7 @@ def _detection_schema() -> dict:
     return out
 
 
-OTHER_COMMANDS_SECTIONS = ("acquire",)
+OTHER_COMMANDS_SECTIONS = ("acquire", "import")  # `uwbcl import` checks [import]
 
 
 def parse_config(data: dict[str, Any], path: str | os.PathLike[str] | None = None) -> SiteConfig:
@@ -238,6 +238,11 @@ def validate(cfg: SiteConfig, path=None) -> None:
 
 
 def load_config(path: str | os.PathLike[str]) -> SiteConfig:
+    return parse_config(read_toml(path), path)
+
+
+def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The parsed tables of a site file; ConfigError for a missing, unreadable or invalid one."""
     if tomllib is None:
         raise ConfigError(path, "-", "reading TOML needs Python >= 3.11 or the 'tomli' package")
     try:
@@ -249,7 +254,7 @@ def load_config(path: str | os.PathLike[str]) -> SiteConfig:
         raise ConfigError(path, "-", f"not valid TOML: {e}") from e
     except UnicodeDecodeError as e:  # binary, UTF-16, Latin-1: TOML is UTF-8
         raise ConfigError(path, "-", f"not a UTF-8 text file (TOML must be UTF-8): {e.reason} at byte {e.start}") from e
-    return parse_config(data, path)
+    return data
 
 
 def override(cfg: SiteConfig, **flags: Any) -> SiteConfig:

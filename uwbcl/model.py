@@ -54,12 +54,21 @@ class PassGeometry:
 
 
 @dataclasses.dataclass
+class RawRF:
+    """Real RF scans kept beside the baseband for provenance (archive 1.1 ``/raw/rf``), one row per pulse."""
+
+    samples: np.ndarray  # (N_a, K) integer ADC counts; sample k at delay scan_start_s + k bin_period_s
+    bin_period_s: float
+    scan_start_s: float  # on the radar's delay axis: the calibrated range_delay_s not removed
+
+
+@dataclasses.dataclass
 class ScanPass:
     """One pass along the rail at one height: the raw echo and everything needed to focus it."""
 
     radar: RadarParameters
     geometry: PassGeometry
-    range_window_start_s: float  # absolute two-way delay of fast-time sample 0
+    range_window_start_s: float  # absolute two-way delay of fast-time sample 0 (range_delay_s removed)
     pulse_time_s: np.ndarray  # (N_a,) time of each pulse since pass start
     pulse_position_m: np.ndarray  # (N_a,) rail (X_r) position of the antenna at each pulse
     echo: np.ndarray  # (N_a, N_r) complex baseband, demodulated at the carrier
@@ -67,6 +76,8 @@ class ScanPass:
     cycle: int = 0
     pass_start_time: str = "1970-01-01T00:00:00Z"  # ISO 8601, UTC
     source: str = ""  # file the pass was read from, for error messages
+    range_delay_s: float = 0.0  # calibrated two-way antenna/cable delay, removed from the window start
+    raw_rf: RawRF | None = None  # the radar's real RF, when an importer kept it (archive 1.1)
 
     @property
     def n_pulses(self) -> int:

@@ -1,0 +1,199 @@
+"""Real RF scans -> complex baseband in the archive's signal model (docs/archive-format.md section 2).
+
+A radar that samples the RF directly (PulsON 440: 16.384 GHz, one real sample per 61 ps bin) gives
+x(t) = Re{s(t) exp(j 2 pi f_c t)}; the archive wants s(t), sampled at a complex rate that covers its band.
+`to_baseband` does it in one FFT per scan:
+
+1. analytic signal (FFT Hilbert): the positive-frequency half of the zero-padded scan's spectrum, doubled;
+2. mix-down at the carrier f_c: the spectrum is read from f_c - fs/2 to f_c + fs/2 and the phase is
+   referenced to zero two-way delay on the radar's axis, so that s(t) = a(t) exp(-j 2 pi f_c t) with t the
+   absolute delay of each sample (not its index);
+3. band-limited decimation: only those bins are kept (an inverse FFT of M = Np / D bins gives every D-th
+   sample of the band-limited analytic signal exactly), with a raised-cosine taper over the outer `taper`
+   fraction of the kept band so that the time-domain kernel is short and the zero padding absorbs it;
+4. scaling: |s| is the RF envelope in the input's units (ADC counts): a tone of amplitude A in the flat
+   part of the band comes out with |s| = A.
+
+Conversion error: nil (to rounding) for a signal whose spectrum lies inside the flat part of the kept band,
+|f - f_c| <= (1 - taper) fs / 2; what lies outside is attenuated or removed, and the removed part is the
+error. Measured (tests/test_p440_import.py), max |error| / peak for a Gaussian-modulated RF pulse of 1.7 GHz
+-10 dB bandwidth at 4.3 GHz, demodulated at 4.27 GHz, against its analytic complex envelope: -95 dB at D = 3
+(5.46 GHz), -60 dB at D = 4 (4.10 GHz, what `choose_decimation` picks for it), -50 dB at D = 5 (3.28 GHz);
+in energy -91, -55 and -43 dB. A tone in the flat band keeps its amplitude within 1e-5. Within about 1 /
+(taper fs / 2) of the ends of the scan window a signal that does not start and end at zero is smoothed: the
+window edge is a step in the RF, which has no finite band.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+DEFAULT_OVERSAMPLING = 2.4  # complex rate / -10 dB bandwidth (the paper: 4.0 GHz for 1.7 GHz)
+DEFAULT_TAPER = 0.2  # fraction of the kept band (each side) in the raised-cosine roll-off
+_GUARD_BINS = 256  # zero padding beyond the scan window: room for the filter kernel, no wrap-around
+_BLOCK_SCANS = 512  # scans transformed at a time: bounded memory for long recordings
+
+
+@dataclasses.dataclass(frozen=True)
+class Band:
+    """Where the energy of a recording is, from its mean power spectrum.
+
+    centre_hz is the middle of the -10 dB band (the carrier of the archive's Gaussian model, whose spectrum is
+    symmetric about f_c and 10 dB down at f_c +- B/2); peak_hz and centroid_hz are reported for comparison.
+    """
+
+    centre_hz: float
+    low_hz: float  # outermost frequencies where the smoothed spectrum is at -10 dB of its peak
+    high_hz: float
+    peak_hz: float
+    centroid_hz: float  # power-weighted mean frequency inside [low_hz, high_hz]
+    low_20db_hz: float  # the same at -20 dB: how wide the band to keep must be
+    high_20db_hz: float
+
+    @property
+    def bandwidth_hz(self) -> float:
+        return self.high_hz - self.low_hz
+
+
+def mean_power_spectrum(
+    rf: np.ndarray, bin_period_s: float, block: int = _BLOCK_SCANS
+) -> tuple[np.ndarray, np.ndarray]:
+    """(f_hz (K,), power (K,)): the mean over scans of |rfft|^2 of each Hann-windowed, mean-removed scan."""
+    n = rf.shape[1]
+    window = np.hanning(n)
+    power = np.zeros(n // 2 + 1)
+    for i in range(0, rf.shape[0], block):
+        x = rf[i : i + block].astype(np.float64)
+        x -= x.mean(axis=1, keepdims=True)  # ADC offset: DC, outside any band
+        power += (np.abs(np.fft.rfft(x * window, axis=1)) ** 2).sum(axis=0)
+    return np.fft.rfftfreq(n, bin_period_s), power / max(1, rf.shape[0])
+
+
+def _edges(f_hz: np.ndarray, level: np.ndarray, threshold: float) -> tuple[float, float]:
+    """Outermost crossings of ``threshold`` (linear interpolation between bins)."""
+    above = np.flatnonzero(level >= threshold)
+    lo, hi = above[0], above[-1]
+
+    def cross(i_out: int, i_in: int) -> float:
+        if i_out < 0 or i_out >= len(f_hz):
+            return float(f_hz[i_in])
+        a, b = level[i_out], level[i_in]
+        return float(f_hz[i_out] + (threshold - a) / (b - a) * (f_hz[i_in] - f_hz[i_out]))
+
+    return cross(lo - 1, lo), cross(hi + 1, hi)
+
+
+def measure_band(rf: np.ndarray, bin_period_s: float, smooth_hz: float = 50e6) -> Band:
+    """The spectrum centre and -10 dB band of real RF scans (n_scans, n_bins).
+
+    The mean power spectrum is smoothed over ``smooth_hz`` (a running mean, in bins) so that the ripple of a
+    few strong static echoes does not decide the edges; the edges are the outermost -10 dB crossings.
+    """
+    f, p = mean_power_spectrum(rf, bin_period_s)
+    width = max(1, round(smooth_hz / (f[1] - f[0])))
+    p = np.convolve(p, np.ones(width) / width, mode="same")
+    peak = int(np.argmax(p))
+    db = 10.0 * np.log10(np.maximum(p, 1e-300) / p[peak])
+    lo, hi = _edges(f, db, -10.0)
+    lo20, hi20 = _edges(f, db, -20.0)
+    inside = (f >= lo) & (f <= hi)
+    centroid = float((f[inside] * p[inside]).sum() / p[inside].sum())
+    return Band(
+        centre_hz=0.5 * (lo + hi),
+        low_hz=lo,
+        high_hz=hi,
+        peak_hz=float(f[peak]),
+        centroid_hz=centroid,
+        low_20db_hz=lo20,
+        high_20db_hz=hi20,
+    )
+
+
+def choose_decimation(
+    rf_rate_hz: float, band: Band, oversampling: float = DEFAULT_OVERSAMPLING, taper: float = DEFAULT_TAPER
+) -> int:
+    """The largest integer D whose complex rate rf_rate / D is >= oversampling x the -10 dB bandwidth and
+    keeps the whole -20 dB band inside the flat part of the kept band (|f - f_c| <= (1 - taper) rate / 2)."""
+    half_20 = max(band.centre_hz - band.low_20db_hz, band.high_20db_hz - band.centre_hz)
+    need_hz = max(oversampling * band.bandwidth_hz, 2.0 * half_20 / (1.0 - taper))
+    return max(1, math.floor(rf_rate_hz / need_hz))
+
+
+def to_baseband(
+    rf: np.ndarray,
+    bin_period_s: float,
+    scan_start_s: float,
+    carrier_hz: float,
+    decimation: int,
+    taper: float = DEFAULT_TAPER,
+    block: int = _BLOCK_SCANS,
+) -> tuple[np.ndarray, float]:
+    """Complex baseband of real RF scans (the module docstring gives the method and its error).
+
+    Parameters
+    ----------
+    rf : ndarray, (n_scans, n_bins), real (any integer or float type)
+        RF samples; sample k of a scan at two-way delay scan_start_s + k * bin_period_s.
+    bin_period_s : float
+        RF sample period, s.
+    scan_start_s : float
+        Delay of RF sample 0 (the mix-down phase is referenced to zero delay).
+    carrier_hz : float
+        f_c, the demodulation frequency.
+    decimation : int
+        D: the complex rate is 1 / (D * bin_period_s); output sample m is at delay scan_start_s + m D
+        bin_period_s.
+    taper : float
+        Fraction of each half of the kept band in the raised-cosine roll-off (0: a brick wall).
+
+    Returns
+    -------
+    echo : ndarray, (n_scans, ceil(n_bins / D)) complex128
+        s at scan_start_s + m / sample_rate, in the input's units.
+    sample_rate_hz : float
+        The complex rate.
+    """
+    n_scans, n_bins = rf.shape
+    if decimation < 1 or not 0.0 <= taper < 1.0:
+        raise ValueError(f"decimation must be >= 1 and 0 <= taper < 1, got {decimation}, {taper}")
+    rf_rate = 1.0 / bin_period_s
+    n_pad = decimation * math.ceil((n_bins + _GUARD_BINS) / decimation)  # Np = D M: every D-th sample exact
+    m = n_pad // decimation
+    n_out = math.ceil(n_bins / decimation)
+    df = rf_rate / n_pad
+    k0 = carrier_hz / df  # carrier in (fractional) bins of the padded FFT
+    # Kept bins k0 - M/2 .. k0 + M/2 (integer bins; the fractional part of k0 is mixed in the time domain).
+    k_lo = math.floor(k0) - m // 2
+    bins = k_lo + np.arange(m)
+    if bins[0] < 1 or bins[-1] >= n_pad // 2:
+        raise ValueError(
+            f"carrier {carrier_hz:.4g} Hz +- {rf_rate / decimation / 2:.4g} Hz does not fit between "
+            f"0 and the RF Nyquist frequency {rf_rate / 2:.4g} Hz"
+        )
+    f_rel = (bins - k0) * df  # baseband frequency of each kept bin
+    half = 0.5 * m * df
+    flat = (1.0 - taper) * half
+    gain = np.ones(m)
+    roll = np.abs(f_rel) > flat
+    if taper > 0:
+        gain[roll] = 0.5 * (1.0 + np.cos(np.pi * np.clip((np.abs(f_rel[roll]) - flat) / (half - flat), 0, 1)))
+    # 2 X(f): the analytic signal's spectrum; / D: ifft over M bins instead of Np.
+    gain *= 2.0 / decimation
+    # Bin k_lo + i is baseband bin i - shift after the integer mix: roll it to the inverse FFT's order.
+    shift = math.floor(k0) - k_lo
+    t_out = scan_start_s + np.arange(n_out) * decimation * bin_period_s
+    # exp(-j 2 pi f_c t): the integer part of the shift was done on the bins relative to sample 0, so the
+    # remaining phase is the fractional carrier over the output samples plus the integer part at scan_start.
+    residual = np.exp(
+        -2j * np.pi * ((k0 - math.floor(k0)) * df * (t_out - scan_start_s) + carrier_hz * scan_start_s)
+    )
+    out = np.empty((n_scans, n_out), dtype=np.complex128)
+    for i in range(0, n_scans, block):
+        x = rf[i : i + block].astype(np.float64)
+        spec = np.fft.rfft(x, n=n_pad, axis=1)[:, bins] * gain
+        z = np.fft.ifft(np.roll(spec, -shift, axis=1), axis=1)[:, :n_out]
+        out[i : i + block] = z * residual
+    return out, rf_rate / decimation

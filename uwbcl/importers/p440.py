@@ -1,0 +1,342 @@
+"""Time Domain PulsON 440 scan files: the radar's MRM_SCAN_INFO message stream, read and written.
+
+Layout (all integers big-endian; checked against a real recording, docs/importing.md section 2):
+
+* a 32-byte radar configuration: node_id u32, scan_start i32 (ps), scan_stop i32 (ps), scan_res u16 (bins),
+  pii u16, four u16 segment sample counts, four u8 segment integrations, ant_mode u8, tx_gain_ind u8,
+  code_channel u8, persist_flag u8;
+* then fixed-size 1452-byte records, each one MRM_SCAN_INFO message (type 0xF201) padded with zeros: a 52-byte
+  header (message_type u16, message_id u16, node_id u32, timestamp u32 ms since radar boot, four reserved u32,
+  scan_start i32 ps, scan_stop i32 ps, scan_res i16, scan_type u8, reserved u8, antenna_id u8,
+  operational_mode u8, num_samples_message u16 <= 350, num_samples_total u32, message_index u16,
+  num_messages_total u16) followed by num_samples_message i32 samples;
+* one scan = num_messages_total consecutive messages with message_index 0, 1, ...; sample k of a scan is real
+  RF at two-way delay scan_start + k * T_BIN on the radar's delay axis, T_BIN = scan_res / (512 * 1.024 GHz)
+  (61.035 ps for scan_res 32), before the radar's internal antenna/cable delay is removed.
+
+The reader holds one record at a time besides its output (one int32 array sized from the file length), drops
+an incomplete scan (a truncated last scan, a lost message) with a log line, and raises `RecordingError` naming
+the file and byte offset of a record it cannot trust (wrong message type, absurd sample counts, a scan
+configuration that changes mid-file).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import os
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from . import RawRecording, RecordingError
+
+log = logging.getLogger("uwbcl")
+
+CONFIG = struct.Struct(">IiiHH4H4B4B")  # 32 bytes
+HEADER = struct.Struct(">HHII4IiihBBBBHIHH")  # 52 bytes
+RECORD_BYTES = 1452
+MRM_SCAN_INFO = 0xF201
+MAX_SAMPLES_PER_MESSAGE = (RECORD_BYTES - HEADER.size) // 4  # 350
+BIN_CLOCK_HZ = 512 * 1.024e9  # scan_res counts periods of this clock (1.907 ps)
+MAX_SAMPLES_PER_SCAN = 1 << 16  # far above any P440 scan window; a larger count is a corrupt header
+_TIMESTAMP_WRAP_MS = 1 << 32
+_RECORDS_PER_READ = 4096  # ~6 MB per read: bounded memory whatever the file size
+
+_CONFIG_FIELDS = ("node_id", "scan_start_ps", "scan_stop_ps", "scan_res", "pii")
+_SEGMENT_FIELDS = ("segment_samples", "segment_integrations")
+_CONFIG_TAIL = ("ant_mode", "tx_gain_ind", "code_channel", "persist_flag")
+
+
+def bin_period_s(scan_res: int) -> float:
+    """Fast-time sample period (two-way delay) of a scan resolution in bins: 32 -> 61.035 ps."""
+    return scan_res / BIN_CLOCK_HZ
+
+
+def _parse_config(raw: bytes) -> dict:
+    v = CONFIG.unpack(raw)
+    cfg = dict(zip(_CONFIG_FIELDS, v[:5]))
+    cfg["segment_samples"] = list(v[5:9])
+    cfg["segment_integrations"] = list(v[9:13])
+    cfg.update(zip(_CONFIG_TAIL, v[13:17]))
+    return cfg
+
+
+@dataclasses.dataclass
+class _Scan:
+    """The scan being assembled: its identity (from message 0) and how far it got."""
+
+    message_id: int
+    timestamp_ms: int
+    n_messages: int
+    offset: int  # byte offset of message 0, for messages
+    next_index: int = 1
+    filled: int = 0
+
+
+class P440Reader:
+    """`uwbcl import p440`: a PulsON 440 scan file (real RF int32, 61 ps bins) -> `RawRecording`."""
+
+    name = "p440"
+    description = "Time Domain PulsON 440 scan file (MRM_SCAN_INFO message stream, real RF int32)"
+
+    def read(self, path: str | os.PathLike[str]) -> RawRecording:
+        """Every complete scan of ``path``; RecordingError (file, byte offset, reason) for a bad record."""
+        path = Path(path)
+        size = path.stat().st_size
+        with path.open("rb") as f:
+            head = f.read(CONFIG.size)
+            if len(head) < CONFIG.size:
+                raise RecordingError(
+                    path,
+                    0,
+                    f"truncated configuration header: {len(head)} of {CONFIG.size} "
+                    "bytes (not a PulsON 440 scan file?)",
+                )
+            cfg = _parse_config(head)
+            if cfg["scan_res"] == 0 or cfg["scan_stop_ps"] <= cfg["scan_start_ps"]:
+                raise RecordingError(
+                    path,
+                    0,
+                    f"configuration header: scan_res {cfg['scan_res']}, scan window "
+                    f"{cfg['scan_start_ps']}..{cfg['scan_stop_ps']} ps is not a scan",
+                )
+            n_records, tail = divmod(size - CONFIG.size, RECORD_BYTES)
+            state = _StreamState(path, n_records)
+            offset = CONFIG.size
+            while True:
+                block = f.read(RECORD_BYTES * _RECORDS_PER_READ)
+                whole = len(block) // RECORD_BYTES
+                for i in range(whole):
+                    state.message(block, i * RECORD_BYTES, offset + i * RECORD_BYTES)
+                offset += whole * RECORD_BYTES
+                if len(block) < RECORD_BYTES * _RECORDS_PER_READ:
+                    break
+        if tail:
+            log.warning(
+                "%s: %d trailing bytes at byte %d are a truncated record; dropped", path, tail, offset
+            )
+        return state.finish(cfg)
+
+
+READER = P440Reader()
+
+
+class _StreamState:
+    """Assembles scans from messages; owns the output array (allocated once, from the first message)."""
+
+    def __init__(self, path: Path, n_records: int) -> None:
+        self.path, self.n_records = path, n_records
+        self.rf: np.ndarray | None = None
+        self.times_ms: list[int] = []
+        self.ids: list[int] = []
+        self.shape: tuple | None = None  # (scan_start, scan_stop, scan_res, n_total, n_messages) of the file
+        self.scan: _Scan | None = None
+        self.n_complete = 0
+        self.n_dropped = 0
+
+    def fail(self, offset: int, reason: str) -> None:
+        raise RecordingError(self.path, offset, reason)
+
+    def message(self, block: bytes, at: int, offset: int) -> None:
+        (
+            mtype,
+            mid,
+            _node,
+            stamp,
+            _r0,
+            _r1,
+            _r2,
+            _r3,
+            start,
+            stop,
+            res,
+            _stype,
+            _r,
+            _ant,
+            _op,
+            n_msg,
+            n_total,
+            index,
+            n_messages,
+        ) = HEADER.unpack_from(block, at)
+        if mtype != MRM_SCAN_INFO:
+            self.fail(offset, f"message type 0x{mtype:04X} is not MRM_SCAN_INFO (0x{MRM_SCAN_INFO:04X})")
+        if not 1 <= n_total <= MAX_SAMPLES_PER_SCAN:
+            self.fail(offset, f"num_samples_total {n_total} outside 1..{MAX_SAMPLES_PER_SCAN}")
+        if not 1 <= n_msg <= MAX_SAMPLES_PER_MESSAGE:
+            self.fail(offset, f"num_samples_message {n_msg} outside 1..{MAX_SAMPLES_PER_MESSAGE}")
+        if n_messages != math.ceil(n_total / MAX_SAMPLES_PER_MESSAGE) or index >= n_messages:
+            self.fail(
+                offset,
+                f"message {index} of {n_messages} cannot carry {n_total} samples "
+                f"({MAX_SAMPLES_PER_MESSAGE} per message)",
+            )
+        if res <= 0 or stop <= start:
+            self.fail(offset, f"scan_res {res}, scan window {start}..{stop} ps is not a scan")
+        shape = (start, stop, res, n_total, n_messages)
+        if self.shape is None:
+            self.shape = shape
+            # At most one scan per n_messages records: the output never grows.
+            self.rf = np.empty((self.n_records // n_messages + 1, n_total), dtype=np.int32)
+        elif shape != self.shape:
+            self.fail(
+                offset,
+                f"scan configuration changed mid-file: (scan_start, scan_stop, scan_res, "
+                f"num_samples_total, num_messages_total) {shape}, was {self.shape}",
+            )
+
+        scan = self.scan
+        if index == 0:
+            if scan is not None:
+                self.drop(
+                    f"scan {scan.message_id} at byte {scan.offset} stops after message "
+                    f"{scan.next_index - 1} of {scan.n_messages}"
+                )
+            scan = self.scan = _Scan(mid, stamp, n_messages, offset)
+        elif scan is None or index != scan.next_index or mid != scan.message_id:
+            if scan is not None:
+                self.drop(
+                    f"scan {scan.message_id} at byte {scan.offset} is interrupted at byte {offset} by "
+                    f"message {index} of scan {mid}"
+                )
+            else:
+                log.warning(
+                    "%s: message %d of scan %d at byte %d has no message 0; skipped",
+                    self.path,
+                    index,
+                    mid,
+                    offset,
+                )
+            self.scan = None
+            return
+        else:
+            scan.next_index += 1
+        end = scan.filled + n_msg
+        if end > n_total or (index == n_messages - 1 and end != n_total):
+            self.fail(offset, f"messages of scan {mid} carry {end} samples, num_samples_total is {n_total}")
+        row = self.rf[self.n_complete]
+        row[scan.filled : end] = np.frombuffer(block, dtype=">i4", count=n_msg, offset=at + HEADER.size)
+        scan.filled = end
+        if index == n_messages - 1:
+            self.times_ms.append(scan.timestamp_ms)
+            self.ids.append(scan.message_id)
+            self.n_complete += 1
+            self.scan = None
+
+    def drop(self, why: str) -> None:
+        self.n_dropped += 1
+        log.warning("%s: dropped an incomplete scan: %s", self.path, why)
+
+    def finish(self, cfg: dict) -> RawRecording:
+        if self.scan is not None:
+            s = self.scan
+            self.n_dropped += 1
+            log.warning(
+                "%s: dropped the incomplete last scan (scan %d at byte %d: %d of %d messages)",
+                self.path,
+                s.message_id,
+                s.offset,
+                s.next_index,
+                s.n_messages,
+            )
+        if self.n_complete == 0:
+            raise RecordingError(self.path, None, "no complete scan in the file")
+        start, stop, res, n_total, _ = self.shape
+        # ms since boot, u32: unwrap the 49.7-day rollover so times keep increasing.
+        ms = np.asarray(self.times_ms, dtype=np.int64)
+        ms = ms + _TIMESTAMP_WRAP_MS * np.concatenate([[0], np.cumsum(np.diff(ms) < 0)])
+        rf = self.rf[: self.n_complete]
+        self.rf = None
+        metadata = dict(cfg, scan_stop_ps=stop, num_samples_total=n_total)
+        return RawRecording(
+            samples=rf,
+            scan_time_s=ms * 1e-3,
+            bin_period_s=bin_period_s(res),
+            scan_start_s=start * 1e-12,
+            source=str(self.path),
+            radar="p440",
+            n_dropped=self.n_dropped,
+            scan_id=np.asarray(self.ids, dtype=np.int64),
+            metadata=metadata,
+        )
+
+
+# ----------------------------------------------------------------------------------------------- writing
+
+
+def write_p440_stream(
+    path: str | os.PathLike[str],
+    rf: np.ndarray,
+    timestamp_ms,
+    *,
+    scan_start_ps: int,
+    scan_res: int = 32,
+    node_id: int = 100,
+    pii: int = 11,
+    partial_last_scan_messages: int = 0,
+) -> Path:
+    """Write scans in the PulsON 440 scan-file layout (the same bytes `P440Reader` reads).
+
+    Parameters
+    ----------
+    rf : ndarray, (n_scans, n_bins) integer
+        Real RF samples; must fit int32.
+    timestamp_ms : array_like, (n_scans,) int
+        Radar clock of each scan, ms since boot (written modulo 2**32).
+    scan_start_ps : int
+        Two-way delay of bin 0 on the radar's axis, ps; scan_stop = scan_start + n_bins * T_BIN.
+    partial_last_scan_messages : int
+        Append that many messages (fewer than a scan's) of one more scan, as a recording cut off mid-scan.
+    """
+    rf = np.asarray(rf)
+    if rf.ndim != 2 or rf.dtype.kind not in "iu":
+        raise ValueError(f"rf must be a 2-D integer array, got {rf.dtype} {rf.shape}")
+    if rf.size and (rf.min() < np.iinfo(np.int32).min or rf.max() > np.iinfo(np.int32).max):
+        raise ValueError("rf does not fit int32")
+    n_scans, n_bins = rf.shape
+    stamps = np.asarray(timestamp_ms, dtype=np.int64) % _TIMESTAMP_WRAP_MS
+    n_messages = math.ceil(n_bins / MAX_SAMPLES_PER_MESSAGE)
+    if not 0 <= partial_last_scan_messages < n_messages:
+        raise ValueError(f"partial_last_scan_messages must be in 0..{n_messages - 1}")
+    scan_stop_ps = scan_start_ps + round(n_bins * bin_period_s(scan_res) * 1e12)
+    config = CONFIG.pack(
+        node_id, scan_start_ps, scan_stop_ps, scan_res, pii, 0, 0, 0, 0, 0, 0, 0, 0, 2, 63, 6, 0
+    )
+    path = Path(path)
+    with path.open("wb") as f:
+        f.write(config)
+        rows = [(k, rf[k], int(stamps[k]), n_messages) for k in range(n_scans)]
+        if partial_last_scan_messages:
+            last = n_scans - 1 if n_scans else 0
+            rows.append((n_scans, rf[last], int(stamps[last]) + 20, partial_last_scan_messages))
+        for scan_id, row, stamp, n_write in rows:
+            samples = row.astype(">i4")
+            for index in range(n_write):
+                chunk = samples[index * MAX_SAMPLES_PER_MESSAGE : (index + 1) * MAX_SAMPLES_PER_MESSAGE]
+                header = HEADER.pack(
+                    MRM_SCAN_INFO,
+                    scan_id & 0xFFFF,
+                    node_id,
+                    stamp,
+                    0,
+                    0,
+                    0,
+                    0,
+                    scan_start_ps,
+                    scan_stop_ps,
+                    scan_res,
+                    1,
+                    3,
+                    2,
+                    1,
+                    chunk.size,
+                    n_bins,
+                    index,
+                    n_messages,
+                )
+                record = header + chunk.tobytes()
+                f.write(record + bytes(RECORD_BYTES - len(record)))
+    return path
