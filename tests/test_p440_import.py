@@ -377,35 +377,31 @@ def test_a_pass_without_additions_is_written_and_read_exactly_as_format_1_0(tmp_
     assert archive.read_raw_rf(path) is None
 
 
-def test_range_delay_s_moves_the_range_axis_of_every_focuser_by_c_times_the_delay_over_2(tmp_path):
+def test_range_delay_s_is_a_record_of_a_correction_already_in_the_window_start_so_1_0_readers_stay_right(
+        tmp_path):
     delay = 2.3e-9
     plain = _simulated()
     archive.write_pass(tmp_path / "plain.h5", plain)
-    # A radar with an internal delay: its axis reads `delay` more for the same echo; the file says so.
-    radar = _simulated(delay)
-    archive.write_pass(tmp_path / "delayed.h5", radar)
-    with h5py.File(tmp_path / "delayed.h5") as f:
+    # Imported with the calibrated delay: the window start is absolute (delay removed), the delay is recorded.
+    calibrated = _simulated(delay)
+    archive.write_pass(tmp_path / "calibrated.h5", calibrated)
+    with h5py.File(tmp_path / "calibrated.h5") as f:
         assert f.attrs["format_minor_version"] == 1
         assert f["radar"].attrs["range_delay_s"] == delay
-        stored = f["radar"].attrs["range_window_start_s"]
-        assert stored == pytest.approx(plain.range_window_start_s + delay, abs=1e-20)
-    # The same file read by a reader that ignores the delay (as a 1.0 reader would): the axis is c d / 2
-    # longer.
+        # what a 1.0 reader, ignoring the attribute, uses: the absolute window start
+        assert f["radar"].attrs["range_window_start_s"] == plain.range_window_start_s
+    read = archive.read_pass(tmp_path / "calibrated.h5")
+    assert read.range_delay_s == delay and read.range_window_start_s == plain.range_window_start_s
+    # The same echo imported without the calibration: its axis starts c d / 2 further out.
     uncalibrated = _simulated()
-    uncalibrated.range_window_start_s = float(stored)
+    uncalibrated.range_window_start_s = plain.range_window_start_s + delay
     archive.write_pass(tmp_path / "uncalibrated.h5", uncalibrated)
-    read = archive.read_pass(tmp_path / "delayed.h5")
-    assert read.range_delay_s == delay
-    np.testing.assert_allclose(
-        archive.read_pass(tmp_path / "uncalibrated.h5").range_axis_m - read.range_axis_m,
-        SPEED_OF_LIGHT_M_S * delay / 2,
-        rtol=0,
-        atol=1e-9,
-    )
+    np.testing.assert_allclose(archive.read_pass(tmp_path / "uncalibrated.h5").range_axis_m - read.range_axis_m,
+                               SPEED_OF_LIGHT_M_S * delay / 2, rtol=0, atol=1e-9)
     a = pipeline.detect_pass(archive.read_pass(tmp_path / "plain.h5"), NUMPY_NLCS)[0]
     b = pipeline.detect_pass(read, NUMPY_NLCS)[0]
     c = pipeline.detect_pass(archive.read_pass(tmp_path / "uncalibrated.h5"), NUMPY_NLCS)[0]
-    assert (b.x_m, b.rc_m) == pytest.approx((a.x_m, a.rc_m), abs=1e-6)  # the delay is fully removed
+    assert (b.x_m, b.rc_m) == pytest.approx((a.x_m, a.rc_m), abs=1e-9)  # the calibrated delay is fully removed
     # Uncalibrated, the envelope says R + c d / 2 and the phase history R: measured +0.30 m, not hidden.
     assert 0.15 < c.rc_m - a.rc_m < SPEED_OF_LIGHT_M_S * delay / 2 + 0.01
 

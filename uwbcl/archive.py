@@ -382,7 +382,7 @@ def read_pass(path: str | os.PathLike[str], limits: ReadLimits = ReadLimits()) -
         radar=radar,
         geometry=geometry,
         # 1.1: the calibrated delay is removed here, so every focuser uses it unchanged.
-        range_window_start_s=h["range_window_start_s"] - h["range_delay_s"],
+        range_window_start_s=h["range_window_start_s"],
         range_delay_s=h["range_delay_s"],
         pulse_time_s=time_s,
         pulse_position_m=position_m,
@@ -750,7 +750,7 @@ _KNOWN_PULSE_DATASETS = {"time_s", "position_m"}
 
 
 def _write_additions(f: h5py.File, path: Path, scan: ScanPass) -> None:
-    """range_delay_s (the stored window start keeps it: stored = effective + delay) and /raw/rf."""
+    """range_delay_s (a record of the delay already removed from the window start) and /raw/rf."""
     delay = float(scan.range_delay_s)
     if not math.isfinite(delay):
         raise ArchiveError(path, "/radar@range_delay_s", f"must be finite, got {delay}")
@@ -758,8 +758,7 @@ def _write_additions(f: h5py.File, path: Path, scan: ScanPass) -> None:
     if delay == 0.0 and raw is None:
         return
     f.attrs["format_minor_version"] = np.int64(FORMAT_MINOR_VERSION)
-    if delay != 0.0:
-        f["radar"].attrs["range_window_start_s"] = np.float64(scan.range_window_start_s + delay)
+    if delay != 0.0:  # provenance only: the stored window start is absolute, as a 1.0 reader expects
         f["radar"].attrs["range_delay_s"] = np.float64(delay)
     if raw is not None:
         _check_raw_rf(path, raw, scan.n_pulses)

@@ -68,7 +68,7 @@ class ScanPass:
 
     radar: RadarParameters
     geometry: PassGeometry
-    range_window_start_s: float  # absolute two-way delay of fast-time sample 0 (range_delay_s removed)
+    range_window_start_s: float  # absolute two-way delay of fast-time sample 0 (any calibrated delay removed)
     pulse_time_s: np.ndarray  # (N_a,) time of each pulse since pass start
     pulse_position_m: np.ndarray  # (N_a,) rail (X_r) position of the antenna at each pulse
     echo: np.ndarray  # (N_a, N_r) complex baseband, demodulated at the carrier
@@ -76,7 +76,7 @@ class ScanPass:
     cycle: int = 0
     pass_start_time: str = "1970-01-01T00:00:00Z"  # ISO 8601, UTC
     source: str = ""  # file the pass was read from, for error messages
-    range_delay_s: float = 0.0  # calibrated two-way antenna/cable delay, removed from the window start
+    range_delay_s: float = 0.0  # the calibrated antenna/cable delay already removed from the window start (record)
     raw_rf: RawRF | None = None  # the radar's real RF, when an importer kept it (archive 1.1)
 
     @property
