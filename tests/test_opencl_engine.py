@@ -20,6 +20,7 @@ from uwbcl.detect import calibration
 from uwbcl.focus import backprojection as bp
 from uwbcl.focus import coefficients as coef
 from uwbcl.focus import nlcs
+from uwbcl.focus.protocol import Focuser
 from uwbcl.records import ProcessingSettings
 from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2
 
@@ -261,6 +262,10 @@ def test_model_spectra_equal_the_2d_spectrum_of_the_focused_image(engine, jitter
     assert rel_err(out[0], ref) < CHAIN_TOL and rel_err(out[1], 2j * ref) < CHAIN_TOL
     with pytest.raises(ValueError, match="contiguous"):
         engine.nlcs_model_spectra(products, x_rel, echo[None], signed[::2])
+
+
+def test_the_engine_is_a_focuser(engine):
+    assert isinstance(engine, Focuser)
 
 
 def test_calibration_spectra_match_detections_numpy_simulation(engine, jittery_pass, grid):
