@@ -103,8 +103,8 @@ def _imports(path: Path) -> list[tuple[str, bool]]:
     out = []
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):
-            base = importlib.util.resolve_name("." * node.level + (node.module or ""), package) if node.level \
-                else node.module
+            relative = "." * node.level + (node.module or "")
+            base = importlib.util.resolve_name(relative, package) if node.level else node.module
             names = [base] if node.module else [f"{base}.{a.name}" for a in node.names]
             out += [(n, id(node) in top) for n in names if n.startswith("uwbcl")]
         elif isinstance(node, ast.Import):
