@@ -162,6 +162,15 @@ def peak_track_times(products: nlcs.NlcsProducts, a: np.ndarray, b: np.ndarray,
     """(t_f, r_LRCM, t_n) of NLCS image peaks at fractional indices (a, b): t_f and r from the image's axes
     (row n_azimuth/2 is t_a = 0), t_n through the inverse calibration.
 
+    Parameters
+    ----------
+    products : NlcsProducts
+        The pass's focus; its calibration cache is filled.
+    a, b : array_like, shape (n,)
+        Fractional azimuth row and range column of each peak.
+    focuser : Focuser
+        Simulates the calibration targets.
+
     Returns
     -------
     t_f_s, r_m, t_n_s : ndarrays, shape (n,)

@@ -74,6 +74,13 @@ def nlcs_peaks(products: nlcs.NlcsProducts, s: DetectionSettings) -> tuple[np.nd
     those rows plus the separation ellipse's reach, beyond which the crop's edges cannot change any test, so
     the peaks and the floor are those of the whole image with the rail's rows valid.
 
+    Parameters
+    ----------
+    products : NlcsProducts
+        The focused pass: `image` (n_azimuth, n_range) on the centred (t_a, r_LRCM) grid.
+    s : DetectionSettings
+        Floors, the separation ellipse and the most peaks kept.
+
     Returns
     -------
     pixels : ndarray of int, shape (n_peaks, 2)
@@ -96,7 +103,22 @@ def nlcs_peaks(products: nlcs.NlcsProducts, s: DetectionSettings) -> tuple[np.nd
 
 def bp_peaks(products: bp.BackprojectionProducts, s: DetectionSettings) -> tuple[np.ndarray, float]:
     """`local_peaks` of a backprojection image, its outermost pixels left out (a peak there is the image's
-    edge, not a maximum). Returns (pixels (n_peaks, 2), floor) as `local_peaks`."""
+    edge, not a maximum).
+
+    Parameters
+    ----------
+    products : BackprojectionProducts
+        The focused pass: `image` (n_u, n_r) on the axes `u_axis_m`, `r_axis_m` (m).
+    s : DetectionSettings
+        Floors, the separation ellipse and the most peaks kept.
+
+    Returns
+    -------
+    pixels : ndarray of int, shape (n_peaks, 2)
+        (row, column) of each peak, strongest first.
+    floor : float
+        Median |image| over the inner pixels.
+    """
     mag = np.abs(products.image)
     du = products.u_axis_m[1] - products.u_axis_m[0]
     dr = products.r_axis_m[1] - products.r_axis_m[0]
