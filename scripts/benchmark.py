@@ -1,12 +1,13 @@
 #!/usr/bin/env python3
 """Benchmark: the numpy reference, a float32 scipy.fft chain and the OpenCL engine, on the same inputs, in one run.
 
-Legs (all focus with modified NLCS and exact-reference azimuth compression; each focuses detection's neighbour
-models with its own chain (`nlcs_model_spectra`), as `uwbcl process` does; the rest of detection is shared code):
-  numpy    the float64 reference, `--backend numpy` (uwbcl.focus.nlcs.nlcs_focus)
-  scipy32  uwbcl.focus.scipy32.nlcs_focus_scipy32: complex64 data, float64 phases, scipy.fft on all cores; what a
-           careful CPU user would write instead of the engine
-  opencl   the OpenCL engine, `--backend opencl` (uwbcl.focus.engine.shared_engine(--device).nlcs_focus)
+Legs, one `Focuser` each (uwbcl.focus.protocol; all focus with modified NLCS and exact-reference azimuth
+compression; each focuses detection's neighbour models with its own chain (`nlcs_model_spectra`), as
+`uwbcl process` does; the rest of detection is shared code):
+  numpy    the float64 reference, `--backend numpy` (uwbcl.focus.reference.NumpyFocuser: nlcs.nlcs_focus)
+  scipy32  uwbcl.focus.scipy32.Scipy32Focuser (nlcs_focus_scipy32): complex64 data, float64 phases, scipy.fft on
+           all cores; what a careful CPU user would write instead of the engine
+  opencl   the OpenCL engine, `--backend opencl` (uwbcl.focus.engine.shared_engine(--device))
 
 Workloads
   (a) batch: N paper-sized passes (PAPER_SIM1 and PAPER_SIM2 on alternate rigs, SNR 10 dB, +-10 % carriage speed;
@@ -64,8 +65,10 @@ import scipy.fft
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from uwbcl import archive, chain, detect, opencl, outputs, pipeline, simulate
-from uwbcl.focus import nlcs, scipy32
-from uwbcl.focus.scipy32 import nlcs_focus_scipy32
+from uwbcl.focus import nlcs
+from uwbcl.focus.protocol import Focuser
+from uwbcl.focus.reference import NUMPY_FOCUSER
+from uwbcl.focus.scipy32 import SCIPY32_FOCUSER
 from uwbcl.model import PassGeometry, RadarParameters, ScanPass
 from uwbcl.records import ProcessingSettings
 from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2
@@ -141,21 +144,20 @@ def patched(owner, names: tuple[str, ...], clock: FftClock, sync: Callable | Non
 @dataclasses.dataclass
 class Leg:
     name: str
-    focus: Callable[[ScanPass], nlcs.NlcsProducts]
+    focuser: Focuser  # focuses the pass, detection's neighbour models and its calibration targets
     fft_probe: Callable[[FftClock], contextlib.AbstractContextManager]  # times every FFT call inside
-    models: object  # focuses detection's neighbour models (`nlcs_model_spectra`), as the leg's backend would
+
+    def focus(self, scan: ScanPass) -> nlcs.NlcsProducts:
+        return self.focuser.nlcs_focus(scan, ac_mode="exact")
 
 
 def make_legs(names: list[str], engine) -> list[Leg]:
     legs = {
-        "numpy": Leg("numpy", lambda s: nlcs.nlcs_focus(s, ac_mode="exact"),
-                     lambda c: patched(np.fft, ("fft", "ifft"), c), nlcs),
-        "scipy32": Leg("scipy32", lambda s: nlcs_focus_scipy32(s, ac_mode="exact"),
-                       lambda c: patched(scipy.fft, ("fft", "ifft"), c), scipy32),
+        "numpy": Leg("numpy", NUMPY_FOCUSER, lambda c: patched(np.fft, ("fft", "ifft"), c)),
+        "scipy32": Leg("scipy32", SCIPY32_FOCUSER, lambda c: patched(scipy.fft, ("fft", "ifft"), c)),
     }
     if engine is not None:
-        legs["opencl"] = Leg("opencl", lambda s: engine.nlcs_focus(s, ac_mode="exact"),
-                             lambda c: patched(engine, ("fft",), c, engine.queue.finish), engine)
+        legs["opencl"] = Leg("opencl", engine, lambda c: patched(engine, ("fft",), c, engine.queue.finish))
     return [legs[n] for n in names if n in legs]
 
 
@@ -216,7 +218,7 @@ def run_batch(leg: Leg, files: list[Path], out_csv: Path, settings: ProcessingSe
         with clock("focus"):
             products = leg.focus(scan)
         with clock("detect"):  # as pipeline.detect_pass: the echo lets detection model the neighbours
-            found = detect.detect_nlcs(products, settings.detection, scan, leg.models)
+            found = detect.detect_nlcs(products, settings.detection, scan, leg.focuser)
         shapes[scan.echo.shape] += 1
         n_det += len(found)
         by_cycle[(scan.rig_id, scan.cycle)].append((scan, found))
@@ -415,7 +417,7 @@ def benchmark_batch(args, legs: list[Leg], workdir: Path, failures: list[str]) -
         images = []
         for scan in warm_scans:  # warm-up: plans, kernels, caches
             products = leg.focus(scan)
-            detect.detect_nlcs(products, settings.detection, scan, leg.models)
+            detect.detect_nlcs(products, settings.detection, scan, leg.focuser)
             images.append(products.image)
         agreement[leg.name] = max(rel_err(im, ref) for im, ref in zip(images, reference))
 

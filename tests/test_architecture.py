@@ -54,7 +54,9 @@ def imports_of(path: Path, root: Path) -> set[str]:
 
 def import_graph(root: Path) -> dict[str, set[str]]:
     files = {module_name(p, root): p for p in root.rglob("*.py")}
-    return {m: {i for i in imports_of(p, root) if i in files and i != m} for m, p in files.items()}
+    # `from . import sibling` names the parent package, which Python has already begun importing: not an edge.
+    return {m: {i for i in imports_of(p, root) if i in files and i != m and not m.startswith(i + ".")}
+            for m, p in files.items()}
 
 
 def layer_of(module: str, layers) -> int:

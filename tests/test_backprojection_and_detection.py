@@ -15,6 +15,7 @@ from scipy import optimize
 
 from uwbcl import detect
 from uwbcl import geometry as geo
+from uwbcl.detect import cancel, peaks, refine
 from uwbcl.focus import backprojection as bp
 from uwbcl.focus import nlcs
 from uwbcl.model import PassGeometry, RadarParameters
@@ -167,7 +168,7 @@ def test_a_lone_targets_range_compressed_echo_is_its_modelled_echo_times_the_bea
     grid = nlcs.focus_grid(scan)
     rc = bp.range_compress(scan, grid)
     echo, in_band = _echo_at(rc, grid, STACKED[1], 0.25)
-    (gain,) = detect.fit_pulse_gains(rc.data, rc.x_rel_m, [(echo, in_band)], degree=8)
+    (gain,) = cancel.fit_pulse_gains(rc.data, rc.x_rel_m, [(echo, in_band)], degree=8)
     # the fitted gain is the simulator's two-way beam pattern (real: delay and carrier phase are modelled exactly)
     psi = geo.horizontal_look_angle_rad(scan.pulse_position_m, STACKED[1], scan.geometry.boresight_y_sign)
     beam = geo.two_way_beam_gain(psi, scan.geometry.rotation_table_angle_rad, scan.radar.antenna_aperture_m,
@@ -238,7 +239,7 @@ def test_neighbour_models_are_focused_by_the_chain_of_nlcs_focus():
     spectra = nlcs.nlcs_model_spectra(products, x_rel, echo[None], rows)[0]
     want = np.fft.fft2(products.image)[rows % products.grid.n_azimuth] / products.image.size
     np.testing.assert_allclose(spectra, want, rtol=0, atol=1e-12 * np.abs(want).max())
-    np.testing.assert_allclose(detect.image_spectrum_rows(products.image, rows), want, rtol=0,
+    np.testing.assert_allclose(refine.image_spectrum_rows(products.image, rows), want, rtol=0,
                                atol=1e-12 * np.abs(want).max())
 
 
@@ -251,12 +252,12 @@ def test_nlcs_peaks_searched_on_the_rail_rows_are_those_of_the_whole_image(monke
     mag = np.abs(products.image)
     valid = np.zeros(mag.shape, dtype=bool)
     valid[np.abs(g.t_azimuth_s) <= 0.5 * (g.n_track - 1) * g.dt_s, 2:-2] = True
-    want = detect._local_peaks(mag, valid, (g.track_spacing_m, g.range_bins_m[1] - g.range_bins_m[0]), s)
+    want = peaks.local_peaks(mag, valid, (g.track_spacing_m, g.range_bins_m[1] - g.range_bins_m[0]), s)
     seen = []
-    original = detect._local_peaks
-    monkeypatch.setattr(detect, "_local_peaks", lambda *a: seen.append(original(*a)) or seen[-1])
+    original = peaks.local_peaks
+    monkeypatch.setattr(peaks, "local_peaks", lambda *a: seen.append(original(*a)) or seen[-1])
     detect.detect_nlcs(products, s)
-    (peaks, floor), = seen
+    (found, floor), = seen
     assert floor == want[1] and len(want[0]) == 3
     top = int(np.flatnonzero(valid.any(axis=1))[0]) - int(s.separation_m / g.track_spacing_m) - 2
-    np.testing.assert_array_equal(peaks + (top, 0), want[0])
+    np.testing.assert_array_equal(found + (top, 0), want[0])

@@ -1,5 +1,6 @@
 """Specification of the NLCS peak refinement: the Newton maximum of the band-limited image interpolant
-(`detect.TrigInterpolant`) and the vectorised t_f(t_n) calibration (`detect.focus_position`).
+(`detect.refine.TrigInterpolant`) and the vectorised t_f(t_n) calibration
+(`detect.calibration.focus_position`).
 
 Both replaced derivative-free searches (Nelder-Mead on the interpolant, one bounded scalar search per simulated
 target). Those searches are kept here as references: the new refinements must find the same maxima, and the
@@ -12,7 +13,8 @@ import numpy as np
 import pytest
 from scipy import optimize
 
-from uwbcl import detect, pipeline
+from uwbcl import pipeline
+from uwbcl.detect import calibration, peaks, refine
 from uwbcl.focus import nlcs
 from uwbcl.records import DetectionSettings, ProcessingSettings
 from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2
@@ -96,7 +98,7 @@ def synthetic(a, b):
 def synthetic_interpolant():
     image = synthetic(np.arange(N_AZ), np.arange(N_R))
     band = ((A_BAND[0] - 1) / N_AZ, (A_BAND[-1] + 1) / N_AZ)
-    interp = detect.TrigInterpolant.from_image(image, band)
+    interp = refine.TrigInterpolant.from_image(image, band)
     assert interp.coeffs.shape == (A_BAND.size + 2, N_R)
     return interp
 
@@ -108,7 +110,7 @@ def test_the_interpolant_is_the_band_limited_image_between_its_samples(synthetic
 
 
 def test_the_interpolant_can_be_built_from_spectra_alone(synthetic_interpolant):
-    same = detect.TrigInterpolant(synthetic_interpolant.coeffs.copy(), synthetic_interpolant.ka.copy(),
+    same = refine.TrigInterpolant(synthetic_interpolant.coeffs.copy(), synthetic_interpolant.ka.copy(),
                                   synthetic_interpolant.kb.copy())
     assert same.maximise(100.0, 14.0) == synthetic_interpolant.maximise(100.0, 14.0)
 
@@ -141,13 +143,13 @@ def _peaks(products):
     valid = np.zeros(mag.shape, dtype=bool)
     valid[np.abs(grid.t_azimuth_s) <= 0.5 * (grid.n_track - 1) * grid.dt_s, 2:-2] = True
     dr = grid.range_bins_m[1] - grid.range_bins_m[0]
-    peaks, _ = detect._local_peaks(mag, valid, (grid.track_spacing_m, dr), DetectionSettings())
-    return peaks
+    found, _ = peaks.local_peaks(mag, valid, (grid.track_spacing_m, dr), DetectionSettings())
+    return found
 
 
 def test_newton_maximum_of_a_focused_image_is_the_nelder_mead_maximum(paper_products):
     for _, products in paper_products:
-        interp = detect.TrigInterpolant.from_image(products.image, nlcs.spectrum_band(products.grid, products.compression))
+        interp = refine.TrigInterpolant.from_image(products.image, nlcs.spectrum_band(products.grid, products.compression))
         peaks = _peaks(products)
         assert len(peaks) == 3
         for i, j in peaks:
@@ -165,10 +167,10 @@ def test_vectorised_focus_position_is_the_per_target_search(paper_products):
     half = 0.5 * (grid.n_track - 1) * grid.dt_s
     t_n = np.linspace(-half, half, 13)
     r = grid.range_bins_m[[30, 45, 100]] + 0.011
-    together = detect.focus_position(products, r, t_n)
+    together = calibration.focus_position(products, r, t_n)
     assert together.shape == (3, 13)
     for row, r_m in zip(together, r):
-        np.testing.assert_allclose(detect.focus_position(products, r_m, t_n), row, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(calibration.focus_position(products, r_m, t_n), row, rtol=0, atol=1e-12)
         # the former search stops at xatol = 1e-7 s (measured differences up to 1.1e-7 s: 17 nm along track)
         np.testing.assert_allclose(row, scalar_search_focus_position(products, r_m, t_n), rtol=0, atol=2e-7)
         np.testing.assert_allclose(row, derivative_root_focus_position(products, r_m, t_n), rtol=0, atol=1e-9)
@@ -179,7 +181,7 @@ def test_calibration_spectra_are_the_focusing_chains(paper_products):
     grid = products.grid
     t_n = np.linspace(-1.0, 1.0, 5)
     r = grid.range_bins_m[[20, 64]] + 0.004
-    f, y, coarse = detect.calibration_spectra(products, r, t_n)
+    f, y, coarse = nlcs.calibration_spectra(products, r, t_n)
     f_ref = np.fft.ifftshift(grid.f_azimuth_hz)
     rows = np.isin(f_ref, f)
     for i, r_m in enumerate(r):
@@ -196,10 +198,10 @@ def test_several_peaks_are_inverted_at_once_with_the_same_cache(paper_products):
     products.focus_calibration.clear()
     r = products.grid.range_bins_m[[40, 41, 90]] + 0.002
     t_f = np.array([-1.5, 0.2, 3.0])
-    t_n = detect.invert_focus_position(products, r, t_f)
+    t_n = calibration.invert_focus_position(products, r, t_f)
     assert set(products.focus_calibration) == {(float(x), 5) for x in r}
     for x, tf, tn in zip(r, t_f, t_n):
-        assert detect.invert_focus_position(products, x, tf) == tn
+        assert calibration.invert_focus_position(products, x, tf) == tn
     assert len(products.focus_calibration) == 3
 
 
@@ -212,8 +214,8 @@ def test_detections_of_whole_passes_match_the_derivative_free_refinement(scenari
     for scan in scenario.simulate(seed=1):
         new = pipeline.detect_pass(scan, settings)
         with monkeypatch.context() as m:
-            m.setattr(detect.TrigInterpolant, "maximise", nelder_mead_maximise)
-            m.setattr(detect, "focus_position", lambda products, r_m, t_n_s, focuser=None: np.array(
+            m.setattr(refine.TrigInterpolant, "maximise", nelder_mead_maximise)
+            m.setattr(calibration, "focus_position", lambda products, r_m, t_n_s, focuser=None: np.array(
                 [scalar_search_focus_position(products, x, t_n_s) for x in np.atleast_1d(r_m)]))
             ref = pipeline.detect_pass(scan, settings)
         assert len(new) == len(ref) == 3

@@ -16,9 +16,11 @@ import numpy as np
 import pytest
 
 from uwbcl import chain, opencl, pipeline
+from uwbcl.detect import calibration
 from uwbcl.focus import backprojection as bp
 from uwbcl.focus import coefficients as coef
 from uwbcl.focus import nlcs
+from uwbcl.focus.protocol import Focuser
 from uwbcl.records import ProcessingSettings
 from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2
 
@@ -262,20 +264,22 @@ def test_model_spectra_equal_the_2d_spectrum_of_the_focused_image(engine, jitter
         engine.nlcs_model_spectra(products, x_rel, echo[None], signed[::2])
 
 
+def test_the_engine_is_a_focuser(engine):
+    assert isinstance(engine, Focuser)
+
+
 def test_calibration_spectra_match_detections_numpy_simulation(engine, jittery_pass, grid):
     """Detection's t_n(t_f) calibration simulated on the device: the same spectra, peaks and focus positions."""
-    from uwbcl import detect
-
     products = nlcs.nlcs_focus(jittery_pass, grid=grid)
     r = grid.range_bins_m[[20, 21, 90]] + 0.003
     t_n = np.linspace(-3.0, 3.0, 13)
-    f_ref, y_ref, coarse_ref = detect.calibration_spectra(products, r, t_n)
+    f_ref, y_ref, coarse_ref = nlcs.calibration_spectra(products, r, t_n)
     f, y, coarse = engine.calibration_spectra(products, r, t_n)
     np.testing.assert_array_equal(f, f_ref)
     np.testing.assert_array_equal(coarse, coarse_ref)
     assert rel_err(y, y_ref) < STAGE_TOL
-    t_f_ref = detect.focus_position(products, r, t_n)
-    np.testing.assert_allclose(detect.focus_position(products, r, t_n, engine), t_f_ref, rtol=0, atol=1e-6 * grid.dt_s)
+    t_f_ref = calibration.focus_position(products, r, t_n)
+    np.testing.assert_allclose(calibration.focus_position(products, r, t_n, engine), t_f_ref, rtol=0, atol=1e-6 * grid.dt_s)
 
 
 def test_backprojection_image_matches_the_reference(engine, jittery_pass):

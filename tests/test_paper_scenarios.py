@@ -3,7 +3,7 @@
 Truth: sim1 advance (0.80, 0.10, 0), sim2 (0.70, -0.10, 0). Reference results of the independent prototype are in
 docs/method.md D4 (LS localisation, mm, X/Y/Z): nlcs-exact 0.3/0.1/-0.1 (sim1) and -0.5/1.0/1.3
 (sim2); bp 0.2/0.1/0.1 (sim1) and 0.0/2.3/1.5 (sim2), the latter limited by neighbour interference, which
-detection now cancels (detect.cancel_neighbours_bp / _nlcs). The numpy float64 reference is tested here; the
+detection now cancels (detect.cancel.cancel_neighbours). The numpy float64 reference is tested here; the
 OpenCL engine is held to it in test_opencl_engine.py.
 """
 

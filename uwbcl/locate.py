@@ -19,6 +19,15 @@ from scipy import optimize
 
 from .records import Detection, Located
 
+# Cross-height association (`associate_across_heights`). A plate's along-track x is the same from every
+# height: the x gate admits the per-pass x errors (millimetres) with a wide margin and stays far below the
+# along-track plate spacing (1-1.5 m on a rib, docs/configuration.md).
+CROSS_HEIGHT_X_TOL_M = 0.08
+# Its R_c changes between two passes by at most their height difference |dh|: the R_c gate is |dh| plus this
+# margin for the per-pass R_c errors.
+CROSS_HEIGHT_RC_TOL_M = 0.05
+_GATED = 1e6  # the assignment cost of a pair outside either gate: never chosen over a gated-in pair
+
 
 def locate_target(heights_m, x_m, rc_m, weights=None, boresight_y_sign: int = -1) -> Located | None:
     """Least-squares position from per-height (x, R_c); None when the ranges admit no real solution."""
@@ -40,13 +49,14 @@ def locate_target(heights_m, x_m, rc_m, weights=None, boresight_y_sign: int = -1
                    residual_m=float(np.sqrt(np.mean(misfit**2))), n_passes=int(h.size), amplitude=0.0)
 
 
-def associate_across_heights(detections_by_height: dict[float, list[Detection]], x_tol_m: float = 0.08,
-                             rc_tol_m: float = 0.05) -> list[dict[float, Detection]]:
+def associate_across_heights(detections_by_height: dict[float, list[Detection]],
+                             x_tol_m: float = CROSS_HEIGHT_X_TOL_M, rc_tol_m: float = CROSS_HEIGHT_RC_TOL_M
+                             ) -> list[dict[float, Detection]]:
     """Group the detections of one plate across the passes of one cycle.
 
-    A plate has the same along-track x from every height, and its R_c changes by at most the height difference,
-    so each height is matched to the reference height (the one with most detections) by an optimal assignment
-    on (dx / x_tol)^2 + (dR_c / (|dh| + rc_tol))^2, gated at 1 per term.
+    A plate has the same along-track x from every height, and its R_c changes by at most the height
+    difference, so each height is matched to the reference height (the one with most detections) by an optimal
+    assignment on (dx / x_tol)^2 + (dR_c / (|dh| + rc_tol))^2, gated at 1 per term.
     """
     heights = sorted(detections_by_height)
     if not heights:
@@ -61,21 +71,24 @@ def associate_across_heights(detections_by_height: dict[float, list[Detection]],
         dx = np.array([[abs(a.x_m - b.x_m) for b in other] for a in ref]) / x_tol_m
         dr = np.array([[abs(a.rc_m - b.rc_m) for b in other] for a in ref]) / (abs(h - ref_h) + rc_tol_m)
         cost = dx**2 + dr**2
-        gated = np.where((dx <= 1) & (dr <= 1), cost, 1e6)
+        gated = np.where((dx <= 1) & (dr <= 1), cost, _GATED)
         for i, j in zip(*optimize.linear_sum_assignment(gated)):
-            if gated[i, j] < 1e6:
+            if gated[i, j] < _GATED:
                 groups[i][h] = other[j]
     return [g for g in groups if len(g) >= 2]
 
 
-def locate_plates(detections_by_height: dict[float, list[Detection]], boresight_y_sign: int = -1
+def locate_plates(detections_by_height: dict[float, list[Detection]], boresight_y_sign: int = -1,
+                  x_tol_m: float = CROSS_HEIGHT_X_TOL_M, rc_tol_m: float = CROSS_HEIGHT_RC_TOL_M
                   ) -> list[Located]:
-    """Every plate seen at two or more heights, located in 3-D."""
+    """Every plate seen at two or more heights, located in 3-D (`x_tol_m`, `rc_tol_m`: the cross-height
+    association's gates, `associate_across_heights`)."""
     out = []
-    for group in associate_across_heights(detections_by_height):
+    for group in associate_across_heights(detections_by_height, x_tol_m, rc_tol_m):
         hs = sorted(group)
         dets = [group[h] for h in hs]
-        loc = locate_target(hs, [d.x_m for d in dets], [d.rc_m for d in dets], boresight_y_sign=boresight_y_sign)
+        loc = locate_target(hs, [d.x_m for d in dets], [d.rc_m for d in dets],
+                            boresight_y_sign=boresight_y_sign)
         if loc is not None:
             out.append(dataclasses.replace(loc, amplitude=float(np.mean([d.amplitude for d in dets]))))
     return sorted(out, key=lambda p: p.position_m[0])

@@ -1,8 +1,8 @@
 """One pass through the focusing backend to its detections; one cycle's passes to its located plates.
 
-The backend seam: `focuser(settings)` returns the object whose `nlcs_focus` / `backprojection_focus` the chosen
-backend implements (the float64 numpy reference or the OpenCL engine); detection models neighbours with the
-same focuser. Cycle-to-cycle displacement is `chain`'s.
+The backend seam: `_focuser(settings)` returns the chosen backend's `Focuser` (`uwbcl.focus.protocol`: the
+float64 numpy reference or the OpenCL engine); it focuses the pass, and detection models the neighbours and
+the calibration targets with the same focuser. Cycle-to-cycle displacement is `chain`'s.
 """
 
 from __future__ import annotations
@@ -12,21 +12,21 @@ from collections.abc import Sequence
 
 from . import chain, detect
 from .focus import backprojection, nlcs
+from .focus.engine import shared_engine  # pyopencl and pyvkfft are imported when an engine is built, not here
+from .focus.protocol import Focuser
+from .focus.reference import NUMPY_FOCUSER
 from .model import ScanPass
 from .records import ALGORITHMS, BACKENDS, CycleResult, Detection, LimitExceeded, ProcessingSettings
 
 log = logging.getLogger("uwbcl")
 
 
-def _focuser(settings: ProcessingSettings):
-    """The module or engine whose `nlcs_focus` / `backprojection_focus` the backend uses."""
+def _focuser(settings: ProcessingSettings) -> Focuser:
+    """The backend's focuser: the numpy reference, or this process's engine for the settings' device."""
     if settings.backend == "numpy":
-        return nlcs, backprojection
+        return NUMPY_FOCUSER
     if settings.backend == "opencl":
-        from .focus.engine import shared_engine  # imports pyopencl/pyvkfft only when asked for
-
-        engine = shared_engine(settings.device)
-        return engine, engine
+        return shared_engine(settings.device)
     raise ValueError(f"unknown backend {settings.backend!r}; available: {', '.join(BACKENDS)}")
 
 
@@ -62,12 +62,12 @@ def detect_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSetting
     if settings.algorithm not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {settings.algorithm!r}; available: {', '.join(ALGORITHMS)}")
     check_plan(scan, settings)
-    nlcs_focuser, bp_focuser = _focuser(settings)
+    focuser = _focuser(settings)
     if settings.algorithm == "nlcs":
-        products = nlcs_focuser.nlcs_focus(scan, ac_mode=settings.ac_mode)
-        # The echo lets detection model the neighbours, focused by the same engine.
-        return detect.detect_nlcs(products, settings.detection, scan, nlcs_focuser)
-    return detect.detect_bp(bp_focuser.backprojection_focus(scan), settings.detection)
+        products = focuser.nlcs_focus(scan, ac_mode=settings.ac_mode)
+        # The echo lets detection model the neighbours, focused by the same backend.
+        return detect.detect_nlcs(products, settings.detection, scan, focuser)
+    return detect.detect_bp(focuser.backprojection_focus(scan), settings.detection)
 
 
 def locate_detections(passes: Sequence[ScanPass], detections: Sequence[Sequence[Detection]]) -> CycleResult:
@@ -78,7 +78,8 @@ def locate_detections(passes: Sequence[ScanPass], detections: Sequence[Sequence[
                               passes[0].geometry.boresight_y_sign)
 
 
-def locate_cycle(passes: Sequence[ScanPass], settings: ProcessingSettings = ProcessingSettings()) -> CycleResult:
+def locate_cycle(passes: Sequence[ScanPass], settings: ProcessingSettings = ProcessingSettings()
+                 ) -> CycleResult:
     """All passes of one rig and cycle (one per height) -> the 3-D plates of that cycle."""
     if len({p.geometry.height_m for p in passes}) < 2:
         raise ValueError("a cycle needs passes at two or more heights")

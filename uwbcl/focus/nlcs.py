@@ -525,3 +525,61 @@ def nlcs_model_spectra(products: NlcsProducts, x_rel_m: np.ndarray, echoes, rows
         s = range_ifft(az_fft(pad_azimuth(s, grid)) * src, grid) * h5h6
         out.append(az_fft(az_ifft(s) * h7)[centred_rows] * h8)
     return spectrum_rows_from_range_doppler(np.array(out), rows, grid)
+
+
+def calibration_spectra(products: NlcsProducts, r_m: np.ndarray, t_n_s: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Focused azimuth spectra of simulated point targets, for the t_f(t_n) calibration (eqs. 18-19, C12).
+
+    One target per (r, t_n), each through the azimuth chain (H6, H7, H8) of the range bin nearest its r, as
+    `slow_time_point_response` (rail only), `_azimuth_nlcs_chain` and `azimuth_compression` give it, with the
+    same numbers, arranged for speed: the point response is evaluated on the rail's rows alone (the rest are
+    zero), the FFTs run in their own (unshifted) order and in place, and H6, H7, H8 are computed once per bin (H8
+    on its band only).
+
+    Parameters
+    ----------
+    products : NlcsProducts
+        The pass's focus: its grid, per-bin coefficients and H8.
+    r_m : ndarray, shape (n_r,)
+        Ranges r_LRCM of the targets (m).
+    t_n_s : ndarray, shape (n_t,)
+        Azimuth times t_n of the targets (s), the same for every range.
+
+    Returns
+    -------
+    f_hz : ndarray, shape (n_f,)
+        Azimuth frequencies of the rows where H8 is not zero, in FFT (natural) order.
+    y : ndarray, shape (n_f, n_r * n_t), complex128
+        The focused spectra on those rows, one column per target, r-major (column i * n_t + j is (r_i, t_j)).
+    coarse_s : ndarray, shape (n_r * n_t,)
+        Each target's coarse focus position t_f (s): the azimuth time of its focused image's largest sample.
+    """
+    grid = products.grid
+    n = grid.n_azimuth
+    j = grid.nearest_bin(r_m)
+    bins_used, bin_of_r = np.unique(j, return_inverse=True)
+    k, ac = select_bins(products.coefficients, bins_used), select_bins(products.compression, bins_used)
+    f = np.fft.ifftshift(grid.f_azimuth_hz)
+    band = (f >= ac.f_lo_hz.min()) & (f <= ac.f_hi_hz.max())
+    ones = np.ones((n, bins_used.size), dtype=np.complex128)
+    h6 = np.fft.ifftshift(nlcs_filter(ones, k, grid), axes=0).T[bin_of_r, None]
+    h7 = np.fft.ifftshift(nlcs_scaling(ones, k, grid), axes=0).T[bin_of_r, None]
+    h8 = np.zeros((bins_used.size, n), dtype=np.complex128)
+    h8[:, band] = ac.filter(f[band]).T
+    # the response on a grid of the rail's n_track (odd) + 1 rows: its t_a are the same integers times dt
+    half = (grid.n_track + 1) // 2
+    rail = slow_time_point_response(np.repeat(r_m, t_n_s.size), np.tile(t_n_s, r_m.size),
+                                    dataclasses.replace(grid, n_azimuth=2 * half), products.aperture_m)
+    # one contiguous row per target (the FFTs are faster along rows), then r-major
+    s = np.zeros((r_m.size * t_n_s.size, n), dtype=np.complex128)
+    s[:, :half], s[:, n - half:] = rail[half:].T, rail[:half].T  # ifftshift of the zero-padded response
+    by_range = s.reshape(r_m.size, t_n_s.size, n)  # a view: the in-place products below act on s
+    np.fft.fft(s, axis=1, out=s)
+    by_range *= h6
+    np.fft.ifft(s, axis=1, out=s)
+    by_range *= h7
+    np.fft.fft(s, axis=1, out=s)
+    by_range *= h8[bin_of_r, None]
+    coarse = np.fft.ifftshift(grid.t_azimuth_s)[np.argmax(np.abs(np.fft.ifft(s, axis=1)), axis=1)]
+    return f[band], s[:, band].T, coarse

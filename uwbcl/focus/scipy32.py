@@ -22,8 +22,8 @@ import numpy as np
 import scipy.fft as sfft
 
 from ..model import ScanPass
+from . import backprojection, nlcs
 from . import coefficients as coef
-from . import nlcs
 
 C = nlcs.C
 WORKERS = -1  # scipy.fft threads: all cores
@@ -174,17 +174,21 @@ def _compressed_spectrum(echo: np.ndarray, x_rel: np.ndarray, grid: nlcs.FocusGr
     return azimuth_compression(s, ac, grid)
 
 
-def nlcs_focus_scipy32(scan: ScanPass, ac_mode: str = "exact", grid: nlcs.FocusGrid | None = None
-                       ) -> nlcs.NlcsProducts:
-    """Focus one pass with the modified NLCS chain in float32 (same products as `nlcs.nlcs_focus`)."""
+def nlcs_focus_scipy32(scan: ScanPass, ac_mode: str = "exact", grid: nlcs.FocusGrid | None = None,
+                       compression: nlcs.AzimuthCompression | None = None) -> nlcs.NlcsProducts:
+    """Focus one pass with the modified NLCS chain in float32 (same products as `nlcs.nlcs_focus`, whose
+    parameters these are; `compression` reuses an H8 already computed for this grid)."""
     if ac_mode not in ("exact", "series"):
         raise ValueError(f"unknown azimuth compression mode {ac_mode!r} (exact|series)")
     grid = nlcs.focus_grid(scan) if grid is None else grid
     echo, x_rel = nlcs.prepare_track(scan, grid)
     k = coef.nlcs_coefficients(grid.range_bins_m, grid.speed_m_s, grid.sin_squint, grid.wavelength_m)
     aperture = scan.radar.antenna_aperture_m
-    ac = (exact_reference_azimuth_compression(k, grid, aperture) if ac_mode == "exact"
-          else nlcs.series_azimuth_compression(k, grid))
+    if compression is not None:
+        ac = compression
+    else:
+        ac = (exact_reference_azimuth_compression(k, grid, aperture) if ac_mode == "exact"
+              else nlcs.series_azimuth_compression(k, grid))
     image = np.fft.fftshift(_ifft(_compressed_spectrum(echo, x_rel, grid, k, ac), 0), axes=0)
     return nlcs.NlcsProducts(image=image, grid=grid, coefficients=k, compression=ac, aperture_m=aperture)
 
@@ -196,3 +200,39 @@ def nlcs_model_spectra(products: nlcs.NlcsProducts, x_rel_m: np.ndarray, echoes,
     y = np.array([_compressed_spectrum(e, x_rel_m, grid, k, ac)[np.asarray(rows) % grid.n_azimuth]
                   for e in echoes])
     return nlcs.spectrum_rows_from_range_doppler(y, rows, grid)
+
+
+class Scipy32Focuser:
+    """`Focuser` of the float32 scipy baseline: the NLCS image and the neighbour models by this module's chain.
+
+    Backprojection and the calibration targets have no float32 version here: they are the float64 reference's
+    (`backprojection.backprojection_focus`, `nlcs.calibration_spectra`), as they were before this class when
+    detection fell back to the reference for what the module lacked."""
+
+    def __repr__(self) -> str:
+        return "Scipy32Focuser()"
+
+    def nlcs_focus(self, scan: ScanPass, *, ac_mode: str = "exact", grid: nlcs.FocusGrid | None = None,
+                   compression: nlcs.AzimuthCompression | None = None) -> nlcs.NlcsProducts:
+        """`nlcs_focus_scipy32` (see `Focuser.nlcs_focus`)."""
+        return nlcs_focus_scipy32(scan, ac_mode=ac_mode, grid=grid, compression=compression)
+
+    def backprojection_focus(self, scan: ScanPass, *, pixel_m: float = 0.01,
+                             grid: nlcs.FocusGrid | None = None, range_margin_m: float = 0.1
+                             ) -> backprojection.BackprojectionProducts:
+        """The float64 reference's `backprojection.backprojection_focus`."""
+        return backprojection.backprojection_focus(scan, pixel_m=pixel_m, grid=grid,
+                                                   range_margin_m=range_margin_m)
+
+    def nlcs_model_spectra(self, products: nlcs.NlcsProducts, x_rel_m: np.ndarray, echoes,
+                           rows: np.ndarray) -> np.ndarray:
+        """This module's `nlcs_model_spectra` (see `Focuser.nlcs_model_spectra`)."""
+        return nlcs_model_spectra(products, x_rel_m, echoes, rows)
+
+    def calibration_spectra(self, products: nlcs.NlcsProducts, r_m: np.ndarray, t_n_s: np.ndarray
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The float64 reference's `nlcs.calibration_spectra`."""
+        return nlcs.calibration_spectra(products, r_m, t_n_s)
+
+
+SCIPY32_FOCUSER = Scipy32Focuser()

@@ -1,0 +1,118 @@
+"""Point-target (bolt plate) detection in a focused pass (docs/method.md section 4).
+
+Both focusers give an image on (azimuth, r_LRCM) axes. Peaks are found on the pixel grid (`peaks`: local
+maxima above a floor relative to the strongest peak and to the image's noise level), refined to sub-cell
+accuracy on the underlying band-limited image (`refine`), refined again with the neighbours' modelled
+responses removed (`cancel`: close plates bias each other's sub-cell peaks through their point responses'
+arms), and mapped to the target's closest-approach coordinates (x_M, R_c) of the pass: for NLCS through the
+inverse of the focus-position map t_f(t_n) (`calibration`, eqs. 18-19, C12), for backprojection directly.
+
+The focusing backend is a `Focuser` (`uwbcl.focus.protocol`): detection models the neighbours and the
+calibration targets with the backend that focused the pass.
+"""
+
+from __future__ import annotations
+
+import math
+
+from ..focus import backprojection as bp
+from ..focus import nlcs
+from ..focus.protocol import Focuser
+from ..focus.reference import NUMPY_FOCUSER
+from ..model import ScanPass
+from ..records import Detection, DetectionSettings
+from . import calibration, cancel, peaks, refine
+
+__all__ = ["detect_bp", "detect_nlcs"]
+
+
+def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = DetectionSettings(),
+                scan: ScanPass | None = None, focuser: Focuser = NUMPY_FOCUSER) -> list[Detection]:
+    """Point targets of an NLCS image, in the pass's closest-approach coordinates.
+
+    Parameters
+    ----------
+    products : NlcsProducts
+        The focused pass (`Focuser.nlcs_focus`); its `focus_calibration` cache is filled.
+    settings : DetectionSettings
+        Floors, non-maximum suppression and neighbour cancellation.
+    scan : ScanPass, optional
+        The pass's echo: with it, the peaks are re-refined with the neighbours' modelled responses removed
+        (`cancel.NlcsModel`); without it, on the image alone.
+    focuser : Focuser
+        Focuses the neighbours' models and the calibration targets: the backend that focused `products`.
+
+    Returns
+    -------
+    list of Detection
+        Strongest first: x_M and R_c (m), t_n (s), r0 (m), the peak's image position (m) and amplitude, and
+        the SNR over the image's median magnitude (dB).
+    """
+    grid = products.grid
+    pixels, floor = peaks.nlcs_peaks(products, settings)
+    rows, spectrum, interpolant = refine.nlcs_interpolant(products)
+    cells = [interpolant.maximise(float(i), float(j)) for i, j in pixels]
+    if settings.neighbour_cancellation_passes > 0 and len(cells) > 1 and scan is not None:
+        model = cancel.NlcsModel.of(products, scan, focuser, rows, spectrum)
+        cells = _cancel(cells, model, settings)
+    if not cells:
+        return []
+    a, b = [c[0] for c in cells], [c[1] for c in cells]
+    t_f, r, t_n = calibration.peak_track_times(products, a, b, focuser)
+    r0 = r - grid.speed_m_s * grid.sin_squint * t_n  # eq. (19), C12: r_LC = r_LRCM - v sin(theta_q) t_nc
+    return [_detection(grid, float(t_n[i]), float(r0[i]), grid.speed_m_s * float(t_f[i]), float(r[i]),
+                       abs(val), floor) for i, (_, _, val) in enumerate(cells)]
+
+
+def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings = DetectionSettings()
+              ) -> list[Detection]:
+    """Point targets of a backprojection image, in the pass's closest-approach coordinates.
+
+    The image's pixels are already on (u = v t_n, r_LRCM): no focus-position calibration. Neighbour
+    cancellation models the targets in the range-compressed echo the products carry
+    (`cancel.BackprojectionModel`).
+
+    Parameters
+    ----------
+    products : BackprojectionProducts
+        The focused pass (`Focuser.backprojection_focus`).
+    settings : DetectionSettings
+        Floors, non-maximum suppression and neighbour cancellation.
+
+    Returns
+    -------
+    list of Detection
+        As `detect_nlcs`.
+    """
+    grid = products.grid
+    du = products.u_axis_m[1] - products.u_axis_m[0]
+    dr = products.r_axis_m[1] - products.r_axis_m[0]
+    pixels, floor = peaks.bp_peaks(products, settings)
+    value = refine.bp_evaluator(products, products.compressed)
+    cells = [refine.maximise_nelder_mead(value, float(i), float(j), step=refine.BP_SIMPLEX_STEP_CELLS)
+             for i, j in pixels]
+    if settings.neighbour_cancellation_passes > 0 and len(cells) > 1:
+        cells = _cancel(cells, cancel.BackprojectionModel(products), settings)
+    out = []
+    for a, b, val in cells:
+        u = products.u_axis_m[0] + a * du
+        r = products.r_axis_m[0] + b * dr
+        t_n = u / grid.speed_m_s
+        out.append(_detection(grid, t_n, r - grid.sin_squint * u, u, r, abs(val), floor))
+    return out
+
+
+def _cancel(cells: list[cancel.Cell], model: cancel.CancellationModel, settings: DetectionSettings
+            ) -> list[cancel.Cell]:
+    return cancel.cancel_neighbours(cells, model, settings.neighbour_cancellation_passes,
+                                    settings.neighbour_cancellation_tol_m, settings.neighbour_gain_degree)
+
+
+def _detection(grid: nlcs.FocusGrid, t_n: float, r0: float, image_az: float, image_r: float, amp: float,
+               floor: float) -> Detection:
+    """A peak at P1 coordinates (t_n, r0) as a Detection: x_M = x_c + v t_n + r0 sin(theta_q),
+    R_c = r0 cos(theta_q) (docs/method.md section 1)."""
+    x_rel = grid.speed_m_s * t_n + r0 * grid.sin_squint
+    return Detection(x_m=grid.aperture_centre_m + x_rel, rc_m=r0 * grid.cos_squint, t_n_s=t_n, r0_m=r0,
+                     image_azimuth_m=image_az, image_range_m=image_r, amplitude=amp,
+                     snr_db=20 * math.log10(amp / floor) if floor > 0 else math.inf)
