@@ -210,7 +210,7 @@ def study_keepup(args, out: Path) -> bool:
     ok = True
     for scale in args.keepup_scales:
         rate = 957 * 32 * 20 * scale / 1e3
-        cmd = [sys.executable, "-m", "uwbcl.cli", "simulate-device", "--port", "0", "--range-samples", "957",
+        cmd = [sys.executable, "-m", "uwbcl.cli", "simulate-device", "--port", "0", "--range-samples", "957", "--state", "",
                "--buffer", "40", "--window-regs", "8192", "--time-scale", f"{scale:g}", "--first-cycle-after",
                f"{3 * scale:g}", "--max-cycles", "1", "--seed", str(args.seed)]
         dev = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,

@@ -15,10 +15,16 @@ Spec (`uwbcl simulate-device --faults SPEC`), comma-separated items:
 
 Kinds: drop (the connection is closed instead of a reply; the request is not executed), missing (executed, no
 reply), slow (the reply is late by slow_s), exception (Modbus exception 06 DEVICE BUSY or 04 DEVICE FAILURE
-in turn, not executed), corrupt (executed; one bit of one register of the next read reply is flipped), reboot
-(the controller restarts while a pass runs: the pass and the buffer are lost), overflow (the buffer drops the
-next `overflow_pulses` pulses of a running pass as if it were full). reboot and overflow wait for a pass to be
-running; the others hit the request they are drawn for.
+in turn, not executed), exception02 / exception03 / exception04 (one spurious exception of that code, not
+executed), corrupt (executed; one bit of one register of the next read reply is flipped), reboot (the
+controller restarts while a pass runs: the pass and the buffer are lost), reconfigure (a reboot that also
+brings a new RADAR.SAMPLE_RATE, x0.75 and back, and a new IDENTITY.RIG_ID, "<rig>-b" and back), overflow (the
+buffer drops the next `overflow_pulses` pulses of a running pass as if it were full), absurd (the next PASS
+read carries an absurd value with a valid CRC: PULSES_PLANNED 1e9, SAMPLES_PER_PULSE 60000 or AMPLITUDE_SCALE
+-1, in turn), short (the running pass ends COMPLETE with fewer pulses than planned, no LAST pulse: a controller
+that breaks the map), counter_back (the longwall counter goes back by 1), counter_jump (it jumps by 3: two
+cycles missed). reboot, reconfigure, overflow, absurd and short wait for a pass to be running; the others hit
+the request they are drawn for. A counter change during a pass aborts it (map 4.2).
 """
 
 from __future__ import annotations
@@ -27,8 +33,10 @@ import dataclasses
 
 import numpy as np
 
-KINDS = ("drop", "missing", "slow", "exception", "corrupt", "reboot", "overflow")
-PASS_KINDS = ("reboot", "overflow")  # only meaningful while a pass runs
+KINDS = ("drop", "missing", "slow", "exception", "corrupt", "reboot", "overflow", "exception02", "exception03",
+         "exception04", "absurd", "short", "reconfigure", "counter_back", "counter_jump")
+PASS_KINDS = ("reboot", "overflow", "absurd", "short", "reconfigure")  # only meaningful while a pass runs
+CYCLE_KINDS = ("counter_back", "counter_jump")  # change the cycle counter: the cycle being scanned is left
 
 
 @dataclasses.dataclass(frozen=True)

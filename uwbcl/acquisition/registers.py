@@ -17,7 +17,9 @@ import struct
 from collections.abc import Iterable, Mapping, Sequence
 
 MAP_MAGIC = 0x5557  # "UW"
-MAP_VERSION = (1, 0)  # (major, minor): a client refuses a major it does not know
+MAP_VERSION = (1, 1)  # (major, minor): a client refuses a major it does not know; 1.1 = 1.0 + section 12
+SEQ_MODULUS = 2**32  # pulse sequence numbers, CYCLE_COUNTER, RESULT_SEQ: u32, wrapping 2^32 - 1 -> 0
+CMD_SEQ_MAX = 65535  # CMD_SEQ runs 1 .. 65535, 1, ...; 0 is never a command's (exception 03)
 MAX_REGISTERS_PER_READ = 125  # Modbus application protocol limit for FC03/FC04
 MAX_REGISTERS_PER_WRITE = 123  # FC16
 NOT_AVAILABLE_S32 = -0x80000000  # a result that could not be measured (too few plates, ...)
@@ -163,6 +165,32 @@ class Block:
         return {f.name: _value_from_raw(f, regs[f.offset:f.offset + f.size]) for f in self.fields}
 
 
+# --------------------------------------------------------------------------------------------- wrapping counters
+# Serial-number arithmetic (RFC 1982 style) for the u32 counters of the map: a is "before" b when b is less
+# than half the number space ahead of a. Buffers and cycle gaps are far below 2^31, so this is unambiguous.
+
+
+def seq_add(seq: int, n: int) -> int:
+    """seq + n modulo 2^32: what follows 2^32 - 1 is 0."""
+    return (int(seq) + int(n)) % SEQ_MODULUS
+
+
+def seq_diff(a: int, b: int) -> int:
+    """a - b as a signed distance in -2^31 .. 2^31 - 1 (positive: a is after b)."""
+    d = (int(a) - int(b)) % SEQ_MODULUS
+    return d - SEQ_MODULUS if d >= SEQ_MODULUS // 2 else d
+
+
+def seq_at_or_before(a: int, b: int) -> bool:
+    """a is b or comes before it, across the wrap ("at or below" in the map)."""
+    return seq_diff(a, b) <= 0
+
+
+def cmd_seq_next(seq: int) -> int:
+    """The CMD_SEQ after `seq`: 1 .. 65535, then 1 again (0 is not a command's)."""
+    return int(seq) % CMD_SEQ_MAX + 1
+
+
 # --------------------------------------------------------------------------------------------- enumerations
 
 
@@ -291,6 +319,80 @@ ENUM_DOCS = {
     "RecordFlag.LAST": "last pulse of the pass",
     "RecordFlag.SATURATED": "an I or Q sample of this pulse hit the converter's limit",
 }
+
+
+# --------------------------------------------------------------------------------------------- fault taxonomy
+
+
+class FaultClass(str, enum.Enum):
+    """What a fault costs (docs/modbus-register-map.md section 9). Only SERVICE stops acquisition."""
+
+    TRANSIENT = "transient"  # the same request is repeated after a backoff
+    REQUEST = "request"  # the request failed: repeated a few times, then the step it belongs to fails
+    PASS = "pass"  # the pass fails: ABORT sent, the pass is run again (max_attempts per pass)
+    NOTICE = "notice"  # logged (and counted); acquisition goes on
+    SERVICE = "service"  # acquisition stops with a message: the controller is not a compatible rig
+
+
+@dataclasses.dataclass(frozen=True)
+class FaultRule:
+    name: str
+    cls: FaultClass
+    when: str
+    action: str
+
+
+FAULT_TAXONOMY = (
+    FaultRule("NO_REPLY", FaultClass.TRANSIENT, "no reply within the timeout; connection dropped or refused",
+              "close the connection, reconnect with backoff (0.05 s doubling to reconnect_max_s, jitter), repeat"),
+    FaultRule("BUSY", FaultClass.TRANSIENT, "exception 04 or 06 (the request was not executed)",
+              "wait 20 ms doubling to 1 s, repeat; after 25 in a row the request fails (REFUSED)"),
+    FaultRule("DAMAGED", FaultClass.TRANSIENT, "CRC mismatch or wrong length in a reply",
+              "read again; after 10 in a row the request fails (REFUSED)"),
+    FaultRule("HUNG", FaultClass.TRANSIENT, "HEARTBEAT unchanged for 2 s while replies keep coming",
+              "log, reconnect"),
+    FaultRule("REFUSED", FaultClass.REQUEST, "exception 01, 02 or 03 (e.g. a request damaged on the way)",
+              "repeat up to 3 times with backoff; then the step fails: inside a pass the pass fails, outside "
+              "one the client waits (backoff) and starts the step again"),
+    FaultRule("REBOOT", FaultClass.PASS, "BOOT_ID changed",
+              "re-read IDENTITY and RADAR; the pass in progress is lost: run it again with the new values"),
+    FaultRule("DESCRIPTION_CHANGED", FaultClass.PASS,
+              "IDENTITY or RADAR, re-read on a new connection or boot, differ from what the pass assumed",
+              "ABORT, run the pass again with the new values"),
+    FaultRule("PASS_INCOMPLETE", FaultClass.PASS,
+              "sequence gap, OVERFLOW, PASS_STATE ABORTED, PULSES_PRODUCED != PULSES_PLANNED, a PASS value that "
+              "changed, a foreign TOKEN or CYCLE", "ABORT if still running, log, run the pass again"),
+    FaultRule("ABSURD_VALUE", FaultClass.PASS,
+              "a PASS or RADAR value the client will not use (sizes over its limits, a record that does not fit "
+              "WINDOW_REGS, AMPLITUDE_SCALE not finite > 0)", "ABORT, log, re-read, run the pass again"),
+    FaultRule("NO_PROGRESS", FaultClass.PASS,
+              "no new pulse and no change of STATE, PASS_STATE or PULSES_PRODUCED for stall_timeout_s",
+              "log, ABORT, run the pass again"),
+    FaultRule("COMMAND_FAILED", FaultClass.PASS,
+              "REJECTED_BUSY, REJECTED_NOT_READY, REJECTED_UNKNOWN, REJECTED_RANGE or FAILED; not DONE in time",
+              "ABORT, log, run the pass again"),
+    FaultRule("CYCLES_MISSED", FaultClass.NOTICE, "CYCLE_COUNTER moved on by more than 1 (modulo 2^32)",
+              "log the cycles never scanned; scan the new one"),
+    FaultRule("COUNTER_DECREASED", FaultClass.NOTICE, "CYCLE_COUNTER moved back (modulo 2^32)",
+              "log both values as a fault; scan the new value as a new cycle"),
+    FaultRule("RIG_ID_CHANGED", FaultClass.NOTICE, "IDENTITY.RIG_ID differs from the last one read",
+              "log both; later archives carry the new id"),
+    FaultRule("NAME_TAKEN", FaultClass.NOTICE, "the archive name of a whole pass is already taken",
+              "write it as <name>_b<BOOT_ID hex>_p<TOKEN>.h5 (then _2, _3, ...): never dropped"),
+    FaultRule("INCOMPATIBLE", FaultClass.SERVICE,
+              "MAGIC not 0x5557, MAP_MAJOR not 1 or WINDOW_ADDRESS not 1024, read twice",
+              "stop with a message naming the value"),
+    FaultRule("CONFIGURATION", FaultClass.SERVICE,
+              "a configured height or table angle outside the rig's RADAR limits",
+              "stop with a message naming the setting"),
+)
+FAULT_RULES = {f.name: f for f in FAULT_TAXONOMY}
+
+
+def fault_table() -> str:
+    rows = ["| fault | class | when | what the client does |", "|---|---|---|---|"]
+    rows += [f"| {f.name} | {f.cls.value} | {f.when} | {f.action} |" for f in FAULT_TAXONOMY]
+    return "\n".join(rows)
 
 
 # --------------------------------------------------------------------------------------------- blocks
@@ -480,4 +582,5 @@ def markdown_tables() -> dict[str, str]:
     out = {b.name: block_table(b) for b in (*INPUT_BLOCKS, WINDOW_HEADER, *HOLDING_BLOCKS)}
     for cls in (Status, Fault, State, Command, CommandResult, PassState, ResultStatus, RecordFlag):
         out[cls.__name__] = enum_table(cls)
+    out["FaultTaxonomy"] = fault_table()
     return out
