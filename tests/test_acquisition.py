@@ -27,7 +27,7 @@ from uwbcl.acquisition import registers as R
 from uwbcl.acquisition.client import AcquireSettings, AcquisitionSession, ConfigError, load_settings
 from uwbcl.acquisition.device import ILLEGAL_VALUE, DeviceConfig, ModbusFault, RigController, RigServer
 from uwbcl.acquisition.faults import CYCLE_KINDS, KINDS, FaultInjector, parse_faults
-from uwbcl.acquisition.recorder import DeviceRefused, Limits, PassAssembler, PassIncomplete
+from uwbcl.acquisition.recorder import AbsurdValue, Limits, PassAssembler, PassIncomplete
 from uwbcl.acquisition.rig import WorldConfig
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -270,12 +270,12 @@ def descriptor(**kw):
 RADAR_OK = {"MAX_SAMPLES_PER_PULSE": 4096, "WINDOW_REGS": 2048, "BORESIGHT_Y_SIGN": -1}
 
 
-def test_a_device_claiming_absurd_sizes_is_refused_before_anything_is_allocated():
-    with pytest.raises(DeviceRefused, match="PULSES_PLANNED"):
+def test_absurd_pass_sizes_fail_the_pass_before_anything_is_allocated():
+    with pytest.raises(AbsurdValue, match="PULSES_PLANNED"):
         PassAssembler(descriptor(PULSES_PLANNED=10**9), RADAR_OK, Limits())
-    with pytest.raises(DeviceRefused, match="SAMPLES_PER_PULSE"):
+    with pytest.raises(AbsurdValue, match="SAMPLES_PER_PULSE"):
         PassAssembler(descriptor(SAMPLES_PER_PULSE=60000), RADAR_OK, Limits())
-    with pytest.raises(DeviceRefused, match="MiB"):
+    with pytest.raises(AbsurdValue, match="MiB"):
         PassAssembler(descriptor(PULSES_PLANNED=90_000, SAMPLES_PER_PULSE=4000), {**RADAR_OK, "WINDOW_REGS": 60000},
                       Limits())
 
@@ -468,7 +468,7 @@ class _FutureMapController(RigController):
 def test_a_controller_with_an_unknown_map_version_or_out_of_range_heights_is_refused(tmp_path):
     with RigServer(_FutureMapController(FAST_DEVICE), LOOPBACK, 0) as server:
         report = run_session(settings_for(server, tmp_path), timeout_s=10.0)
-    assert "register map 2.0" in report.error and not report.ok and not report.passes_written
+    assert "register map 2." in report.error and not report.ok and not report.passes_written
     with RigServer(RigController(FAST_DEVICE), LOOPBACK, 0) as server:
         report = run_session(settings_for(server, tmp_path, heights_m=(0.15, 3.0)), timeout_s=10.0)
     assert "MOVE_HEIGHT 3000000: outside the rig's range" in report.error and not report.ok

@@ -452,8 +452,7 @@ class RigController:
         newest = R.seq_add(self.next_seq, -1)
         if R.seq_diff(seq, newest) > 0:  # modulo 2^32: 0 follows 2^32 - 1 (map 6)
             raise ModbusFault(ILLEGAL_VALUE, f"ACK_SEQ {seq} beyond the newest pulse {newest}")
-        if R.seq_at_or_before(seq, self.ack_seq):
-            return
+        # "At or below" the acknowledgement (modulo 2^32) frees nothing more: the buffer holds only later pulses.
         self.ack_seq = seq
         p = self.pass_
         while self.buffer and p is not None and R.seq_at_or_before(R.seq_add(p.first_seq, self.buffer[0]), seq):
@@ -765,7 +764,7 @@ class RigServer:
             if fault in ("exception02", "exception03", "exception04"):
                 return ExcCodes(int(fault[-2:]))
             if fault in ("reboot", "reconfigure"):
-                c.reboot(now, reconfigure=fault == "reconfigure")
+                c.reboot(now, reconfigure=True) if fault == "reconfigure" else c.reboot(now)
                 self._swallow = True
                 self._loop.call_soon(self._drop_connections)
                 return None
