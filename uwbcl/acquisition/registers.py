@@ -283,7 +283,8 @@ ENUM_DOCS = {
     "Fault.TABLE": "rotation table",
     "Fault.LIMIT": "travel limit reached unexpectedly",
     "Fault.BUFFER_OVERFLOW": "pulses of the current pass were dropped (cleared by the next START_PASS)",
-    "Fault.PASS_ABORTED": "the last pass was aborted: ABORT, a fault, or the cycle counter changed during it",
+    "Fault.PASS_ABORTED": "the last pass was aborted: ABORT, a fault, or the cycle counter changed during it "
+                          "(cleared by the next accepted START_PASS, CLEAR_FAULTS or a reboot)",
     "Fault.CYCLE_LINK_LOST": "no contact with the longwall control system",
     "State.BOOTING": "starting up; the controller may refuse connections",
     "State.IDLE": "ready for a command",
@@ -307,7 +308,8 @@ ENUM_DOCS = {
     "CommandResult.FAILED": "accepted, then stopped by a fault or a reboot while executing",
     "PassState.NONE": "no pass since boot",
     "PassState.RUNNING": "pulses are being produced",
-    "PassState.COMPLETE": "every pulse produced (some may have been dropped: OVERFLOW_COUNT)",
+    "PassState.COMPLETE": "every pulse produced, PULSES_PRODUCED = PULSES_PLANNED (some may have been dropped: "
+                          "OVERFLOW_COUNT)",
     "PassState.ABORTED": "stopped before the end: the pass is unusable",
     "ResultStatus.OK": "a trustworthy estimate",
     "ResultStatus.AMBIGUOUS": "another plate correspondence explains the data as well",
@@ -417,11 +419,13 @@ STATUS = Block("STATUS", Table.INPUT, 32, 32, (
     Field("UPTIME", 6, "u32", 1e-3, "s", "time since boot, milliseconds"),
     Field("DEVICE_TIME", 8, "u64", 1e-3, "s", "device clock, milliseconds since 1970-01-01T00:00:00Z (UTC)"),
     Field("CYCLE_COUNTER", 12, "u32",
-          doc="cutting-cycle counter of the longwall control system: +1 when a cycle's conveyor push is done"),
+          doc="cutting-cycle counter of the longwall control system: +1 when a cycle's conveyor push is done; "
+              "2^32 - 1 is followed by 0"),
     Field("CARRIAGE_HEIGHT", 14, "s32", 1e-6, "m", "measured carriage (antenna phase centre) height, micrometres"),
     Field("CARRIAGE_POSITION", 16, "s32", 1e-6, "m", "measured rail position X_r, micrometres"),
     Field("TABLE_ANGLE", 18, "s32", 1e-3, "deg", "measured rotation-table angle, millidegrees"),
-    Field("CMD_ACK_SEQ", 20, "u16", doc="CMD_SEQ of the last command received (0 after boot)"),
+    Field("CMD_ACK_SEQ", 20, "u16", doc="CMD_SEQ of the last command received, i.e. written without an exception "
+                                         "reply (0 after boot)"),
     Field("CMD_ACK_CODE", 21, "u16", doc="CMD_CODE of that command"),
     Field("CMD_RESULT", 22, "u16", doc="its outcome: table Command results"),
 ), "live state; read it every poll")
@@ -433,7 +437,8 @@ RADAR = Block("RADAR", Table.INPUT, 64, 32, (
     Field("PRF", 6, "u32", 1e-3, "Hz", "pulse repetition frequency, millihertz"),
     Field("ANTENNA_APERTURE", 8, "u32", 1e-6, "m", "real antenna aperture along X_r, micrometres"),
     Field("BORESIGHT_Y_SIGN", 10, "s16", doc="side of the rail the rib is on: -1 (negative Y_r) or +1"),
-    Field("MAX_SAMPLES_PER_PULSE", 11, "u16", doc="largest SAMPLES_PER_PULSE the radar can deliver"),
+    Field("MAX_SAMPLES_PER_PULSE", 11, "u16", doc="largest SAMPLES_PER_PULSE the radar can deliver; "
+                                                   "10 + 9 + 2 * MAX_SAMPLES_PER_PULSE <= WINDOW_REGS"),
     Field("BUFFER_CAPACITY", 12, "u16", doc="pulses the ring buffer holds before it drops new ones"),
     Field("WINDOW_ADDRESS", 13, "u16", doc="input-register address of the pulse window (1024)"),
     Field("WINDOW_REGS", 14, "u16", doc="length of the pulse window in registers, header included"),
@@ -450,7 +455,8 @@ PASS = Block("PASS", Table.INPUT, 96, 32, (
     Field("CYCLE", 2, "u32", doc="CYCLE_COUNTER when the pass started"),
     Field("FIRST_SEQ", 4, "u32", doc="sequence number of the pass's first pulse"),
     Field("PULSES_PLANNED", 6, "u32", doc="pulses the pass will produce (travel / speed * PRF + 1)"),
-    Field("PULSES_PRODUCED", 8, "u32", doc="pulses produced so far, dropped ones included; final at COMPLETE"),
+    Field("PULSES_PRODUCED", 8, "u32", doc="pulses produced so far, dropped ones included; equal to PULSES_PLANNED "
+                                           "at COMPLETE"),
     Field("OVERFLOW_COUNT", 10, "u32", doc="pulses of this pass dropped because the buffer was full"),
     Field("RANGE_WINDOW_START", 12, "u32", 1e-12, "s", "two-way delay of fast-time sample 0, picoseconds"),
     Field("SAMPLES_PER_PULSE", 14, "u16", doc="M, complex samples in each pulse record"),
@@ -464,7 +470,8 @@ PASS = Block("PASS", Table.INPUT, 96, 32, (
 
 COMMAND = Block("COMMAND", Table.HOLDING, 0, 8, (
     Field("CMD_CODE", 0, "u16", doc="table Commands"),
-    Field("CMD_SEQ", 1, "u16", doc="1..65535, a new value for every new command; a repeated value is a retransmission"),
+    Field("CMD_SEQ", 1, "u16", doc="1..65535 (after 65535 comes 1; 0 gets exception 03), a new value for every new "
+                                   "command; a repeated value is a retransmission"),
     Field("ARG0", 2, "s32", doc="first argument (table Commands)"),
     Field("ARG1", 4, "s32", doc="second argument, 0 (reserved)"),
 ), "written by the client in one FC16 request of all 8 registers")
@@ -500,7 +507,8 @@ WINDOW_HEADER = Block("WINDOW_HEADER", Table.INPUT, WINDOW_ADDRESS, 10, (
     Field("OLDEST_SEQ", 0, "u32", doc="sequence number of record 0; 0 when RECORDS = 0"),
     Field("RECORDS", 2, "u16", doc="complete records that follow the header"),
     Field("RECORD_REGS", 3, "u16", doc="registers per record: 9 + 2 * SAMPLES_PER_PULSE"),
-    Field("NEWEST_SEQ", 4, "u32", doc="sequence number of the last pulse produced since boot; 0 if none"),
+    Field("NEWEST_SEQ", 4, "u32", doc="sequence number of the last pulse produced since boot (before the first: "
+                                      "the first's minus 1)"),
     Field("TOKEN", 6, "u32", doc="PASS.TOKEN of the pass the records belong to"),
 ), "start of the pulse window (section 6)")
 
