@@ -219,6 +219,10 @@ def _print_summary(report, out) -> None:
           f"incomplete {len(report.cycles_incomplete)}, missed {report.cycles_missed}")
     print(f"faults seen: {f.no_reply} lost replies, {f.disconnects} dropped connections, {f.exceptions} exception "
           f"replies, {f.corrupt} corrupted replies, {f.reboots} controller reboots ({f.reconnects} reconnects)")
+    print(f"  {f.refused} refused requests (01/02/03), {f.requests_failed} requests given up, {f.absurd_values} absurd "
+          f"values, {f.description_changes} IDENTITY/RADAR changes under a pass, {f.rig_id_changes} RIG_ID "
+          f"changes, {f.no_progress} watchdog aborts, {f.counter_decreases} cycle-counter decreases, "
+          f"{f.names_taken} archives under a unique name, {f.rate_limited} requests delayed by the rate bound")
     for line in report.passes_failed:
         print(f"  failed: {line}", file=sys.stderr)
     if report.error:

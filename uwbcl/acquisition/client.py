@@ -488,7 +488,7 @@ class AcquisitionSession:
         if identity is None or radar is None:
             self.link.ensure_connected()
             identity, radar = self.link.identity, self.link.radar
-        if identity is self.identity and radar is self.radar:
+        if identity == self.identity and radar == self.radar:  # the usual case: a reconnect, nothing changed
             return
         try:
             check_radar(radar, self.settings.limits)
