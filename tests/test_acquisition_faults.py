@@ -249,3 +249,21 @@ def test_pulses_produced_short_of_pulses_planned_is_an_incomplete_pass_re_run(tm
     assert report.ok and len(report.passes_written) == 2 and len(report.passes_incomplete) == 1, report
     assert all(not archive.read_pass_header(p)["pass_id"].endswith(f"-p{first}") for p in report.passes_written)
     assert_archives_match_device(report, server)
+
+
+# ============================================================================================== the campaign
+
+
+def test_a_short_seeded_fault_campaign_of_every_kind_loses_and_misreports_nothing(tmp_path):
+    """scripts/acquisition_study.py D, cut to 45 faults (the full campaign is in the closing note of issue 12)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "acquisition_study.py"
+    run = subprocess.run([sys.executable, str(script), "--skip", "A,B,C", "--campaign-faults", "45", "--seed", "3",
+                          "--out", str(tmp_path)], capture_output=True, text=True, timeout=180)
+    out = run.stdout + run.stderr
+    assert run.returncode == 0 and "D: PASS" in out, out
+    assert "whole passes lost: 0" in out and "differ from what the controller used: 0" in out
+    assert "service stops: 0" in out and "neither 0" in out
