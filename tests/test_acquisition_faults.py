@@ -57,6 +57,42 @@ def test_a_reboot_with_new_radar_values_and_rig_id_is_archived_with_the_new_valu
     assert_archives_match_device(report, server)
 
 
+class _RadarChangesWithoutReboot(RigController):
+    """Breaks the map: SAMPLE_RATE changes during the first pass, no reboot (the link then drops once)."""
+
+    changed = False
+
+    def read(self, now, table, address, count):
+        if address == R.WINDOW_ADDRESS and self.pass_ is not None and not self.changed:
+            self.changed = True
+            self.campaign.radar = dataclasses.replace(self.campaign.radar,
+                                                      sample_rate_hz=0.75 * self.campaign.radar.sample_rate_hz)
+        return super().read(now, table, address, count)
+
+
+class _DropOnceAfterChange(RigServer):
+    dropped = False
+
+    async def _action(self, func_code, start_address, address, count, registers, values):
+        if self.controller.changed and not self.dropped:
+            self.dropped = True
+            self._swallow = True
+            self._loop.call_soon(self._drop_connections)
+            return None
+        return await super()._action(func_code, start_address, address, count, registers, values)
+
+
+def test_radar_that_changes_under_a_pass_is_seen_on_the_next_connection_and_the_pass_re_run(tmp_path):
+    device = _RadarChangesWithoutReboot(FAST_DEVICE)
+    new_rate = 0.75 * device.radar.sample_rate_hz
+    with _DropOnceAfterChange(device, LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, cycles=1))
+    assert server.dropped and report.faults.reconnects >= 1 and report.faults.description_changes == 1
+    assert report.ok and len(report.passes_written) == 2 and len(report.passes_incomplete) == 1, report
+    assert all(archive.read_pass(p).radar.sample_rate_hz == pytest.approx(new_rate) for p in report.passes_written)
+    assert_archives_match_device(report, server)
+
+
 class _MajorTwoAfterReboot(RigController):
     def input_low(self, now):
         regs = super().input_low(now)

@@ -494,6 +494,7 @@ class AcquisitionSession:
             check_radar(radar, self.settings.limits)
         except AbsurdValue:
             self.link.counts.absurd_values += 1
+            self.link.describe()  # one absurd reply must not stick: the next attempt uses a fresh read
             raise
         rig_id = self.settings.rig_id or identity["RIG_ID"] or "rig"
         if self.rig_id and rig_id != self.rig_id:
@@ -630,6 +631,8 @@ class AcquisitionSession:
                     self.report.passes_incomplete.append(f"{name} attempt {attempt}: {reason}")
                     log.warning("pass %s attempt %d incomplete: %s; %s", name, attempt, reason,
                                 "re-running it" if attempt < self.settings.max_attempts else "giving up")
+                    if attempt > 1:  # a fault that repeats is not retried at full speed
+                        self.link.sleep(min(0.05 * 2 ** (attempt - 2), self.settings.reconnect_max_s))
                     continue
                 pass_id = f"{scan.rig_id}-c{cycle:06d}-h{round(height * 1000):04d}-b{boot:08X}-p{token}"
                 try:
