@@ -22,6 +22,7 @@ Prints a report; exit status 1 if an acceptance check fails.
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
 import re
 import resource
@@ -38,8 +39,8 @@ from uwbcl import archive, pipeline
 from uwbcl.acquisition.client import AcquireSettings, AcquisitionSession
 from uwbcl.acquisition.device import DeviceConfig, LongwallFollower, RigController, RigServer
 from uwbcl.acquisition.faults import KINDS, parse_faults
-from uwbcl.acquisition.registers import SEQ_MODULUS
 from uwbcl.acquisition.live import LiveProcessor, backend_available, processing_settings
+from uwbcl.acquisition.registers import SEQ_MODULUS
 from uwbcl.acquisition.rig import WorldConfig
 from uwbcl.displacement import estimate_advance
 from uwbcl.model import PassGeometry, ScanPass
@@ -375,7 +376,7 @@ def study_campaign(args, out: Path) -> bool:
           f"({requests / wall:.0f} requests/s on average, CPU {cpu:.0f} s):")
     print("   " + ", ".join(f"{k} {v}" for k, v in injected.items()))
     print(f"wraps: {seq_wraps} whole passes ran across sequence 2^32-1 -> 0 (every boot starts 100 pulses before "
-          f"it); cycle counter values {cycle_log[:3]}... ({sum(1 for a, b in zip(cycle_log, cycle_log[1:]) if b < a)}"
+          f"it); cycle counter values {cycle_log[:3]}... ({sum(1 for a, b in itertools.pairwise(cycle_log) if b < a)}"
           f" decreases or wraps among {len(cycle_log)} changes)")
     print(f"client saw: {f.no_reply} lost replies, {f.disconnects} dropped connections, {f.exceptions} exception "
           f"replies ({f.refused} refused 01/02/03), {f.corrupt} damaged replies, {f.reboots} reboots, "

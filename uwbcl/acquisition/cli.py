@@ -7,9 +7,9 @@ import asyncio
 import contextlib
 import logging
 import math
+import os
 import signal
 import sys
-import os
 import tempfile
 import threading
 import time

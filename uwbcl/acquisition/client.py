@@ -31,7 +31,15 @@ except ModuleNotFoundError:  # Python 3.10
         tomllib = None  # type: ignore[assignment]
 
 from . import registers as R
-from .recorder import AbsurdValue, DeviceRefused, Limits, PassAssembler, PassIncomplete, check_radar, write_scan
+from .recorder import (
+    AbsurdValue,
+    DeviceRefused,
+    Limits,
+    PassAssembler,
+    PassIncomplete,
+    check_radar,
+    write_scan,
+)
 
 log = logging.getLogger("uwbcl.acquire")
 
