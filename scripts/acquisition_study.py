@@ -8,7 +8,8 @@ C. keep-up: a controller in its own process streaming at the UWB module's 612 kb
    per pulse at 20 Hz, real time) with a 2-second buffer; overflow, buffer backlog and the client's CPU use.
 D. issue 12's campaign: a seeded schedule of faults of every kind of uwbcl/acquisition/faults.py (lost, late and
    dropped replies, 04/06, spurious 02/03/04, damaged replies, reboots, reboots with a new SAMPLE_RATE and
-   RIG_ID, overflows, absurd PASS values, passes cut short (PULSES_PRODUCED < PULSES_PLANNED), a cycle counter
+   RIG_ID, overflows, absurd PASS values, passes cut short (PULSES_PRODUCED < PULSES_PLANNED), a stalled radar
+   (the no-progress watchdog), a cycle counter
    that goes back or jumps), with pulse sequence numbers that wrap 2^32 - 1 -> 0 after every boot and a cycle
    counter that wraps too. Checks: no stop of the service, no whole pass lost, every archive's metadata and data
    what the controller used for that pass, every incomplete pass re-run (or its cycle left because the face
@@ -321,7 +322,7 @@ def study_campaign(args, out: Path) -> bool:
     with RigServer(device, LOOPBACK, 0, faults=plan) as server:
         settings = AcquireSettings(host=LOOPBACK, port=server.port, out=str(out / "D-campaign"), cycles=0,
                                    heights_m=(0.15, 0.30), timeout_s=0.25, reconnect_max_s=0.5, max_attempts=10,
-                                   stall_timeout_s=3.0, command_timeout_s=20.0)
+                                   stall_timeout_s=1.5, command_timeout_s=20.0)
         marks = {}
 
         def enough(session):  # one more cycle after the last fault, then stop while waiting for the next

@@ -346,14 +346,15 @@ EXPECTED_COUNTER = {"drop": "disconnects", "missing": "no_reply", "exception": "
 def test_each_fault_kind_is_survived_and_nothing_incomplete_is_written(kind, tmp_path):
     plan = parse_faults(f"every=11,kinds={kind},limit=3,slow_s=0.05")
     with RigServer(RigController(FAST_DEVICE), LOOPBACK, 0, faults=plan) as server:
-        report = run_session(settings_for(server, tmp_path, cycles=1))
+        report = run_session(settings_for(server, tmp_path, cycles=1,
+                                          stall_timeout_s=1.0 if kind == "stall" else 5.0))
         injected = server.faults.counts()[kind]
     assert injected >= 1
     assert report.ok and len(report.passes_written) == 2, report
     assert_archives_match_device(report, server)
     if EXPECTED_COUNTER.get(kind):
         assert getattr(report.faults, EXPECTED_COUNTER[kind]) >= 1
-    if kind in ("reboot", "overflow", "reconfigure", "absurd", "short"):  # these always cost the pass: it is marked incomplete and run again
+    if kind in ("reboot", "overflow", "reconfigure", "absurd", "short", "stall"):  # these always cost the pass: it is marked incomplete and run again
         assert len(report.passes_incomplete) >= 1
 
 

@@ -113,6 +113,7 @@ class _Pass:
     rig_id: str = ""
     boot_id: int = 0
     short: bool = False  # cut short by fault injection: never a whole pass
+    stalled: bool = False  # fault injection: the radar stops delivering, the pass stays RUNNING
     produced: int = 0
     overflow: int = 0
     state: R.PassState = R.PassState.RUNNING
@@ -253,6 +254,8 @@ class RigController:
         if self.motion is not None and now >= self.motion.t_end:
             self._finish_motion(now)
         p = self.pass_
+        if p is not None and p.stalled and p.state is R.PassState.RUNNING and p.produced:
+            p.t_start = now - float(p.times[p.produced - 1])  # a hung radar: the next pulse never falls due
         if p is not None and p.state is R.PassState.RUNNING:
             due = int(np.searchsorted(p.times, now - p.t_start, side="right"))
             for i in range(p.produced, min(due, len(p.times))):
@@ -772,6 +775,8 @@ class RigServer:
                 self._absurd_pending = True
             if fault == "short":
                 c.cut_short(now)
+            if fault == "stall" and c.pass_ is not None:
+                c.pass_.stalled = True
             if fault in ("counter_back", "counter_jump"):
                 c.set_cycle_counter(now, R.seq_add(c.cycle_counter, -1 if fault == "counter_back" else 3))
             if fault == "overflow":

@@ -22,8 +22,9 @@ brings a new RADAR.SAMPLE_RATE, x0.75 and back, and a new IDENTITY.RIG_ID, "<rig
 buffer drops the next `overflow_pulses` pulses of a running pass as if it were full), absurd (the next PASS
 read carries an absurd value with a valid CRC: PULSES_PLANNED 1e9, SAMPLES_PER_PULSE 60000 or AMPLITUDE_SCALE
 -1, in turn), short (the running pass ends COMPLETE with fewer pulses than planned, no LAST pulse: a controller
-that breaks the map), counter_back (the longwall counter goes back by 1), counter_jump (it jumps by 3: two
-cycles missed). reboot, reconfigure, overflow, absurd and short wait for a pass to be running; the others hit
+that breaks the map), stall (the radar of the running pass stops delivering pulses, the pass stays RUNNING:
+only a no-progress watchdog notices), counter_back (the longwall counter goes back by 1), counter_jump (it jumps by 3: two
+cycles missed). reboot, reconfigure, overflow, absurd, short and stall wait for a pass to be running; the others hit
 the request they are drawn for. A counter change during a pass aborts it (map 4.2).
 """
 
@@ -34,8 +35,8 @@ import dataclasses
 import numpy as np
 
 KINDS = ("drop", "missing", "slow", "exception", "corrupt", "reboot", "overflow", "exception02", "exception03",
-         "exception04", "absurd", "short", "reconfigure", "counter_back", "counter_jump")
-PASS_KINDS = ("reboot", "overflow", "absurd", "short", "reconfigure")  # only meaningful while a pass runs
+         "exception04", "absurd", "short", "stall", "reconfigure", "counter_back", "counter_jump")
+PASS_KINDS = ("reboot", "overflow", "absurd", "short", "stall", "reconfigure")  # only meaningful while a pass runs
 CYCLE_KINDS = ("counter_back", "counter_jump")  # change the cycle counter: the cycle being scanned is left
 
 
