@@ -751,7 +751,7 @@ class RigServer:
                 return None
             running = c.pass_ is not None and c.pass_.state is R.PassState.RUNNING
             if values is None or func_code != 23:
-                fault = self.faults.next_request(running, now)
+                fault = self.faults.next_request(running, now, c.pass_.token if running else None)
             else:
                 fault = None  # FC23 calls us twice: count it once, on its write
             self.requests_served += 1

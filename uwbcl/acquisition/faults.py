@@ -123,9 +123,11 @@ class FaultInjector:
         self._pending: list[str] = []  # pass-only faults waiting for a running pass
         self._rotation = 0
         self._at = dict(plan.at)
+        self._hit_pass: int | None = None  # the pass the last pass-only fault was applied to
 
-    def next_request(self, pass_running: bool, device_time_s: float) -> str | None:
-        """Count a request; return the fault kind to apply to it, or None."""
+    def next_request(self, pass_running: bool, device_time_s: float, pass_token: int | None = None) -> str | None:
+        """Count a request; return the fault kind to apply to it, or None. With `pass_token`, pass-only faults
+        waiting for a pass hit one pass each (two on one pass would count as two faults but act as one)."""
         self.requests += 1
         n = self.requests
         p = self.plan
@@ -144,8 +146,9 @@ class FaultInjector:
                 self._pending.append(kind)
         immediate = [k for k in drawn if k not in PASS_KINDS]
         kind = None
-        if pass_running and self._pending:
+        if pass_running and self._pending and (pass_token is None or pass_token != self._hit_pass):
             kind = self._pending.pop(0)
+            self._hit_pass = pass_token
         elif immediate:
             kind = immediate[0]
         if kind is not None:
