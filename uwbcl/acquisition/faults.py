@@ -2,7 +2,8 @@
 
 Spec (`uwbcl simulate-device --faults SPEC`), comma-separated items:
 
-    KIND=P        each request gets fault KIND with probability P
+    KIND=P        each request gets fault KIND with probability P (a pass-only KIND: each request while a pass
+                  runs, so that drawn faults do not pile up while the client waits for a cycle)
     KIND@N        request number N (1-based, counted from server start) gets fault KIND
     every=N       every N-th request gets a fault, KIND taken in turn from `kinds`
     kinds=A+B+..  the rotation for `every` (default: all kinds)
@@ -133,7 +134,8 @@ class FaultInjector:
         p = self.plan
         if p.limit is not None and len(self.injected) >= p.limit:
             return None
-        drawn = [kind for kind, prob in p.probabilities if self.rng.uniform() < prob]  # same draws every request
+        drawn = [kind for kind, prob in p.probabilities  # the same draws every request: reproducible
+                 if self.rng.uniform() < prob and (pass_running or kind not in PASS_KINDS)]
         if n < p.after:
             return None
         if n in self._at:
