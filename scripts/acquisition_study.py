@@ -23,6 +23,7 @@ Prints a report; exit status 1 if an acceptance check fails.
 from __future__ import annotations
 
 import argparse
+import collections
 import itertools
 import os
 import re
@@ -318,6 +319,7 @@ def study_campaign(args, out: Path) -> bool:
     world = WorldConfig(scenario="paper-sim1", seed=args.seed, aperture_length_m=0.45, range_samples=32)
     device = RigController(DeviceConfig(world=world, time_scale=50.0, first_cycle_after_s=1e9, cycle_interval_s=1e9,
                                         reboot_s=10.0, first_seq=SEQ_MODULUS - 100, initial_cycle=SEQ_MODULUS - 3))
+    device.completed_passes = collections.deque()  # audit every pass, not the last 200 (8 KiB each here)
     plan = parse_faults(spec)
     with RigServer(device, LOOPBACK, 0, faults=plan) as server:
         settings = AcquireSettings(host=LOOPBACK, port=server.port, out=str(out / "D-campaign"), cycles=0,
