@@ -492,10 +492,9 @@ class AcquisitionSession:
     def _adopt_description(self) -> None:
         """Take IDENTITY and RADAR as the link last read them (this connection, this boot) for the next pass;
         log a new rig id; AbsurdValue if RADAR is unusable, DeviceRefused if the configuration does not fit."""
+        if self.link.identity is None or self.link.radar is None:  # a reboot whose re-read failed: read now
+            self.link.describe()
         identity, radar = self.link.identity, self.link.radar
-        if identity is None or radar is None:
-            self.link.ensure_connected()
-            identity, radar = self.link.identity, self.link.radar
         if identity == self.identity and radar == self.radar:  # the usual case: a reconnect, nothing changed
             return
         try:
@@ -544,6 +543,7 @@ class AcquisitionSession:
             self.link.boot_id = status["BOOT_ID"]
             self.link.counts.reboots += 1
             log.warning("fault: controller rebooted (BOOT_ID now 0x%08X)", status["BOOT_ID"])
+            self.link.identity = self.link.radar = None  # never the old boot's, even if this re-read fails
             self.link.describe()  # IDENTITY and RADAR of the new boot (map 9)
             raise DeviceRebooted()
         now = time.monotonic()
