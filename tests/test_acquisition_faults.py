@@ -298,6 +298,7 @@ def test_pulses_produced_short_of_pulses_planned_is_an_incomplete_pass_re_run(tm
 # ============================================================================================== the campaign
 
 
+@pytest.mark.slow  # ~12 s; run by default (no marker is deselected in pyproject.toml)
 def test_a_short_seeded_fault_campaign_of_every_kind_loses_and_misreports_nothing(tmp_path):
     """scripts/acquisition_study.py D, cut to 45 faults (the full campaign is in the closing note of issue 12)."""
     script = Path(__file__).resolve().parents[1] / "scripts" / "acquisition_study.py"
