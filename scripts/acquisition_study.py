@@ -6,8 +6,16 @@ B. faults: a run with F injected faults of every kind; every archive written is 
    what the simulated controller produced; counts of passes completed, incomplete-and-re-run, failed, lost.
 C. keep-up: a controller in its own process streaming at the UWB module's 612 kbit/s (957 complex int16 samples
    per pulse at 20 Hz, real time) with a 2-second buffer; overflow, buffer backlog and the client's CPU use.
+D. issue 12's campaign: a seeded schedule of faults of every kind of uwbcl/acquisition/faults.py (lost, late and
+   dropped replies, 04/06, spurious 02/03/04, damaged replies, reboots, reboots with a new SAMPLE_RATE and
+   RIG_ID, overflows, absurd PASS values, passes cut short (PULSES_PRODUCED < PULSES_PLANNED), a stalled radar
+   (the no-progress watchdog), a cycle counter
+   that goes back or jumps), with pulse sequence numbers that wrap 2^32 - 1 -> 0 after every boot and a cycle
+   counter that wraps too. Checks: no stop of the service, no whole pass lost, every archive's metadata and data
+   what the controller used for that pass, every incomplete pass re-run (or its cycle left because the face
+   moved on), counts by fault kind.
 
-    python scripts/acquisition_study.py [--cycles 10] [--faults 100] [--skip A,B,C]
+    python scripts/acquisition_study.py [--cycles 10] [--faults 100] [--campaign-faults 165] [--skip A,B,C,D]
 
 Prints a report; exit status 1 if an acceptance check fails.
 """
@@ -15,6 +23,8 @@ Prints a report; exit status 1 if an acceptance check fails.
 from __future__ import annotations
 
 import argparse
+import collections
+import itertools
 import os
 import re
 import resource
@@ -32,6 +42,7 @@ from uwbcl.acquisition.client import AcquireSettings, AcquisitionSession
 from uwbcl.acquisition.device import DeviceConfig, LongwallFollower, RigController, RigServer
 from uwbcl.acquisition.faults import KINDS, parse_faults
 from uwbcl.acquisition.live import LiveProcessor, backend_available, processing_settings
+from uwbcl.acquisition.registers import SEQ_MODULUS
 from uwbcl.acquisition.rig import WorldConfig
 from uwbcl.displacement import estimate_advance
 from uwbcl.model import PassGeometry, ScanPass
@@ -43,13 +54,29 @@ def finished_cycles(session: AcquisitionSession) -> int:
     return len(session.report.cycles_complete) + len(session.report.cycles_incomplete)
 
 
-def run_acquisition(server: RigServer, settings: AcquireSettings, processor=None, enough=None):
+def run_acquisition(server: RigServer, settings: AcquireSettings, processor=None, enough=None, by_value=False):
     """The session against `server`, the next cycle signalled as soon as the last one is scanned; with
-    `enough(session)`, no more signals once it holds, and the session is stopped while it waits."""
+    `enough(session)`, no more signals once it holds, and the session is stopped while it waits. by_value: the
+    last one is scanned when the session's last finished cycle is the counter's value (a counter that faults
+    move back and forth is not counted in signals)."""
     session = AcquisitionSession(settings, processor=processor)
+    seen = {"complete": 0, "incomplete": 0, "last": None}
+
+    def last_finished():
+        for key, cycles in (("complete", session.report.cycles_complete),
+                            ("incomplete", session.report.cycles_incomplete)):
+            if len(cycles) != seen[key]:
+                seen[key], seen["last"] = len(cycles), cycles[-1]
+        return seen["last"]
 
     def cycles_done() -> int:  # -1: never again
-        return -1 if enough is not None and enough(session) else finished_cycles(session)
+        if enough is not None and enough(session):
+            return -1
+        if by_value:
+            c = server.controller
+            last = last_finished()
+            return c.cycles_raised if last is None or last == c.cycle_counter else -1
+        return finished_cycles(session)
 
     longwall = LongwallFollower(server, cycles_done, listening=lambda: session.link.requests > 3)
     longwall.start()
@@ -158,8 +185,9 @@ def study_accuracy(args, out: Path) -> bool:
 
 def study_faults(args, out: Path) -> bool:
     n = args.faults
-    print(f"\n== B. {n} injected faults of all kinds ({', '.join(KINDS)}) ==")
-    plan = parse_faults(f"every={args.fault_every},limit={n},seed={args.seed},reboot_s=10,slow_s=0.2")
+    print(f"\n== B. {n} injected faults of the kinds {', '.join(KINDS[:7])} ==")
+    plan = parse_faults(f"every={args.fault_every},limit={n},seed={args.seed},reboot_s=10,slow_s=0.2,"
+                        f"kinds={'+'.join(KINDS[:7])}")  # the kinds of issue 5; D has them all
     world = WorldConfig(scenario="paper-sim1", seed=args.seed, snr_db=args.snr_db, speed_jitter=args.speed_jitter)
     device = RigController(DeviceConfig(world=world, time_scale=args.time_scale, first_cycle_after_s=1e9,
                                         cycle_interval_s=1e9, reboot_s=10.0))
@@ -210,7 +238,7 @@ def study_keepup(args, out: Path) -> bool:
     ok = True
     for scale in args.keepup_scales:
         rate = 957 * 32 * 20 * scale / 1e3
-        cmd = [sys.executable, "-m", "uwbcl.cli", "simulate-device", "--port", "0", "--range-samples", "957",
+        cmd = [sys.executable, "-m", "uwbcl.cli", "simulate-device", "--port", "0", "--range-samples", "957", "--state", "",
                "--buffer", "40", "--window-regs", "8192", "--time-scale", f"{scale:g}", "--first-cycle-after",
                f"{3 * scale:g}", "--max-cycles", "1", "--seed", str(args.seed)]
         dev = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
@@ -245,11 +273,144 @@ def study_keepup(args, out: Path) -> bool:
     return ok
 
 
+# ============================================================================================== D
+
+
+def _metadata_differs(path: str, audit: dict, header: dict) -> list[str]:
+    """What in the archive differs from what the controller used for the pass (empty: nothing)."""
+    scan = archive.read_pass(path)
+    diffs = []
+    radar = audit["radar"]
+    for name in ("carrier_frequency_hz", "bandwidth_hz", "sample_rate_hz", "pulse_repetition_frequency_hz",
+                 "antenna_aperture_m"):
+        if not np.isclose(getattr(scan.radar, name), getattr(radar, name), rtol=1e-9, atol=0.0):
+            diffs.append(f"{name} {getattr(scan.radar, name):g} != {getattr(radar, name):g}")
+    if scan.rig_id != audit["rig_id"]:
+        diffs.append(f"rig_id {scan.rig_id} != {audit['rig_id']}")
+    if scan.cycle != audit["cycle"]:
+        diffs.append(f"cycle {scan.cycle} != {audit['cycle']}")
+    if abs(scan.range_window_start_s - audit["range_window_start_s"]) > 1e-15:
+        diffs.append("range_window_start_s")
+    if abs(scan.geometry.height_m - audit["height_m"]) > 1e-6 or \
+            abs(scan.geometry.rotation_table_angle_deg - audit["angle_deg"]) > 1e-3:
+        diffs.append("height or angle")
+    if f"-b{audit['boot_id']:08X}-" not in header["pass_id"]:
+        diffs.append(f"pass_id {header['pass_id']} not of boot {audit['boot_id']:08X}")
+    iq = np.rint(np.stack([scan.echo.real, scan.echo.imag], axis=-1) / audit["scale"])
+    if not (scan.n_pulses == audit["n_pulses"] and audit["overflow"] == 0
+            and np.array_equal(np.rint(scan.pulse_position_m * 1e6), audit["positions_um"])
+            and np.array_equal(np.rint(scan.pulse_time_s * 1e6), audit["times_us"])
+            and np.array_equal(iq, audit["iq"])):
+        diffs.append("pulses differ from those produced")
+    return diffs
+
+
+def study_campaign(args, out: Path) -> bool:
+    n = args.campaign_faults
+    every = args.campaign_every
+    # Drawn at random per request (seeded), not in a fixed rotation: a rotation would hit every kind at the
+    # same phase of the cycle each time (e.g. a counter going back always while waiting).
+    p_kind = 1.0 / (every * len(KINDS))
+    spec = ",".join(f"{k}={p_kind:.6f}" for k in KINDS) + f",limit={n},seed={args.seed},slow_s=0.3,overflow_pulses=4"
+    print(f"\n== D. issue 12 campaign: {n} faults, each request a fault with probability 1/{every}, kinds "
+          f"{', '.join(KINDS)} equally likely ==")
+    print(f"   (uwbcl simulate-device --faults '{spec}' --first-seq {SEQ_MODULUS - 100} --initial-cycle "
+          f"{SEQ_MODULUS - 3} --time-scale 50, FAST world: 61 pulses x 32 samples per pass)")
+    world = WorldConfig(scenario="paper-sim1", seed=args.seed, aperture_length_m=0.45, range_samples=32)
+    device = RigController(DeviceConfig(world=world, time_scale=50.0, first_cycle_after_s=1e9, cycle_interval_s=1e9,
+                                        reboot_s=10.0, first_seq=SEQ_MODULUS - 100, initial_cycle=SEQ_MODULUS - 3))
+    device.completed_passes = collections.deque()  # audit every pass, not the last 200 (8 KiB each here)
+    plan = parse_faults(spec)
+    with RigServer(device, LOOPBACK, 0, faults=plan) as server:
+        settings = AcquireSettings(host=LOOPBACK, port=server.port, out=str(out / "D-campaign"), cycles=0,
+                                   heights_m=(0.15, 0.30), timeout_s=0.25, reconnect_max_s=0.5, max_attempts=10,
+                                   stall_timeout_s=1.5, command_timeout_s=20.0)
+        marks = {}
+
+        def enough(session):  # one more cycle after the last fault, then stop while waiting for the next
+            if len(server.faults.injected) >= n and "at" not in marks:
+                marks["at"] = finished_cycles(session)
+            return "at" in marks and finished_cycles(session) >= marks["at"] + 1
+
+        report, wall, cpu = run_acquisition(server, settings, enough=enough, by_value=True)
+        snap = server.snapshot()
+        injected = server.faults.counts()
+        requests = server.faults.requests
+        seq_wraps = sum(1 for a in snap["completed_passes"] if a["first_seq"] + a["n_pulses"] > SEQ_MODULUS)
+        cycle_log = [c for c, _ in snap["cycle_log"]]
+    audits = {a["token"]: a for a in snap["completed_passes"]}
+    bad_meta, headers = [], {}
+    for path in report.passes_written:
+        header = archive.read_pass_header(path)
+        headers[path] = header
+        token = int(re.search(r"-p(\d+)$", header["pass_id"]).group(1))
+        audit = audits.get(token)
+        diffs = ["no whole pass of that token on the controller"] if audit is None else \
+            _metadata_differs(path, audit, header)
+        if diffs:
+            bad_meta.append(f"{path}: {'; '.join(diffs)}")
+    # Whole passes lost: a (cycle, height) scanned but neither written nor reported failed; names taken.
+    written = {(h["cycle"], round(h["height_m"] * 1000)) for h in headers.values()}
+    scanned = {(c, hmm) for c in report.cycles_complete for hmm in (150, 300)}
+    failed = {(int(m.group(1)), int(m.group(2))) for m in
+              (re.search(r"c(\d+) h(\d+)", f) for f in report.passes_failed) if m}
+    lost = scanned - written - failed
+    dropped_for_name = [f for f in report.passes_failed if "exists" in f]
+    # Every incomplete attempt: followed by another attempt of the same pass, or its cycle left (face moved on).
+    attempts: dict[tuple[int, int], list[int]] = {}
+    for line in report.passes_incomplete:
+        m = re.search(r"c(\d+) h(\d+) attempt (\d+):", line)
+        attempts.setdefault((int(m.group(1)), int(m.group(2))), []).append(int(m.group(3)))
+    rerun = left = not_rerun = 0
+    for key, ks in attempts.items():
+        for k in ks:
+            if k + 1 in ks or key in written and k < 10 or key in failed:
+                rerun += 1
+            elif key[0] in report.cycles_incomplete:
+                left += 1
+            else:
+                not_rerun += 1
+    f = report.faults
+    reasons: dict[str, int] = {}
+    for line in report.passes_incomplete:
+        key = re.sub(r"\d+", "N", line.split(": ", 1)[1])[:90]
+        reasons[key] = reasons.get(key, 0) + 1
+    print(f"injected: {sum(injected.values())} faults in {requests} requests, {wall:.0f} s "
+          f"({requests / wall:.0f} requests/s on average, CPU {cpu:.0f} s):")
+    print("   " + ", ".join(f"{k} {v}" for k, v in injected.items()))
+    print(f"wraps: {seq_wraps} whole passes ran across sequence 2^32-1 -> 0 (every boot starts 100 pulses before "
+          f"it); cycle counter values {cycle_log[:3]}... ({sum(1 for a, b in itertools.pairwise(cycle_log) if b < a)}"
+          f" decreases or wraps among {len(cycle_log)} changes)")
+    print(f"client saw: {f.no_reply} lost replies, {f.disconnects} dropped connections, {f.exceptions} exception "
+          f"replies ({f.refused} refused 01/02/03), {f.corrupt} damaged replies, {f.reboots} reboots, "
+          f"{f.reconnects} reconnects, {f.description_changes} IDENTITY/RADAR changes under a pass, "
+          f"{f.rig_id_changes} RIG_ID changes, {f.absurd_values} absurd values, {f.no_progress} watchdog aborts, "
+          f"{f.counter_decreases} counter decreases, {report.cycles_missed} cycles missed, {f.names_taken} "
+          f"archives under a unique name, {f.requests_failed} requests given up, {f.rate_limited} rate-bounded")
+    print(f"passes written: {len(report.passes_written)}; archives whose metadata or data differ from what the "
+          f"controller used: {len(bad_meta)}; whole passes lost: {len(lost)} (dropped for a taken name: "
+          f"{len(dropped_for_name)}); failed after {settings.max_attempts} attempts: {len(report.passes_failed)}")
+    print(f"incomplete attempts: {len(report.passes_incomplete)}: re-run {rerun}, cycle left because the face "
+          f"moved on {left}, neither {not_rerun}")
+    for k, v in sorted(reasons.items(), key=lambda kv: -kv[1]):
+        print(f"   {v:3d} x {k}")
+    print(f"cycles: {len(report.cycles_complete)} complete, {len(report.cycles_incomplete)} incomplete; service "
+          f"stops: {1 if report.error else 0}{' (' + report.error + ')' if report.error else ''}")
+    for line in bad_meta[:10]:
+        print(f"   BAD: {line}")
+    ok = (sum(injected.values()) >= n and not bad_meta and not lost and not dropped_for_name and not report.error
+          and not not_rerun and (n < 10 * len(KINDS) or all(v > 0 for v in injected.values())))
+    print(f"D: {'PASS' if ok else 'FAIL'}")
+    return ok
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--cycles", type=int, default=10)
     p.add_argument("--faults", type=int, default=100)
     p.add_argument("--fault-every", type=int, default=250, help="requests between faults in study B")
+    p.add_argument("--campaign-faults", type=int, default=180, help="faults in study D (12 of each kind on average)")
+    p.add_argument("--campaign-every", type=int, default=40, help="requests between faults in study D")
     p.add_argument("--time-scale", type=float, default=20.0, help="device time / real time in A and B")
     p.add_argument("--keepup-scales", type=lambda s: [float(v) for v in s.split(",")], default=[1.0, 4.0],
                    help="time scales of study C (1 = the module's 612 kbit/s)")
@@ -257,14 +418,14 @@ def main() -> int:
     p.add_argument("--speed-jitter", type=float, default=0.1)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--backend", default="", help="processing backend for A (default: the pipeline's, else numpy)")
-    p.add_argument("--skip", default="", help="comma-separated studies to skip (A, B, C)")
+    p.add_argument("--skip", default="", help="comma-separated studies to skip (A, B, C, D)")
     p.add_argument("--out", help="work directory (default: a temporary one)")
     args = p.parse_args()
     out = Path(args.out or tempfile.mkdtemp(prefix="uwbcl-acq-study-"))
     skip = {s.strip().upper() for s in args.skip.split(",") if s.strip()}
     print(f"work directory {out}")
     results = []
-    for name, fn in (("A", study_accuracy), ("B", study_faults), ("C", study_keepup)):
+    for name, fn in (("A", study_accuracy), ("B", study_faults), ("C", study_keepup), ("D", study_campaign)):
         if name not in skip:
             results.append(fn(args, out))
     print(f"\noverall: {'PASS' if all(results) else 'FAIL'}")

@@ -7,6 +7,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import os
 import signal
 import sys
 import tempfile
@@ -69,6 +70,13 @@ def add_acquisition_commands(sub) -> None:
     m.set_defaults(func=_demo)
 
 
+def default_state_file(rig_id: str) -> Path:
+    """Where `simulate-device` keeps CYCLE_COUNTER and the last BOOT_ID by default:
+    $XDG_STATE_HOME/uwbcl/simulate-device-<rig_id>.json ($XDG_STATE_HOME defaults to ~/.local/state)."""
+    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(base) / "uwbcl" / f"simulate-device-{rig_id}.json"
+
+
 def _world_options(p) -> None:
     p.add_argument("--scenario", choices=sorted(SCENARIOS), default="paper-sim1",
                    help="plate pattern, radar and rail of a paper scenario, repeated along the roadway")
@@ -83,7 +91,14 @@ def _world_options(p) -> None:
 def _device_options(p) -> None:
     p.add_argument("--time-scale", type=float, default=1.0, help="device seconds per real second (default 1)")
     p.add_argument("--rig-id", default="sim-rig")
-    p.add_argument("--initial-cycle", type=int, default=1000, help="cycle counter at start (default 1000)")
+    p.add_argument("--initial-cycle", type=int, default=1000,
+                   help="cycle counter at the first start, when the state file holds none (default 1000)")
+    p.add_argument("--state", default=None,
+                   help="file keeping CYCLE_COUNTER and the last BOOT_ID across restarts (default "
+                        "$XDG_STATE_HOME/uwbcl/simulate-device-<rig-id>.json, i.e. ~/.local/state/...); '' keeps none")
+    p.add_argument("--first-seq", type=int, default=1,
+                   help="sequence number of the first pulse after each boot (default 1; e.g. 4294967000 to "
+                        "exercise the wrap 2^32-1 -> 0)")
     p.add_argument("--first-cycle-after", type=float, default=5.0, help="device seconds to the first cycle signal")
     p.add_argument("--cycle-interval", type=float, default=2700.0,
                    help="device seconds between cycle signals (default 2700 = 45 min)")
@@ -91,16 +106,19 @@ def _device_options(p) -> None:
     p.add_argument("--buffer", type=int, default=512, help="pulse buffer capacity (default 512)")
     p.add_argument("--window-regs", type=int, default=2048, help="pulse window size in registers (default 2048)")
     p.add_argument("--faults", default="", help="fault injection spec, e.g. 'every=50' or 'drop=0.01,corrupt=0.01'"
-                   " (kinds: drop missing slow exception corrupt reboot overflow; see uwbcl/acquisition/faults.py)")
+                   " (kinds: drop missing slow exception exception02 exception03 exception04 corrupt reboot "
+                   "reconfigure overflow absurd short stall counter_back counter_jump; see uwbcl/acquisition/faults.py)")
 
 
 def _device_config(args, world):
     from .device import DeviceConfig
 
+    state = default_state_file(args.rig_id) if args.state is None else (args.state or None)
     return DeviceConfig(world=world, rig_id=args.rig_id, time_scale=args.time_scale,
                         initial_cycle=args.initial_cycle, first_cycle_after_s=args.first_cycle_after,
                         cycle_interval_s=args.cycle_interval, max_cycles=args.max_cycles,
-                        buffer_capacity=args.buffer, window_regs=args.window_regs)
+                        buffer_capacity=args.buffer, window_regs=args.window_regs, first_seq=args.first_seq,
+                        state_file=str(state) if state else None)
 
 
 def _simulate_device(args: argparse.Namespace) -> int:
@@ -116,7 +134,12 @@ def _simulate_device(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"uwbcl simulate-device: {exc}", file=sys.stderr)
         return 2
-    server = RigServer(RigController(config), args.host, args.port, faults=plan)
+    try:
+        controller = RigController(config)
+    except OSError as exc:
+        print(f"uwbcl simulate-device: state file {config.state_file}: {exc}", file=sys.stderr)
+        return 2
+    server = RigServer(controller, args.host, args.port, faults=plan)
 
     async def main() -> None:
         task = asyncio.create_task(server.serve())
@@ -125,7 +148,8 @@ def _simulate_device(args: argparse.Namespace) -> int:
         if task.done():
             task.result()
         print(f"simulated rig {config.rig_id} listening on {server.host}:{server.port} "
-              f"(time scale {config.time_scale:g}, faults: {args.faults or 'none'})", flush=True)
+              f"(time scale {config.time_scale:g}, faults: {args.faults or 'none'}, state: "
+              f"{config.state_file or 'not kept'})", flush=True)
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, lambda: asyncio.ensure_future(server._server.shutdown()))
@@ -195,6 +219,10 @@ def _print_summary(report, out) -> None:
           f"incomplete {len(report.cycles_incomplete)}, missed {report.cycles_missed}")
     print(f"faults seen: {f.no_reply} lost replies, {f.disconnects} dropped connections, {f.exceptions} exception "
           f"replies, {f.corrupt} corrupted replies, {f.reboots} controller reboots ({f.reconnects} reconnects)")
+    print(f"  {f.refused} refused requests (01/02/03), {f.requests_failed} requests given up, {f.absurd_values} absurd "
+          f"values, {f.description_changes} IDENTITY/RADAR changes under a pass, {f.rig_id_changes} RIG_ID "
+          f"changes, {f.no_progress} watchdog aborts, {f.counter_decreases} cycle-counter decreases, "
+          f"{f.names_taken} archives under a unique name, {f.rate_limited} requests delayed by the rate bound")
     for line in report.passes_failed:
         print(f"  failed: {line}", file=sys.stderr)
     if report.error:

@@ -1,11 +1,14 @@
 """`uwbcl acquire`: drive the rig over Modbus TCP, drain its pulse buffer, archive every pass whole or not at all.
 
 `RigLink` owns the Modbus connection: every request is retried through exception replies, lost replies and
-dropped connections, reconnecting with exponential backoff; CRC-checked blocks are re-read when a reply comes
-back corrupted; a changed BOOT_ID after a reconnect raises `DeviceRebooted`. `AcquisitionSession` runs the
-cycle loop of docs/modbus-register-map.md section 8: wait for the cycle counter, then per height move, turn,
-start a pass, drain and acknowledge its pulses, check the pass end to end and write it atomically. A pass
-that lost anything is logged, never written, and re-run.
+dropped connections, reconnecting with exponential backoff, under a request-rate bound; CRC-checked blocks are
+re-read when a reply comes back corrupted; IDENTITY and RADAR are read on every connection and after every
+reboot; a changed BOOT_ID raises `DeviceRebooted`. `AcquisitionSession` runs the cycle loop of
+docs/modbus-register-map.md section 8: wait for the cycle counter, then per height move, turn, start a pass,
+drain and acknowledge its pulses, check the pass end to end (and that the controller's IDENTITY and RADAR are
+still the ones the pass assumed) and write it atomically under a name that cannot collide. A pass that lost
+anything is logged, never written, ABORTed and re-run. What each fault costs is `registers.FAULT_TAXONOMY`
+(map section 9): only a controller that is not a compatible rig stops acquisition.
 """
 
 from __future__ import annotations
@@ -28,7 +31,15 @@ except ModuleNotFoundError:  # Python 3.10
         tomllib = None  # type: ignore[assignment]
 
 from . import registers as R
-from .recorder import DeviceRefused, Limits, PassAssembler, PassIncomplete, check_radar, write_scan
+from .recorder import (
+    AbsurdValue,
+    DeviceRefused,
+    Limits,
+    PassAssembler,
+    PassIncomplete,
+    check_radar,
+    write_scan,
+)
 
 log = logging.getLogger("uwbcl.acquire")
 
@@ -38,7 +49,12 @@ class Interrupted(Exception):
 
 
 class LinkDown(Exception):
-    """The device could not be talked to within the limits (persistent exception replies, ...)."""
+    """A request failed (fault REFUSED: exception 01/02/03 repeated, 04/06 or damaged replies too many times in a
+    row): the step it belongs to fails; inside a pass the pass is re-run. Never stops acquisition."""
+
+
+class DescriptionChanged(PassIncomplete):
+    """IDENTITY or RADAR differ from what the pass in progress assumed (fault DESCRIPTION_CHANGED)."""
 
 
 class DeviceRebooted(Exception):
@@ -73,7 +89,8 @@ class AcquireSettings:
     timeout_s: float = 1.0  # per Modbus request
     reconnect_max_s: float = 5.0
     max_attempts: int = 5  # per pass
-    stall_timeout_s: float = 15.0  # no new pulse for this long: the pass is given up and re-run
+    stall_timeout_s: float = 15.0  # watchdog: no new pulse and no state change for this long -> ABORT, re-run
+    max_request_rate_hz: float = 2500.0  # bound on requests per second: no loop can spin the link
     command_timeout_s: float = 120.0
     poll_s: float = 0.02  # between window reads when the buffer is empty
     heartbeat_timeout_s: float = 2.0  # replies with a frozen HEARTBEAT for this long: the controller is hung
@@ -102,7 +119,7 @@ class AcquireSettings:
         if not -89.0 < self.rotation_table_angle_deg < 89.0:
             raise ConfigError("rotation_table_angle_deg: must be within (-89, 89)")
         for name in ("timeout_s", "reconnect_max_s", "stall_timeout_s", "command_timeout_s", "poll_s",
-                     "rib_distance_m"):
+                     "rib_distance_m", "max_request_rate_hz"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name}: must be > 0")
         if self.max_attempts < 1 or self.cycles < 0:
@@ -164,6 +181,15 @@ class FaultCounts:
     reconnects: int = 0
     reboots: int = 0
     stalls: int = 0  # heartbeat frozen while replies kept coming
+    refused: int = 0  # exception 01/02/03 (fault REFUSED), also counted in `exceptions`
+    requests_failed: int = 0  # LinkDown: a request given up, its step failed
+    description_changes: int = 0  # IDENTITY or RADAR differed from what a pass assumed
+    rig_id_changes: int = 0
+    absurd_values: int = 0
+    no_progress: int = 0  # watchdog trips
+    counter_decreases: int = 0
+    names_taken: int = 0  # whole passes written under the unique name because the usual one was taken
+    rate_limited: int = 0  # requests delayed by the request-rate bound
 
     def total(self) -> int:
         return self.no_reply + self.disconnects + self.exceptions + self.corrupt + self.reboots + self.stalls
@@ -172,11 +198,13 @@ class FaultCounts:
 class RigLink:
     """One Modbus TCP connection to the rig controller; see the module docstring."""
 
-    MAX_EXCEPTION_RETRIES = 25
+    MAX_EXCEPTION_RETRIES = 25  # 04/06 in a row
+    MAX_REFUSED_RETRIES = 3  # 01/02/03 in a row: a damaged request gets 03 once, a broken one every time
     MAX_CRC_RETRIES = 10
 
     def __init__(self, host: str, port: int, *, unit_id: int = 1, timeout_s: float = 1.0,
-                 reconnect_max_s: float = 5.0, stop: threading.Event | None = None):
+                 reconnect_max_s: float = 5.0, stop: threading.Event | None = None,
+                 max_request_rate_hz: float = 2500.0):
         from pymodbus.client import ModbusTcpClient
 
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # its errors are our fault log lines
@@ -185,10 +213,18 @@ class RigLink:
         self.reconnect_max_s = reconnect_max_s
         self.stop = stop or threading.Event()
         self.boot_id: int | None = None
+        self.identity: dict | None = None  # IDENTITY and RADAR as read on this connection / since this boot
+        self.radar: dict | None = None
+        self.first_status: dict | None = None
         self.counts = FaultCounts()
         self.requests = 0
         self._ever_connected = False
         self._jitter = random.Random(port)
+        # Request-rate bound (token bucket): a tenth of a second of burst, then at most max_request_rate_hz.
+        self._rate_hz = float(max_request_rate_hz)
+        self._tokens = self._rate_hz / 10.0
+        self._tokens_t = time.monotonic()
+        self._rate_logged = 0.0
 
     def close(self) -> None:
         self.client.close()
@@ -197,17 +233,33 @@ class RigLink:
         if self.stop.wait(seconds):
             raise Interrupted()
 
+    def _rate_bound(self) -> None:
+        now = time.monotonic()
+        self._tokens = min(self._rate_hz / 10.0, self._tokens + (now - self._tokens_t) * self._rate_hz)
+        self._tokens_t = now
+        if self._tokens < 1.0:
+            self.counts.rate_limited += 1
+            if now - self._rate_logged > 60.0:
+                self._rate_logged = now
+                log.warning("fault: request rate bound (%g/s) reached; requests are being delayed", self._rate_hz)
+            self.sleep((1.0 - self._tokens) / self._rate_hz)
+            self._tokens = 1.0
+            self._tokens_t = time.monotonic()
+        self._tokens -= 1.0
+
     # ------------------------------------------------------------------------------------------ connection
 
     def ensure_connected(self) -> None:
-        """Connect (again) with exponential backoff; a device that accepts and then says nothing (booting) too."""
+        """Connect (again) with exponential backoff; read STATUS, IDENTITY and RADAR on every new connection (map
+        4.1, 4.3); DeviceRebooted if BOOT_ID changed since the last connection."""
         delay = 0.05
         while not self.client.connected:
             if self.stop.is_set():
                 raise Interrupted()
             if self.client.connect():
                 try:
-                    self._check_boot()
+                    status = self._read_block_once(R.STATUS)
+                    identity, radar = self._describe_once()
                 except (_NoReply, LinkDown):
                     self.client.close()
                 else:
@@ -215,31 +267,50 @@ class RigLink:
                         self.counts.reconnects += 1
                         log.info("reconnected to %s:%d", self.host, self.port)
                     self._ever_connected = True
+                    self.identity, self.radar = identity, radar
+                    self.first_status = self.first_status or status
+                    rebooted = self.boot_id is not None and status["BOOT_ID"] != self.boot_id
+                    self.boot_id = status["BOOT_ID"]
+                    if rebooted:
+                        self.counts.reboots += 1
+                        log.warning("fault: controller rebooted (BOOT_ID now 0x%08X)", self.boot_id)
+                        raise DeviceRebooted()
                     return
             log.log(logging.WARNING if delay >= 0.4 else logging.DEBUG,
                     "fault: %s:%d not answering; retrying in %.2f s", self.host, self.port, delay)
             self.sleep(delay * (0.8 + 0.4 * self._jitter.random()))
             delay = min(2.0 * delay, self.reconnect_max_s)
 
-    def _check_boot(self) -> None:
-        status = self._read_block_once(R.STATUS)
-        boot = status["BOOT_ID"]
-        if self.boot_id is not None and boot != self.boot_id:
-            self.boot_id = boot
-            self.counts.reboots += 1
-            log.warning("fault: controller rebooted (BOOT_ID now 0x%08X)", boot)
-            raise DeviceRebooted()
-        self.boot_id = boot
+    def _describe_once(self) -> tuple[dict, dict]:
+        identity = self._read_block_once(R.IDENTITY)
+        if _incompatible(identity):  # read twice before stopping: one reply never stops acquisition
+            self.sleep(0.2)
+            identity = self._read_block_once(R.IDENTITY)
+            if _incompatible(identity):
+                raise DeviceRefused(_incompatible(identity))
+        return identity, self._read_block_once(R.RADAR)
+
+    def describe(self) -> None:
+        """Re-read IDENTITY and RADAR on the open connection (after a reboot seen in STATUS)."""
+        identity = self.read_block(R.IDENTITY)
+        if _incompatible(identity):
+            self.sleep(0.2)
+            identity = self.read_block(R.IDENTITY)
+            if _incompatible(identity):
+                raise DeviceRefused(_incompatible(identity))
+        self.identity, self.radar = identity, self.read_block(R.RADAR)
 
     # ------------------------------------------------------------------------------------------ requests
 
     def _request(self, desc: str, fn):
-        """One request, answered: retried through lost replies, dropped connections and exception replies."""
+        """One request, answered: retried through lost replies, dropped connections and exception replies
+        (taxonomy NO_REPLY, BUSY, REFUSED), each retry after a growing pause, so that no loop can spin."""
         from pymodbus.exceptions import ModbusException
 
-        exceptions = 0
+        exceptions = refused = lost = 0
         while True:
             self.ensure_connected()
+            self._rate_bound()
             self.requests += 1
             try:
                 reply = fn()
@@ -251,14 +322,25 @@ class RigLink:
                     self.counts.disconnects += 1
                 log.warning("fault: %s: %s; reconnecting", desc, kind)
                 self.client.close()  # a fresh connection: a late reply can never be taken for the next one
+                lost += 1
+                if lost > 1:  # the first one reconnects at once; a controller that keeps dropping us is paced
+                    self.sleep(min(0.05 * 2 ** (lost - 2), self.reconnect_max_s) * (0.8 + 0.4 * self._jitter.random()))
                 continue
             if reply.isError():
                 code = getattr(reply, "exception_code", None)
                 self.counts.exceptions += 1
-                if code in (1, 2, 3):  # our request is wrong for this device: retrying cannot help
-                    raise LinkDown(f"{desc}: device answered Modbus exception {code}")
+                if code in (1, 2, 3):  # REFUSED: a damaged request gets one; a request this device refuses, all
+                    self.counts.refused += 1
+                    refused += 1
+                    if refused > self.MAX_REFUSED_RETRIES:
+                        self.counts.requests_failed += 1
+                        raise LinkDown(f"{desc}: device answered Modbus exception {code} {refused} times")
+                    log.warning("fault: %s: Modbus exception %s (refused); repeating it", desc, code)
+                    self.sleep(0.02 * 2 ** refused)
+                    continue
                 exceptions += 1
                 if exceptions > self.MAX_EXCEPTION_RETRIES:
+                    self.counts.requests_failed += 1
                     raise LinkDown(f"{desc}: device answered exception {code} {exceptions} times")
                 log.warning("fault: %s: Modbus exception %s; retrying", desc, code)
                 self.sleep(min(0.01 * 2 ** exceptions, 1.0))
@@ -280,7 +362,9 @@ class RigLink:
         """Used while (re)connecting: no reconnect loop of its own."""
         from pymodbus.exceptions import ModbusException
 
-        for _ in range(self.MAX_CRC_RETRIES):
+        for attempt in range(self.MAX_CRC_RETRIES):
+            self._rate_bound()
+            self.requests += 1
             try:
                 fn = self.client.read_input_registers if block.table is R.Table.INPUT \
                     else self.client.read_holding_registers
@@ -289,7 +373,7 @@ class RigLink:
                 raise _NoReply() from None
             if reply.isError():
                 self.counts.exceptions += 1
-                self.sleep(0.05)
+                self.sleep(0.05 * (attempt + 1))
                 continue
             try:
                 return block.decode(reply.registers)
@@ -305,12 +389,23 @@ class RigLink:
             except (R.RegisterError, _Corrupt) as exc:
                 self.counts.corrupt += 1 if isinstance(exc, R.RegisterError) else 0
                 log.warning("fault: %s; re-reading", exc)
+        self.counts.requests_failed += 1
         raise LinkDown(f"{block.name}: corrupted {self.MAX_CRC_RETRIES} times in a row")
 
     def write_block(self, block: R.Block, values: dict) -> None:
         regs = block.encode(values)
         self._request(f"write {block.name}", lambda: self.client.write_registers(block.address, regs,
                                                                                  device_id=self.unit_id))
+
+
+def _incompatible(identity: dict) -> str:
+    """Why a controller is not a rig this client speaks to (fault INCOMPATIBLE), or ''."""
+    if identity["MAGIC"] != R.MAP_MAGIC:
+        return f"IDENTITY.MAGIC = 0x{identity['MAGIC']:04X}: not a uwbcl rig controller"
+    if identity["MAP_MAJOR"] != R.MAP_VERSION[0]:
+        return (f"register map {identity['MAP_MAJOR']}.{identity['MAP_MINOR']}: this client speaks "
+                f"{R.MAP_VERSION[0]}.x; upgrade uwbcl")
+    return ""
 
 
 class _NoReply(Exception):
@@ -352,11 +447,12 @@ class AcquisitionSession:
         self.settings = settings
         self.stop = stop or threading.Event()
         self.link = RigLink(settings.host, settings.port, unit_id=settings.unit_id, timeout_s=settings.timeout_s,
-                            reconnect_max_s=settings.reconnect_max_s, stop=self.stop)
+                            reconnect_max_s=settings.reconnect_max_s, stop=self.stop,
+                            max_request_rate_hz=settings.max_request_rate_hz)
         self.report = AcquisitionReport(faults=self.link.counts)
         self.processor = processor
         self.out = Path(settings.out)
-        self._cmd_seq = 0
+        self._cmd_seq: int | None = None  # continues after the controller's CMD_ACK_SEQ (map 7)
         self._token = int(time.time()) % 1_000_000 * 1000  # distinct from an earlier run's tokens
         self._result_seq = 0
         self._heartbeat = 0
@@ -365,23 +461,27 @@ class AcquisitionSession:
         self._heartbeat_seen = (None, time.monotonic())  # (value, when it last changed)
         self._last_result: dict | None = None
         self._published_boot: int | None = None
+        self.radar: dict | None = None
+        self.identity: dict | None = None
+        self.rig_id = settings.rig_id or ""
 
     # ------------------------------------------------------------------------------------------ top level
 
     def run(self) -> AcquisitionReport:
         try:
-            self._describe_device()
             self._cycle_loop()
         except Interrupted:
             self.report.interrupted = True
             log.warning("stopping: shutdown requested; no pass in progress was written")
             self._abort_quietly()
-        except (LinkDown, DeviceRefused) as exc:
+        except DeviceRefused as exc:  # fault INCOMPATIBLE or CONFIGURATION: the only stops
             self.report.error = str(exc)
             log.error("acquisition stopped: %s", exc)
+            self._abort_quietly()
         except Exception as exc:  # a defect: stop with a clear line, not a traceback in the service log only
             self.report.error = f"{type(exc).__name__}: {exc}"
             log.exception("acquisition stopped by an unexpected error")
+            self._abort_quietly()
         finally:
             if self.processor is not None:
                 self.processor.close(5.0 if self.report.interrupted else 60.0)
@@ -389,37 +489,53 @@ class AcquisitionSession:
             self.link.close()
         return self.report
 
-    def _describe_device(self) -> None:
-        while True:
-            try:
-                self.link.ensure_connected()
-                ident = self.link.read_block(R.IDENTITY)
-                break
-            except DeviceRebooted:
-                continue
-        if ident["MAGIC"] != R.MAP_MAGIC:
-            raise DeviceRefused(f"IDENTITY.MAGIC = 0x{ident['MAGIC']:04X}: not a uwbcl rig controller")
-        if ident["MAP_MAJOR"] != R.MAP_VERSION[0]:
-            raise DeviceRefused(f"register map {ident['MAP_MAJOR']}.{ident['MAP_MINOR']}: this client speaks "
-                                f"{R.MAP_VERSION[0]}.x; upgrade uwbcl")
-        self.radar = self._read(R.RADAR)
-        check_radar(self.radar, self.settings.limits)
-        self.rig_id = self.settings.rig_id or ident["RIG_ID"] or "rig"
-        self.reference_point_m = self.settings.reference_point_m(self.radar["BORESIGHT_Y_SIGN"])
-        if self.processor is not None and not self.processor.rig_id:
-            self.processor.rig_id = self.rig_id
-        log.info("rig %s (%s, serial %d, map %d.%d) at %s:%d: f_c %.3f GHz, PRF %g Hz, buffer %d pulses",
-                 self.rig_id, ident["VENDOR"], ident["SERIAL"], ident["MAP_MAJOR"], ident["MAP_MINOR"],
-                 self.settings.host, self.settings.port, self.radar["CARRIER_FREQUENCY"] / 1e9, self.radar["PRF"],
-                 self.radar["BUFFER_CAPACITY"])
+    def _adopt_description(self) -> None:
+        """Take IDENTITY and RADAR as the link last read them (this connection, this boot) for the next pass;
+        log a new rig id; AbsurdValue if RADAR is unusable, DeviceRefused if the configuration does not fit."""
+        if self.link.identity is None or self.link.radar is None:  # a reboot whose re-read failed: read now
+            self.link.describe()
+        identity, radar = self.link.identity, self.link.radar
+        if identity == self.identity and radar == self.radar:  # the usual case: a reconnect, nothing changed
+            return
+        try:
+            check_radar(radar, self.settings.limits)
+        except AbsurdValue:
+            self.link.counts.absurd_values += 1
+            self.link.describe()  # one absurd reply must not stick: the next attempt uses a fresh read
+            raise
+        rig_id = self.settings.rig_id or identity["RIG_ID"] or "rig"
+        if self.rig_id and rig_id != self.rig_id:
+            self.link.counts.rig_id_changes += 1
+            log.warning("fault: controller RIG_ID changed from %r to %r; archives carry the new id", self.rig_id,
+                        rig_id)
+        if self.radar is not None and radar != self.radar:
+            changed = sorted(k for k in radar if radar[k] != self.radar.get(k))
+            log.warning("controller RADAR changed (%s); passes from now on use the new values",
+                        ", ".join(f"{k} {self.radar[k]:g} -> {radar[k]:g}" for k in changed))
+        self._check_configuration(radar)
+        first = self.identity is None
+        self.identity, self.radar, self.rig_id = identity, radar, rig_id
+        self.reference_point_m = self.settings.reference_point_m(radar["BORESIGHT_Y_SIGN"])
+        if self.processor is not None and (not self.processor.rig_id or not self.settings.rig_id):
+            self.processor.rig_id = rig_id
+        log.log(logging.INFO if first else logging.WARNING,
+                "rig %s (%s, serial %d, firmware 0x%08X, map %d.%d) at %s:%d: f_c %.3f GHz, fs %.3f GHz, PRF %g Hz, "
+                "buffer %d pulses", rig_id, identity["VENDOR"], identity["SERIAL"], identity["FIRMWARE"],
+                identity["MAP_MAJOR"], identity["MAP_MINOR"], self.settings.host, self.settings.port,
+                radar["CARRIER_FREQUENCY"] / 1e9, radar["SAMPLE_RATE"] / 1e9, radar["PRF"], radar["BUFFER_CAPACITY"])
 
-    def _read(self, block: R.Block) -> dict:
-        """read_block that rides through reboots (callers that must notice them use link.read_block)."""
-        while True:
-            try:
-                return self.link.read_block(block)
-            except DeviceRebooted:
-                continue
+    def _check_configuration(self, radar: dict) -> None:
+        """Fault CONFIGURATION: configured heights and angle the rig cannot reach (when RADAR gives its limits)."""
+        lo, hi = radar["HEIGHT_MIN"], radar["HEIGHT_MAX"]
+        if math.isfinite(lo) and math.isfinite(hi) and hi > lo:
+            for h in self.settings.heights_m:
+                if not lo - 1e-6 <= h <= hi + 1e-6:
+                    raise DeviceRefused(f"MOVE_HEIGHT {round(h * 1e6)}: outside the rig's range (height {h:g} m, "
+                                        f"RADAR HEIGHT_MIN..HEIGHT_MAX {lo:g}..{hi:g} m; check heights)")
+        table_max = radar["TABLE_MAX"]
+        if math.isfinite(table_max) and table_max > 0 and abs(self.settings.rotation_table_angle_deg) > table_max:
+            raise DeviceRefused(f"SET_TABLE_ANGLE {self.settings.rotation_table_angle_deg:g} deg: outside the rig's "
+                                f"range (RADAR TABLE_MAX {table_max:g} deg; check the angle)")
 
     def _status(self) -> dict:
         status = self.link.read_block(R.STATUS)
@@ -427,6 +543,8 @@ class AcquisitionSession:
             self.link.boot_id = status["BOOT_ID"]
             self.link.counts.reboots += 1
             log.warning("fault: controller rebooted (BOOT_ID now 0x%08X)", status["BOOT_ID"])
+            self.link.identity = self.link.radar = None  # never the old boot's, even if this re-read fails
+            self.link.describe()  # IDENTITY and RADAR of the new boot (map 9)
             raise DeviceRebooted()
         now = time.monotonic()
         if status["HEARTBEAT"] != self._heartbeat_seen[0]:
@@ -451,22 +569,42 @@ class AcquisitionSession:
     # ------------------------------------------------------------------------------------------ cycles
 
     def _cycle_loop(self) -> None:
-        last = self._read(R.STATUS)["CYCLE_COUNTER"]
-        log.info("waiting for the cycle signal (counter now %d)", last)
+        """Wait for each cycle and scan it. A step that fails outside a pass (a request refused, a reboot) is
+        logged and started again after a pause; nothing here stops acquisition but DeviceRefused."""
+        last: int | None = None
         done = 0
         pending: int | None = None
+        pause_s = 0.1
         while not self.settings.cycles or done < self.settings.cycles:
-            cycle = pending if pending is not None else self._wait_cycle(last)
-            pending = None
-            if cycle - last > 1:
-                self.report.cycles_missed += cycle - last - 1
-                log.warning("cycles %d-%d were never scanned (the counter jumped from %d to %d)", last + 1,
-                            cycle - 1, last, cycle)
-            last = cycle
-            pending = self._scan_cycle(cycle)
-            done += 1
-            if pending is not None and pending == last:
+            try:
+                if last is None:
+                    status = self._status()
+                    last = status["CYCLE_COUNTER"]
+                    if self._cmd_seq is None:
+                        self._cmd_seq = status["CMD_ACK_SEQ"]
+                    self._adopt_description()
+                    log.info("waiting for the cycle signal (counter now %d)", last)
+                cycle = pending if pending is not None else self._wait_cycle(last)
                 pending = None
+                step = R.seq_diff(cycle, last)  # modulo 2^32: 2^32 - 1 -> 0 is one step forward
+                if step > 1:
+                    self.report.cycles_missed += step - 1
+                    log.warning("cycles %d-%d were never scanned (the counter jumped from %d to %d)",
+                                R.seq_add(last, 1), R.seq_add(cycle, -1), last, cycle)
+                elif step < 0:
+                    self.link.counts.counter_decreases += 1
+                    log.warning("fault: cycle counter decreased from %d to %d; scanning %d as a new cycle (its "
+                                "archives are named so that they cannot replace earlier ones)", last, cycle, cycle)
+                last = cycle
+                pending = self._scan_cycle(cycle)
+                done += 1
+                pause_s = 0.1
+                if pending is not None and pending == last:
+                    pending = None
+            except (LinkDown, DeviceRebooted, PassIncomplete) as exc:
+                log.warning("fault: %s; waiting %.1f s before going on", exc or "controller rebooted", pause_s)
+                self.link.sleep(pause_s)
+                pause_s = min(2.0 * pause_s, self.settings.reconnect_max_s)
 
     def _wait_cycle(self, last: int) -> int:
         while True:
@@ -488,30 +626,33 @@ class AcquisitionSession:
             for attempt in range(1, self.settings.max_attempts + 1):
                 self._publish_results()
                 try:
-                    scan, token = self._run_pass(cycle, height)
-                except (PassIncomplete, DeviceRebooted) as exc:
-                    reason = str(exc) or "controller rebooted mid-pass"
-                    self.report.passes_incomplete.append(f"{name} attempt {attempt}: {reason}")
-                    log.warning("pass %s attempt %d incomplete: %s; %s", name, attempt, reason,
-                                "re-running it" if attempt < self.settings.max_attempts else "giving up")
-                    continue
+                    scan, token, boot = self._run_pass(cycle, height)
                 except CycleSuperseded as exc:
                     log.warning("cycle %d superseded during its scan (%s): %d of %d heights acquired; not "
                                 "processed", cycle, exc, len(passes), len(self.settings.heights_m))
                     self.report.cycles_incomplete.append(cycle)
                     self._submit(cycle, passes, complete=False, start_time=start_time)
                     return exc.counter
-                pass_id = f"{self.rig_id}-c{cycle:06d}-h{round(height * 1000):04d}-p{token}"
+                except (PassIncomplete, DeviceRebooted, LinkDown) as exc:  # fault class PASS: ABORT, re-run
+                    self._abort_quietly()
+                    reason = str(exc) or "controller rebooted mid-pass"
+                    self.report.passes_incomplete.append(f"{name} attempt {attempt}: {reason}")
+                    log.warning("pass %s attempt %d incomplete: %s; %s", name, attempt, reason,
+                                "re-running it" if attempt < self.settings.max_attempts else "giving up")
+                    if attempt > 1:  # a fault that repeats is not retried at full speed
+                        self.link.sleep(min(0.05 * 2 ** (attempt - 2), self.settings.reconnect_max_s))
+                    continue
+                pass_id = f"{scan.rig_id}-c{cycle:06d}-h{round(height * 1000):04d}-b{boot:08X}-p{token}"
                 try:
-                    path = write_scan(self.out, scan, pass_id)
-                except FileExistsError as exc:
-                    self.report.passes_failed.append(f"{name}: {exc.filename} already exists, not overwritten")
-                    log.error("pass %s: %s already exists; not overwritten", name, exc.filename)
-                    break
+                    path = write_scan(self.out, scan, pass_id, unique=f"b{boot:08X}_p{token}")
                 except OSError as exc:  # disk full, permissions: the pass is lost to us, the service goes on
                     self.report.passes_failed.append(f"{name}: cannot write the archive: {exc}")
                     log.error("pass %s: cannot write the archive: %s", name, exc)
                     break
+                if not path.name.endswith(f"_h{round(height * 1000):04d}.h5"):
+                    self.link.counts.names_taken += 1
+                    log.warning("pass %s: the usual archive name was taken (cycle %d acquired before); written "
+                                "as %s", name, cycle, path.name)
                 self.report.passes_written.append(str(path))
                 passes.append(scan)
                 start_time = start_time or scan.pass_start_time
@@ -530,9 +671,13 @@ class AcquisitionSession:
     # ------------------------------------------------------------------------------------------ one pass
 
     def _run_pass(self, cycle: int, height_m: float):
+        """One attempt: returns (scan, token, boot id), the scan carrying the IDENTITY and RADAR the controller
+        had for the whole pass; PassIncomplete (or a subclass), DeviceRebooted or LinkDown otherwise."""
         status = self._status()
         if status["CYCLE_COUNTER"] != cycle:
             raise CycleSuperseded(status["CYCLE_COUNTER"])
+        self._adopt_description()
+        boot, identity, radar, rig_id = self.link.boot_id, self.identity, self.radar, self.rig_id
         self._make_idle(status)
         self._command(R.Command.MOVE_HEIGHT, round(height_m * 1e6))
         self._command(R.Command.SET_TABLE_ANGLE, round(self.settings.rotation_table_angle_deg * 1e3))
@@ -545,24 +690,43 @@ class AcquisitionSession:
             raise PassIncomplete(f"PASS.TOKEN is {desc['TOKEN']}, not the {token} just started")
         if desc["CYCLE"] != cycle:
             raise CycleSuperseded(desc["CYCLE"])
-        assembler = PassAssembler(desc, self.radar, self.settings.limits)
+        try:
+            assembler = PassAssembler(desc, radar, self.settings.limits)
+        except AbsurdValue:
+            self.link.counts.absurd_values += 1
+            raise
         self._drain(assembler)
         end = self.link.read_block(R.PASS)
         assembler.finish(end)
         self._active_token = None
-        scan = assembler.scan_pass(self.radar, rig_id=self.rig_id, reference_point_m=self.reference_point_m,
-                                   cycle=cycle)
-        return scan, token
+        # The archive must carry what the controller used: same boot, same IDENTITY and RADAR throughout.
+        if self.link.boot_id != boot:
+            raise DeviceRebooted()
+        if self.link.identity != identity or self.link.radar != radar:
+            self.link.counts.description_changes += 1
+            raise DescriptionChanged("IDENTITY or RADAR changed during the pass; running it again with the new "
+                                     "values")
+        scan = assembler.scan_pass(radar, rig_id=rig_id, reference_point_m=self.reference_point_m, cycle=cycle)
+        return scan, token, boot
 
     def _drain(self, asm: PassAssembler) -> None:
-        """Read the window, check, store, acknowledge; until the LAST pulse (docs section 6)."""
+        """Read the window, check, store, acknowledge; until the LAST pulse (docs section 6). A no-progress
+        watchdog (no new pulse and no change of STATE, STATUS_WORD, FAULT_WORD or PASS for stall_timeout_s)
+        ABORTs the pass; every pass through the loop that stores nothing waits poll_s, so it cannot spin."""
         window_regs = int(self.radar["WINDOW_REGS"])
         hdr = R.WINDOW_HEADER.length
         last_progress = last_status = time.monotonic()
+        seen_state = None
         corrupt_in_a_row = empty_after_end = 0
         while True:
             if self.stop.is_set():
                 raise Interrupted()
+            now = time.monotonic()
+            if now - last_progress > self.settings.stall_timeout_s:
+                self.link.counts.no_progress += 1
+                log.warning("fault: pass token %d: no new pulse and no state change for %g s (watchdog); aborting",
+                            asm.token, self.settings.stall_timeout_s)
+                raise PassIncomplete(f"no progress for {self.settings.stall_timeout_s:g} s (watchdog)")
             first = self.link.read(R.Table.INPUT, R.WINDOW_ADDRESS, min(R.MAX_REGISTERS_PER_READ, window_regs))
             try:
                 head = R.WINDOW_HEADER.decode(first[:hdr])
@@ -576,7 +740,7 @@ class AcquisitionSession:
                     seq, t, x, flags, iq, bad = R.decode_records(regs[hdr:], n, asm.samples_per_pulse)
                     if bad:
                         raise R.RegisterError(f"pulse window: CRC mismatch in record(s) {bad[:5]} "
-                                              f"(seq {head['OLDEST_SEQ'] + bad[0]})")
+                                              f"(seq {R.seq_add(head['OLDEST_SEQ'], bad[0])})")
             except R.RegisterError as exc:
                 self.link.counts.corrupt += 1
                 corrupt_in_a_row += 1
@@ -586,21 +750,31 @@ class AcquisitionSession:
                 continue
             corrupt_in_a_row = 0
             now = time.monotonic()
-            self.report.max_backlog_pulses = max(self.report.max_backlog_pulses, head["NEWEST_SEQ"] - asm.last_seq)
+            self.report.max_backlog_pulses = max(self.report.max_backlog_pulses,
+                                                 R.seq_diff(head["NEWEST_SEQ"], asm.last_seq))
+            stored = 0
             if n:
-                stale = asm.next_seq - head["OLDEST_SEQ"]
-                if stale > 0:  # our acknowledgement got lost on the way: these we already hold
+                # Modulo 2^32 (map 6): records at or before the last one stored are ours already (a lost ACK).
+                stale = min(max(R.seq_diff(asm.next_seq, head["OLDEST_SEQ"]), 0), n)
+                if stale:
                     seq, t, x, flags, iq = seq[stale:], t[stale:], x[stale:], flags[stale:], iq[stale:]
+                before = asm.count
                 asm.add(seq, t, x, flags, iq)
+                stored = asm.count - before
                 self.link.write_block(R.ACK, {"ACK_SEQ": asm.last_seq})
-                last_progress = now
+                if stored:
+                    last_progress = now
                 if asm.last_seen:
                     return
-            if not n or now - last_status > 0.5:
+            if not stored or now - last_status > 0.5:
                 last_status = now
                 status = self._status()
+                state = (status["STATE"], status["STATUS_WORD"], status["FAULT_WORD"])
+                if state != seen_state:  # a state change counts as progress for the watchdog
+                    if seen_state is not None:
+                        last_progress = now
+                    seen_state = state
                 if status["STATUS_WORD"] & R.Status.OVERFLOW:
-                    self._abort_quietly()
                     raise PassIncomplete("device buffer overflowed: pulses were dropped")
                 if not n and not status["STATUS_WORD"] & R.Status.PASS_ACTIVE:
                     d = self.link.read_block(R.PASS)
@@ -612,10 +786,7 @@ class AcquisitionSession:
                     if empty_after_end > 1:
                         raise PassIncomplete(f"pass complete but pulses after seq {asm.last_seq} never arrived")
                     continue
-            if not n:
-                if now - last_progress > self.settings.stall_timeout_s:
-                    self._abort_quietly()
-                    raise PassIncomplete(f"no pulse for {self.settings.stall_timeout_s:g} s")
+            if not stored:
                 self.link.sleep(self.settings.poll_s)
 
     def _read_rest(self, have: int, total: int) -> list[int]:
@@ -630,29 +801,34 @@ class AcquisitionSession:
 
     # ------------------------------------------------------------------------------------------ commands
 
+    def _next_cmd_seq(self) -> int:
+        self._cmd_seq = R.cmd_seq_next(self._cmd_seq or 0)  # 65535 -> 1; never 0
+        return self._cmd_seq
+
     def _command(self, code: R.Command, arg: int = 0, wait: bool = True) -> None:
         """Write a command, confirm its acknowledgement, and (wait=True) wait until it is DONE."""
-        self._cmd_seq = self._cmd_seq % 65535 + 1
-        seq = self._cmd_seq
+        seq = self._next_cmd_seq()
         values = {"CMD_CODE": int(code), "CMD_SEQ": seq, "ARG0": arg}
         deadline = time.monotonic() + self.settings.command_timeout_s
         self.link.write_block(R.COMMAND, values)
         while True:
             st = self._status()
-            if st["CMD_ACK_SEQ"] != seq:  # cannot normally happen: the write was answered
+            result = R.CommandResult(st["CMD_RESULT"]) if st["CMD_RESULT"] in R.CommandResult._value2member_map_ \
+                else None
+            if st["CMD_ACK_SEQ"] != seq:  # not recorded (a controller off the map): the same CMD_SEQ again
+                if time.monotonic() > deadline:
+                    raise PassIncomplete(f"{code.name}: never acknowledged (CMD_ACK_SEQ {st['CMD_ACK_SEQ']})")
+                self.link.sleep(self.settings.poll_s)
                 self.link.write_block(R.COMMAND, values)
                 continue
-            result = R.CommandResult(st["CMD_RESULT"])
             if result is R.CommandResult.DONE or (result is R.CommandResult.ACCEPTED and not wait):
                 return
             if result is R.CommandResult.FAILED:
                 raise PassIncomplete(f"{code.name} failed on the device (FAULT_WORD 0x{st['FAULT_WORD']:04X})")
-            if result is R.CommandResult.REJECTED_RANGE:
-                raise DeviceRefused(f"{code.name} {arg}: outside the rig's range (check heights/angle)")
             if result is not R.CommandResult.ACCEPTED:
-                raise PassIncomplete(f"{code.name} rejected: {result.name}")
+                name = result.name if result is not None else st["CMD_RESULT"]
+                raise PassIncomplete(f"{code.name} {arg} rejected: {name}")
             if time.monotonic() > deadline:
-                self._abort_quietly()
                 raise PassIncomplete(f"{code.name} not done after {self.settings.command_timeout_s:g} s")
             self.link.sleep(self.settings.poll_s)
 
@@ -666,7 +842,9 @@ class AcquisitionSession:
                 log.warning("device fault word 0x%04X: clearing faults", status["FAULT_WORD"])
                 self._command(R.Command.CLEAR_FAULTS)
             elif word & R.Status.BUSY:
-                log.info("device busy (state %s): aborting", R.State(status["STATE"]).name)
+                state = R.State(status["STATE"]).name if status["STATE"] in R.State._value2member_map_ \
+                    else status["STATE"]
+                log.info("device busy (state %s): aborting", state)
                 self._command(R.Command.ABORT)
             if time.monotonic() > deadline:
                 raise PassIncomplete("device did not become ready")
@@ -674,13 +852,14 @@ class AcquisitionSession:
             status = self._status()
 
     def _abort_quietly(self) -> None:
-        """Best effort: stop a pass we are walking away from, so the rig does not scan on for nothing."""
+        """Best effort: stop a pass we are walking away from, so the rig does not scan on for nothing (the next
+        attempt's _make_idle ABORTs with confirmation if this one does not arrive)."""
         if self._active_token is None:
             return
         self._active_token = None
         try:
-            self._cmd_seq = self._cmd_seq % 65535 + 1
-            self.link.write_block(R.COMMAND, {"CMD_CODE": int(R.Command.ABORT), "CMD_SEQ": self._cmd_seq})
+            seq = self._next_cmd_seq()
+            self.link.write_block(R.COMMAND, {"CMD_CODE": int(R.Command.ABORT), "CMD_SEQ": seq})
         except Exception as exc:  # noqa: BLE001 - we are already failing; the re-run aborts again if needed
             log.debug("abort not delivered: %s", exc)
 
@@ -723,7 +902,9 @@ class AcquisitionSession:
             self._published_boot = boot
             return True
         except (LinkDown, DeviceRebooted, Interrupted) as exc:
-            if not final:
+            if isinstance(exc, Interrupted) and not final:
                 raise
-            log.warning("cycle %d: result not published: %s", values["CYCLE"], exc or "interrupted")
+            self._published_boot = None  # written again at the next chance (a failed step never loses a result)
+            log.warning("cycle %d: result not published%s: %s", values["CYCLE"], "" if final else " yet",
+                        exc or "interrupted")
             return False

@@ -6,6 +6,10 @@ acknowledge window, the cycle counter of the longwall control system, reboots. `
 Modbus TCP (pymodbus `ModbusTcpServer` with a `SimDevice` whose access hook calls the controller) in a
 background thread, and applies the faults a `FaultInjector` draws.
 
+Persistence: with a state file (`DeviceConfig.state_file`, `uwbcl simulate-device --state`), CYCLE_COUNTER
+and the last BOOT_ID survive a restart of the simulator, as the map requires of a controller (the counter lives
+in the longwall control system; BOOT_ID must differ from the previous boot's).
+
 Time: device time runs `time_scale` times faster than the host's monotonic clock, so a 45-minute cycle or a
 13-second pass can be compressed for tests and the demo; every rate in the registers stays in device time.
 """
@@ -13,12 +17,17 @@ Time: device time runs `time_scale` times faster than the host's monotonic clock
 from __future__ import annotations
 
 import asyncio
+import binascii
 import collections
 import dataclasses
 import datetime as dt
+import json
 import logging
+import os
+import secrets
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -38,20 +47,22 @@ class DeviceConfig:
     world: WorldConfig = dataclasses.field(default_factory=WorldConfig)
     rig_id: str = "sim-rig"
     time_scale: float = 1.0
-    initial_cycle: int = 1000  # the longwall counter when the simulation starts
+    initial_cycle: int = 1000  # the longwall counter when the simulation starts (and no state file holds one)
     first_cycle_after_s: float = 5.0  # device seconds until the first cycle signal
     cycle_interval_s: float = 2700.0  # device seconds between cycle signals (45 min)
     max_cycles: int | None = None  # stop raising the signal after this many
     hold_cycle_while_busy: bool = True  # the face waits while the rig scans (interlock)
     buffer_capacity: int = 512  # pulses
     window_regs: int = 2048
-    max_samples_per_pulse: int = 4096
+    max_samples_per_pulse: int = 4096  # the radar's limit; RADAR reports at most what one window record holds
     height_speed_m_s: float = 0.05
     table_speed_deg_s: float = 15.0
     height_range_m: tuple[float, float] = (0.0, 2.0)
     table_max_deg: float = 60.0
     reboot_s: float = 20.0  # device seconds a reboot takes
     serial: int = 4242
+    first_seq: int = 1  # sequence number of the first pulse after each boot (tests start near 2^32 - 1)
+    state_file: str | None = None  # CYCLE_COUNTER and the last BOOT_ID, kept across restarts; None: not kept
 
     def __post_init__(self):
         if self.time_scale <= 0:
@@ -61,6 +72,14 @@ class DeviceConfig:
         if not R.WINDOW_HEADER.length + R.record_regs(1) <= self.window_regs <= 65535 - R.WINDOW_ADDRESS:
             raise ValueError(f"window_regs must be in {R.WINDOW_HEADER.length + R.record_regs(1)}.."
                              f"{65535 - R.WINDOW_ADDRESS}")
+        if not 0 <= self.first_seq < R.SEQ_MODULUS or not 0 <= self.initial_cycle < R.SEQ_MODULUS:
+            raise ValueError("first_seq and initial_cycle must be u32 values")
+
+    @property
+    def max_samples(self) -> int:
+        """MAX_SAMPLES_PER_PULSE as reported: what the radar can deliver and one window record can hold."""
+        fit = (self.window_regs - R.WINDOW_HEADER.length - R.record_regs(0)) // 2
+        return max(1, min(self.max_samples_per_pulse, fit))
 
 
 @dataclasses.dataclass
@@ -90,6 +109,11 @@ class _Pass:
     height_m: float
     angle_deg: float
     iq: np.ndarray  # (N, M, 2) int16, kept for the audit of completed passes
+    radar: object = None  # the RadarParameters this pass was produced with (RADAR at START_PASS)
+    rig_id: str = ""
+    boot_id: int = 0
+    short: bool = False  # cut short by fault injection: never a whole pass
+    stalled: bool = False  # fault injection: the radar stops delivering, the pass stays RUNNING
     produced: int = 0
     overflow: int = 0
     state: R.PassState = R.PassState.RUNNING
@@ -114,7 +138,14 @@ class RigController:
         self.campaign = campaign or Campaign(config.world)
         self.radar = self.campaign.radar
         self.boots = 0
+        self.rig_id = config.rig_id
+        self.boot_id = 0
         self.cycle_counter = config.initial_cycle
+        stored = self._load_state()
+        if stored is not None:
+            self.cycle_counter = int(stored.get("cycle_counter", config.initial_cycle)) % R.SEQ_MODULUS
+            self.boot_id = int(stored.get("boot_id", 0)) % R.SEQ_MODULUS
+        self._k_of_counter = {self.cycle_counter: 0}  # counter value -> campaign cycle index (truth)
         self.cycles_raised = 0
         self.next_cycle_due = config.first_cycle_after_s
         self.cycle_log: list[tuple[int, float]] = []  # (counter value, device time raised)
@@ -129,15 +160,18 @@ class RigController:
 
     def _boot(self, now: float) -> None:
         self.boots += 1
-        self.boot_id = (0x5A5A0000 + 7919 * self.boots) & 0xFFFFFFFF
+        previous = self.boot_id
+        self.boot_id = secrets.randbits(32)
+        while self.boot_id == previous:  # must differ from the previous boot's (map 4.2)
+            self.boot_id = secrets.randbits(32)
         self.boot_time = now
         self.booting_until = now + (self.config.reboot_s if self.boots > 1 else 0.0)
         self.fault_word = R.Fault(0)
         self.motion: _Motion | None = None
         self.pass_: _Pass | None = None
         self.buffer: collections.deque[int] = collections.deque()  # pass indices of stored pulses
-        self.next_seq = 1
-        self.ack_seq = 0
+        self.next_seq = self.config.first_seq
+        self.ack_seq = R.seq_add(self.next_seq, -1)  # nothing acknowledged yet
         self.drop_next = 0
         self.cmd_ack_seq = 0
         self.cmd_ack_code = 0
@@ -146,15 +180,66 @@ class RigController:
         self._window_cache = None
         self._window_idx: list[int] = []
         self.last_busy_end = now
+        self._save_state()
 
-    def reboot(self, now: float) -> None:
-        """Controller restart: the pass, the buffer and the holding registers are lost; the drives keep position."""
-        log.warning("device: reboot at t=%.1f s (boot %d)", now, self.boots + 1)
+    # ------------------------------------------------------------------------------------------ persistence
+
+    def _load_state(self) -> dict | None:
+        path = self.config.state_file
+        if not path or not os.path.exists(path):
+            return None
+        try:
+            with open(path, encoding="utf-8") as f:
+                return json.load(f)
+        except (OSError, ValueError) as exc:
+            log.warning("device: state file %s unreadable (%s); starting from the configured counter", path, exc)
+            return None
+
+    def _save_state(self) -> None:
+        """Write CYCLE_COUNTER and BOOT_ID atomically (a crash leaves the old file or the new one)."""
+        path = self.config.state_file
+        if not path:
+            return
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        tmp = f"{path}.tmp{os.getpid()}"
+        with open(tmp, "w", encoding="utf-8") as f:
+            json.dump({"cycle_counter": self.cycle_counter, "boot_id": self.boot_id, "rig_id": self.rig_id}, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+
+    def reboot(self, now: float, reconfigure: bool = False) -> None:
+        """Controller restart: the pass, the buffer and the holding registers are lost; the drives keep position.
+        reconfigure: the controller comes back with another SAMPLE_RATE (x0.75, or back) and RIG_ID (fault
+        injection: a firmware update or a swapped radar head; the map allows RADAR and IDENTITY to change at a
+        reboot only)."""
+        log.warning("device: reboot at t=%.1f s (boot %d)%s", now, self.boots + 1,
+                    " with a new RADAR and RIG_ID" if reconfigure else "")
         if self.pass_ is not None and self.pass_.state is R.PassState.RUNNING:
             self.carriage_m = self._carriage_at(now)
         if self.motion is not None:
             self._finish_motion(now, interrupted=True)
+        if reconfigure:
+            base = self.radar.sample_rate_hz
+            rate = 0.75 * base if self.campaign.radar.sample_rate_hz == base else base
+            self.campaign.radar = dataclasses.replace(self.campaign.radar, sample_rate_hz=rate)
+            self.rig_id = f"{self.config.rig_id}-b" if self.rig_id == self.config.rig_id else self.config.rig_id
         self._boot(now)
+
+    def cut_short(self, now: float) -> None:
+        """Fault injection: the running pass ends COMPLETE without its remaining pulses (and without a LAST
+        pulse), so PULSES_PRODUCED < PULSES_PLANNED: what a non-conforming controller might do."""
+        p = self.pass_
+        if p is None or p.state is not R.PassState.RUNNING:
+            return
+        self.advance(now)
+        if p.state is R.PassState.RUNNING and p.produced < len(p.times) - 1:
+            p.state = R.PassState.COMPLETE
+            p.short = True
+            self.carriage_m = self._carriage_at(now)
+            self.last_busy_end = now
+            if self.cmd_ack_code == R.Command.START_PASS:
+                self.cmd_result = R.CommandResult.DONE
 
     def booting(self, now: float) -> bool:
         return now < self.booting_until
@@ -169,6 +254,8 @@ class RigController:
         if self.motion is not None and now >= self.motion.t_end:
             self._finish_motion(now)
         p = self.pass_
+        if p is not None and p.stalled and p.state is R.PassState.RUNNING and p.produced:
+            p.t_start = now - float(p.times[p.produced - 1])  # a hung radar: the next pulse never falls due
         if p is not None and p.state is R.PassState.RUNNING:
             due = int(np.searchsorted(p.times, now - p.t_start, side="right"))
             for i in range(p.produced, min(due, len(p.times))):
@@ -184,14 +271,14 @@ class RigController:
 
     def _produce(self, p: _Pass, i: int) -> None:
         seq = self.next_seq
-        self.next_seq += 1
+        self.next_seq = R.seq_add(seq, 1)  # 2^32 - 1 is followed by 0
         p.produced += 1
         if self.drop_next > 0 or len(self.buffer) >= self.config.buffer_capacity:
             self.drop_next = max(0, self.drop_next - 1)
             p.overflow += 1
             self.fault_word |= R.Fault.BUFFER_OVERFLOW
             return
-        assert seq == p.first_seq + i
+        assert seq == R.seq_add(p.first_seq, i)
         self.buffer.append(i)
         if len(self.buffer) <= self._window_capacity(p):
             self._window_cache = None
@@ -204,16 +291,23 @@ class RigController:
             return
         if c.hold_cycle_while_busy and self._busy():
             return
+        self.set_cycle_counter(now, R.seq_add(self.cycle_counter, 1))
+        self.next_cycle_due = now + c.cycle_interval_s
+
+    def set_cycle_counter(self, now: float, value: int) -> None:
+        """The longwall control system's counter takes `value` (normally +1; a jump or a reset in faults): the
+        face moved, so a running pass is aborted (map 4.2), and the state file keeps the value."""
         p = self.pass_
         if p is not None and p.state is R.PassState.RUNNING:  # the face moved under the rail
             self.carriage_m = self._carriage_at(now)
             p.state = R.PassState.ABORTED
             self.fault_word |= R.Fault.PASS_ABORTED
-            log.warning("device: cycle signal during pass token %d: pass aborted", p.token)
-        self.cycle_counter = (self.cycle_counter + 1) & 0xFFFFFFFF
+            log.warning("device: cycle counter changed during pass token %d: pass aborted", p.token)
+        self.cycle_counter = int(value) % R.SEQ_MODULUS
         self.cycles_raised += 1
+        self._k_of_counter[self.cycle_counter] = self.cycles_raised
         self.cycle_log.append((self.cycle_counter, now))
-        self.next_cycle_due = now + c.cycle_interval_s
+        self._save_state()
         log.info("device: cycle signal, counter %d at t=%.1f s", self.cycle_counter, now)
 
     def signal_cycle_now(self, now: float) -> None:
@@ -221,8 +315,14 @@ class RigController:
         self.next_cycle_due = min(self.next_cycle_due, now)
 
     def cycle_index(self, counter: int) -> int:
-        """Campaign cycle index of a counter value: the first signal raised is cycle index 1."""
-        return counter - self.config.initial_cycle
+        """Campaign cycle index of a counter value: the first signal raised is cycle index 1 (the latest signal
+        that set this value; a value set from outside counts on from the start value, modulo 2^32)."""
+        k = self._k_of_counter.get(counter)
+        if k is None:
+            start = next(iter(self._k_of_counter))
+            k = R.seq_diff(counter, start)
+            k = k if 0 <= k <= 100_000 else self.cycles_raised  # a reset counter: the face still advanced
+        return k
 
     def _busy(self) -> bool:
         return self.motion is not None or (self.pass_ is not None and self.pass_.state is R.PassState.RUNNING)
@@ -258,8 +358,9 @@ class RigController:
             raise ModbusFault(ILLEGAL_VALUE, "CMD_SEQ 0 is reserved")
         if seq == self.cmd_ack_seq:
             return  # a retransmission: executed (or rejected) once already
-        self.cmd_ack_seq, self.cmd_ack_code = seq, code
-        self.cmd_result = self._execute(now, code, arg)
+        # Executed first, recorded after: a command answered with an exception was not received (map 7).
+        result = self._execute(now, code, arg)
+        self.cmd_ack_seq, self.cmd_ack_code, self.cmd_result = seq, code, result
         log.debug("device: command %d seq %d arg %d -> %s", code, seq, arg, self.cmd_result.name)
 
     def _execute(self, now: float, code: int, arg: int) -> R.CommandResult:
@@ -310,9 +411,9 @@ class RigController:
         k = max(0, self.cycle_index(self.cycle_counter))
         direction = 1 if self.carriage_m <= 0.0 else -1  # run from the end the carriage is parked at
         data = self.campaign.make_pass(k, self.height_m, self.angle_deg, direction)
+        if data.echo.shape[1] > self.config.max_samples:  # the radar delivers at most MAX_SAMPLES_PER_PULSE
+            data = dataclasses.replace(data, echo=data.echo[:, :self.config.max_samples])
         m = data.echo.shape[1]
-        if m > self.config.max_samples_per_pulse or R.record_regs(m) > self.config.window_regs - R.WINDOW_HEADER.length:
-            raise ModbusFault(DEVICE_FAILURE, f"pass needs {m} samples per pulse; the window cannot hold one")
         peak = float(max(np.abs(data.echo.real).max(), np.abs(data.echo.imag).max(), 1e-30))
         scale = float(np.float32(peak / (0.9 * INT16_FULL_SCALE)))  # 10 % headroom, as an ADC gain would leave
         iq = np.stack([data.echo.real, data.echo.imag], axis=-1) / scale
@@ -330,14 +431,16 @@ class RigController:
                            start_time_ms=self._clock_ms(now), times=data.time_s, positions=data.position_m,
                            records=records, scale=scale, range_window_start_s=data.range_window_start_s,
                            samples_per_pulse=m, direction=direction, height_m=self.height_m,
-                           angle_deg=self.angle_deg, iq=iq)
+                           angle_deg=self.angle_deg, iq=iq, radar=self.campaign.radar, rig_id=self.rig_id,
+                           boot_id=self.boot_id)
         log.info("device: pass token %d started (cycle %d, height %.3f m, angle %.2f deg, %d pulses x %d)",
                  token, self.cycle_counter, self.height_m, self.angle_deg, len(data.time_s), m)
 
     def _audit(self, p: _Pass) -> dict:
         """What a faithful archive of this pass must hold (scripts/acquisition_study.py checks every file)."""
         return {"token": p.token, "cycle": p.cycle, "k": p.k, "direction": p.direction, "angle_deg": p.angle_deg,
-                "height_m": p.height_m, "n_pulses": len(p.times),
+                "height_m": p.height_m, "n_pulses": len(p.times), "first_seq": p.first_seq, "radar": p.radar,
+                "rig_id": p.rig_id, "boot_id": p.boot_id, "range_window_start_s": p.range_window_start_s,
                 "overflow": p.overflow, "scale": p.scale, "iq": p.iq,
                 "positions_um": np.rint(p.positions * 1e6).astype(np.int64),
                 "times_us": np.rint(p.times * 1e6).astype(np.int64)}
@@ -349,13 +452,13 @@ class RigController:
             seq = R.ACK.decode(regs)["ACK_SEQ"]
         except R.RegisterError as exc:
             raise ModbusFault(ILLEGAL_VALUE, str(exc)) from None
-        if seq >= self.next_seq:
-            raise ModbusFault(ILLEGAL_VALUE, f"ACK_SEQ {seq} beyond the newest pulse {self.next_seq - 1}")
-        if seq <= self.ack_seq:
-            return
+        newest = R.seq_add(self.next_seq, -1)
+        if R.seq_diff(seq, newest) > 0:  # modulo 2^32: 0 follows 2^32 - 1 (map 6)
+            raise ModbusFault(ILLEGAL_VALUE, f"ACK_SEQ {seq} beyond the newest pulse {newest}")
+        # "At or below" the acknowledgement (modulo 2^32) frees nothing more: the buffer holds only later pulses.
         self.ack_seq = seq
         p = self.pass_
-        while self.buffer and p is not None and p.first_seq + self.buffer[0] <= seq:
+        while self.buffer and p is not None and R.seq_at_or_before(R.seq_add(p.first_seq, self.buffer[0]), seq):
             self.buffer.popleft()
         self._window_cache = None
 
@@ -399,10 +502,10 @@ class RigController:
 
     def input_low(self, now: float) -> list[int]:
         """IR 0-127: IDENTITY, STATUS, RADAR, PASS."""
-        cfg, radar = self.config, self.radar
+        cfg, radar = self.config, self.campaign.radar
         identity = R.IDENTITY.encode({
             "MAGIC": R.MAP_MAGIC, "MAP_MAJOR": R.MAP_VERSION[0], "MAP_MINOR": R.MAP_VERSION[1], "DEVICE_TYPE": 1,
-            "SERIAL": cfg.serial, "FIRMWARE": 0x00010000, "RIG_ID": cfg.rig_id, "VENDOR": "uwbcl-sim"})
+            "SERIAL": cfg.serial, "FIRMWARE": 0x00010000, "RIG_ID": self.rig_id, "VENDOR": "uwbcl-sim"})
         status = R.STATUS.encode({
             "HEARTBEAT": int((now - self.boot_time) / HEARTBEAT_PERIOD_S) & 0xFFFF,
             "STATUS_WORD": int(self.status_word(now)), "FAULT_WORD": int(self.fault_word),
@@ -419,7 +522,7 @@ class RigController:
             "CARRIER_FREQUENCY": radar.carrier_frequency_hz, "BANDWIDTH": radar.bandwidth_hz,
             "SAMPLE_RATE": radar.sample_rate_hz, "PRF": radar.pulse_repetition_frequency_hz,
             "ANTENNA_APERTURE": radar.antenna_aperture_m, "BORESIGHT_Y_SIGN": -1,
-            "MAX_SAMPLES_PER_PULSE": cfg.max_samples_per_pulse, "BUFFER_CAPACITY": cfg.buffer_capacity,
+            "MAX_SAMPLES_PER_PULSE": cfg.max_samples, "BUFFER_CAPACITY": cfg.buffer_capacity,
             "WINDOW_ADDRESS": R.WINDOW_ADDRESS, "WINDOW_REGS": cfg.window_regs,
             "NOMINAL_SPEED": self.campaign.speed_m_s, "RAIL_MIN": -half, "RAIL_MAX": half,
             "HEIGHT_MIN": cfg.height_range_m[0], "HEIGHT_MAX": cfg.height_range_m[1],
@@ -451,11 +554,11 @@ class RigController:
             self._window_cache, self._window_idx = out, idx
         out, idx = self._window_cache, self._window_idx
         if p is None:
-            head = R.WINDOW_HEADER.encode({"NEWEST_SEQ": self.next_seq - 1})
+            head = R.WINDOW_HEADER.encode({"NEWEST_SEQ": R.seq_add(self.next_seq, -1)})
         else:
             head = R.WINDOW_HEADER.encode({
-                "OLDEST_SEQ": p.first_seq + idx[0] if idx else 0, "RECORDS": len(idx),
-                "RECORD_REGS": p.records.shape[1], "NEWEST_SEQ": self.next_seq - 1, "TOKEN": p.token})
+                "OLDEST_SEQ": R.seq_add(p.first_seq, idx[0]) if idx else 0, "RECORDS": len(idx),
+                "RECORD_REGS": p.records.shape[1], "NEWEST_SEQ": R.seq_add(self.next_seq, -1), "TOKEN": p.token})
         out[:R.WINDOW_HEADER.length] = head
         return out
 
@@ -500,19 +603,20 @@ class RigController:
                 if block is R.COMMAND:
                     self.advance(now)
                 return
-        inside = any(b.address <= address < b.address + b.length for b in R.HOLDING_BLOCKS)
-        raise ModbusFault(ILLEGAL_VALUE if inside else ILLEGAL_ADDRESS,
-                          f"HR {address}+{len(values)}: writes must cover exactly one holding block")
+        # Map 1.1, section 1: a write touching any register outside the blocks (reserved or unmapped) is an
+        # address error (02) and takes precedence; one inside the blocks that is not exactly one block is 03.
+        mapped = {a for b in R.HOLDING_BLOCKS for a in range(b.address, b.address + b.length)}
+        if any(a not in mapped for a in range(address, address + len(values))):
+            raise ModbusFault(ILLEGAL_ADDRESS, f"HR {address}+{len(values)}: reaches a reserved or unmapped register")
+        raise ModbusFault(ILLEGAL_VALUE, f"HR {address}+{len(values)}: writes must cover exactly one holding block")
 
 
 def _encode_records(first_seq: int, times_s, positions_m, flags, iq: np.ndarray) -> np.ndarray:
     """All pulse records of a pass at once (the layout of registers.encode_record), CRC per row."""
-    import binascii
-
     n, m, _ = iq.shape
     head = np.zeros(n, dtype=np.dtype([("seq", ">u4"), ("t", ">u4"), ("x", ">i4"), ("flags", ">u2"),
                                        ("res", ">u2")]))
-    head["seq"] = first_seq + np.arange(n)
+    head["seq"] = (first_seq + np.arange(n, dtype=np.int64)) % R.SEQ_MODULUS  # wraps 2^32 - 1 -> 0
     head["t"] = np.rint(np.asarray(times_s) * 1e6)  # microseconds (R.RECORD_TIME_SCALE_S)
     head["x"] = np.rint(np.asarray(positions_m) * 1e6)  # micrometres (R.RECORD_POSITION_SCALE_M)
     head["flags"] = flags
@@ -549,6 +653,9 @@ class RigServer:
         self._corrupt = False
         self._corrupt_span = 0
         self._exception_turn = 0
+        self._absurd_pending = False
+        self._absurd_turn = 0
+        self._last_rx_function = 0
         self.requests_served = 0
         self._fault_rng = np.random.default_rng([self.faults.plan.seed, 99])
 
@@ -644,7 +751,7 @@ class RigServer:
                 return None
             running = c.pass_ is not None and c.pass_.state is R.PassState.RUNNING
             if values is None or func_code != 23:
-                fault = self.faults.next_request(running, now)
+                fault = self.faults.next_request(running, now, c.pass_.token if running else None)
             else:
                 fault = None  # FC23 calls us twice: count it once, on its write
             self.requests_served += 1
@@ -657,11 +764,21 @@ class RigServer:
             if fault == "exception":
                 self._exception_turn += 1
                 return ExcCodes.DEVICE_BUSY if self._exception_turn % 2 else ExcCodes.DEVICE_FAILURE
-            if fault == "reboot":
-                c.reboot(now)
+            if fault in ("exception02", "exception03", "exception04"):
+                return ExcCodes(int(fault[-2:]))
+            if fault in ("reboot", "reconfigure"):
+                c.reboot(now, reconfigure=True) if fault == "reconfigure" else c.reboot(now)
                 self._swallow = True
                 self._loop.call_soon(self._drop_connections)
                 return None
+            if fault == "absurd":
+                self._absurd_pending = True
+            if fault == "short":
+                c.cut_short(now)
+            if fault == "stall" and c.pass_ is not None:
+                c.pass_.stalled = True
+            if fault in ("counter_back", "counter_jump"):
+                c.set_cycle_counter(now, R.seq_add(c.cycle_counter, -1 if fault == "counter_back" else 3))
             if fault == "overflow":
                 c.inject_overflow(self.faults.plan.overflow_pulses)
             if fault == "missing":
@@ -676,8 +793,11 @@ class RigServer:
                     c.write(now, address, list(values))
                     registers[address - start_address:address - start_address + len(values)] = list(values)
                 else:
-                    registers[address - start_address:address - start_address + count] = \
-                        c.read(now, table, address, count)
+                    regs = c.read(now, table, address, count)
+                    if self._absurd_pending and table is R.Table.INPUT and address <= R.PASS.address \
+                            and address + count >= R.PASS.address + R.PASS.length:
+                        regs = self._absurd(regs, R.PASS.address - address)
+                    registers[address - start_address:address - start_address + count] = regs
             except ModbusFault as exc:
                 log.debug("device: exception %d: %s", exc.code, exc)
                 self._swallow = False if fault != "missing" else self._swallow
@@ -686,13 +806,32 @@ class RigServer:
             await asyncio.sleep(self.faults.plan.slow_s)
         return None
 
+    def _absurd(self, regs: list[int], offset: int) -> list[int]:
+        """The PASS block inside `regs` with one absurd value and a valid CRC (fault injection)."""
+        self._absurd_pending = False
+        self._absurd_turn += 1
+        values = R.PASS.decode(regs[offset:offset + R.PASS.length])
+        name, value = (("PULSES_PLANNED", 10**9), ("SAMPLES_PER_PULSE", 60000),
+                       ("AMPLITUDE_SCALE", -1.0))[self._absurd_turn % 3]
+        log.info("device: PASS.%s reads %g once", name, value)
+        return regs[:offset] + R.PASS.encode({**values, name: value}) + regs[offset + R.PASS.length:]
+
     def _trace_packet(self, sending: bool, data: bytes) -> bytes:
+        if not sending and len(data) > 7:
+            self._last_rx_function = data[7]  # MBAP header (7 bytes), then the function code
         if sending and self._swallow:
             self._swallow = False
             return b""
         return data
 
     def _trace_pdu(self, sending: bool, pdu):
+        if sending and getattr(pdu, "exception_code", None) == 1 and pdu.function_code == 0x80 \
+                and self._last_rx_function in (3, 4, 6, 16, 23):
+            # pymodbus answers a request it cannot decode (a read of 126 registers, a write of 124) with 01 and
+            # function code 0; the map (and the Modbus spec) say 03 for an illegal quantity of a supported
+            # function. The request is the packet just received: the reply is sent from the same call.
+            pdu.function_code = self._last_rx_function | 0x80
+            pdu.exception_code = 3
         if sending and self._corrupt and getattr(pdu, "registers", None) and pdu.function_code in (3, 4) \
                 and self._corrupt_span > 0:
             regs = list(pdu.registers)

@@ -2,7 +2,8 @@
 
 Spec (`uwbcl simulate-device --faults SPEC`), comma-separated items:
 
-    KIND=P        each request gets fault KIND with probability P
+    KIND=P        each request gets fault KIND with probability P (a pass-only KIND: each request while a pass
+                  runs, so that drawn faults do not pile up while the client waits for a cycle)
     KIND@N        request number N (1-based, counted from server start) gets fault KIND
     every=N       every N-th request gets a fault, KIND taken in turn from `kinds`
     kinds=A+B+..  the rotation for `every` (default: all kinds)
@@ -15,10 +16,17 @@ Spec (`uwbcl simulate-device --faults SPEC`), comma-separated items:
 
 Kinds: drop (the connection is closed instead of a reply; the request is not executed), missing (executed, no
 reply), slow (the reply is late by slow_s), exception (Modbus exception 06 DEVICE BUSY or 04 DEVICE FAILURE
-in turn, not executed), corrupt (executed; one bit of one register of the next read reply is flipped), reboot
-(the controller restarts while a pass runs: the pass and the buffer are lost), overflow (the buffer drops the
-next `overflow_pulses` pulses of a running pass as if it were full). reboot and overflow wait for a pass to be
-running; the others hit the request they are drawn for.
+in turn, not executed), exception02 / exception03 / exception04 (one spurious exception of that code, not
+executed), corrupt (executed; one bit of one register of the next read reply is flipped), reboot (the
+controller restarts while a pass runs: the pass and the buffer are lost), reconfigure (a reboot that also
+brings a new RADAR.SAMPLE_RATE, x0.75 and back, and a new IDENTITY.RIG_ID, "<rig>-b" and back), overflow (the
+buffer drops the next `overflow_pulses` pulses of a running pass as if it were full), absurd (the next PASS
+read carries an absurd value with a valid CRC: PULSES_PLANNED 1e9, SAMPLES_PER_PULSE 60000 or AMPLITUDE_SCALE
+-1, in turn), short (the running pass ends COMPLETE with fewer pulses than planned, no LAST pulse: a controller
+that breaks the map), stall (the radar of the running pass stops delivering pulses, the pass stays RUNNING:
+only a no-progress watchdog notices), counter_back (the longwall counter goes back by 1), counter_jump (it jumps by 3: two
+cycles missed). reboot, reconfigure, overflow, absurd, short and stall wait for a pass to be running; the others hit
+the request they are drawn for. A counter change during a pass aborts it (map 4.2).
 """
 
 from __future__ import annotations
@@ -27,8 +35,10 @@ import dataclasses
 
 import numpy as np
 
-KINDS = ("drop", "missing", "slow", "exception", "corrupt", "reboot", "overflow")
-PASS_KINDS = ("reboot", "overflow")  # only meaningful while a pass runs
+KINDS = ("drop", "missing", "slow", "exception", "corrupt", "reboot", "overflow", "exception02", "exception03",
+         "exception04", "absurd", "short", "stall", "reconfigure", "counter_back", "counter_jump")
+PASS_KINDS = ("reboot", "overflow", "absurd", "short", "stall", "reconfigure")  # only meaningful while a pass runs
+CYCLE_KINDS = ("counter_back", "counter_jump")  # change the cycle counter: the cycle being scanned is left
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,15 +124,18 @@ class FaultInjector:
         self._pending: list[str] = []  # pass-only faults waiting for a running pass
         self._rotation = 0
         self._at = dict(plan.at)
+        self._hit_pass: int | None = None  # the pass the last pass-only fault was applied to
 
-    def next_request(self, pass_running: bool, device_time_s: float) -> str | None:
-        """Count a request; return the fault kind to apply to it, or None."""
+    def next_request(self, pass_running: bool, device_time_s: float, pass_token: int | None = None) -> str | None:
+        """Count a request; return the fault kind to apply to it, or None. With `pass_token`, pass-only faults
+        waiting for a pass hit one pass each (two on one pass would count as two faults but act as one)."""
         self.requests += 1
         n = self.requests
         p = self.plan
         if p.limit is not None and len(self.injected) >= p.limit:
             return None
-        drawn = [kind for kind, prob in p.probabilities if self.rng.uniform() < prob]  # same draws every request
+        drawn = [kind for kind, prob in p.probabilities  # the same draws every request: reproducible
+                 if self.rng.uniform() < prob and (pass_running or kind not in PASS_KINDS)]
         if n < p.after:
             return None
         if n in self._at:
@@ -135,8 +148,9 @@ class FaultInjector:
                 self._pending.append(kind)
         immediate = [k for k in drawn if k not in PASS_KINDS]
         kind = None
-        if pass_running and self._pending:
+        if pass_running and self._pending and (pass_token is None or pass_token != self._hit_pass):
             kind = self._pending.pop(0)
+            self._hit_pass = pass_token
         elif immediate:
             kind = immediate[0]
         if kind is not None:

@@ -21,8 +21,14 @@ class PassIncomplete(Exception):
     """The pass lost, duplicated or could not trust pulses: it must not be written as whole; re-run it."""
 
 
+class AbsurdValue(PassIncomplete):
+    """A PASS or RADAR value this client will not use (sizes over its limits, ...): the pass fails and is re-run
+    (fault ABSURD_VALUE); one absurd reply never stops acquisition."""
+
+
 class DeviceRefused(Exception):
-    """The device describes something this client will not handle (map version, absurd sizes)."""
+    """The controller is not a compatible rig (MAGIC, MAP_MAJOR, WINDOW_ADDRESS; fault INCOMPATIBLE), or the
+    configuration does not fit it (CONFIGURATION): acquisition stops."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,18 +39,19 @@ class Limits:
 
 
 def check_radar(radar: dict, limits: Limits) -> None:
-    """Refuse a RADAR block this client cannot use safely."""
-    for name in ("CARRIER_FREQUENCY", "BANDWIDTH", "SAMPLE_RATE", "PRF", "ANTENNA_APERTURE", "NOMINAL_SPEED"):
-        if not radar[name] > 0:
-            raise DeviceRefused(f"RADAR.{name} = {radar[name]}: must be > 0")
-    if radar["BORESIGHT_Y_SIGN"] not in (-1, 1):
-        raise DeviceRefused(f"RADAR.BORESIGHT_Y_SIGN = {radar['BORESIGHT_Y_SIGN']}: must be -1 or +1")
+    """Refuse a RADAR block this client cannot use safely: DeviceRefused for a map it does not speak,
+    AbsurdValue for values no pass can be run with (re-read and re-tried, never a stop on one reply)."""
     if radar["WINDOW_ADDRESS"] != R.WINDOW_ADDRESS:
         raise DeviceRefused(f"RADAR.WINDOW_ADDRESS = {radar['WINDOW_ADDRESS']}: map 1.x puts it at {R.WINDOW_ADDRESS}")
+    for name in ("CARRIER_FREQUENCY", "BANDWIDTH", "SAMPLE_RATE", "PRF", "ANTENNA_APERTURE", "NOMINAL_SPEED"):
+        if not radar[name] > 0:
+            raise AbsurdValue(f"RADAR.{name} = {radar[name]}: must be > 0")
+    if radar["BORESIGHT_Y_SIGN"] not in (-1, 1):
+        raise AbsurdValue(f"RADAR.BORESIGHT_Y_SIGN = {radar['BORESIGHT_Y_SIGN']}: must be -1 or +1")
     if not R.WINDOW_HEADER.length + R.record_regs(1) <= radar["WINDOW_REGS"] <= 65536 - R.WINDOW_ADDRESS:
-        raise DeviceRefused(f"RADAR.WINDOW_REGS = {radar['WINDOW_REGS']}: outside the window's address space")
+        raise AbsurdValue(f"RADAR.WINDOW_REGS = {radar['WINDOW_REGS']}: outside the window's address space")
     if radar["BUFFER_CAPACITY"] < 1:
-        raise DeviceRefused("RADAR.BUFFER_CAPACITY = 0")
+        raise AbsurdValue("RADAR.BUFFER_CAPACITY = 0")
 
 
 def radar_parameters(radar: dict) -> RadarParameters:
@@ -59,17 +66,17 @@ class PassAssembler:
     def __init__(self, descriptor: dict, radar: dict, limits: Limits):
         m, n = int(descriptor["SAMPLES_PER_PULSE"]), int(descriptor["PULSES_PLANNED"])
         if not 1 <= m <= min(limits.max_samples_per_pulse, radar["MAX_SAMPLES_PER_PULSE"] or m):
-            raise DeviceRefused(f"PASS.SAMPLES_PER_PULSE = {m}: outside 1..{limits.max_samples_per_pulse}")
+            raise AbsurdValue(f"PASS.SAMPLES_PER_PULSE = {m}: outside 1..{limits.max_samples_per_pulse}")
         if R.WINDOW_HEADER.length + R.record_regs(m) > radar["WINDOW_REGS"]:
-            raise DeviceRefused(f"PASS.SAMPLES_PER_PULSE = {m}: a record does not fit RADAR.WINDOW_REGS")
+            raise AbsurdValue(f"PASS.SAMPLES_PER_PULSE = {m}: a record does not fit RADAR.WINDOW_REGS")
         if not 2 <= n <= limits.max_pulses_per_pass:
-            raise DeviceRefused(f"PASS.PULSES_PLANNED = {n}: outside 2..{limits.max_pulses_per_pass}")
+            raise AbsurdValue(f"PASS.PULSES_PLANNED = {n}: outside 2..{limits.max_pulses_per_pass}")
         if n * m * 4 > limits.max_pass_bytes:
-            raise DeviceRefused(f"PASS: {n} pulses x {m} samples need {n * m * 4 / 2**20:.0f} MiB, more than the "
+            raise AbsurdValue(f"PASS: {n} pulses x {m} samples need {n * m * 4 / 2**20:.0f} MiB, more than the "
                                 f"{limits.max_pass_bytes / 2**20:.0f} MiB limit")
         scale = descriptor["AMPLITUDE_SCALE"]
         if not (math.isfinite(scale) and scale > 0):
-            raise DeviceRefused(f"PASS.AMPLITUDE_SCALE = {scale}: must be a finite number > 0")
+            raise AbsurdValue(f"PASS.AMPLITUDE_SCALE = {scale}: must be a finite number > 0")
         self.descriptor = descriptor
         self.samples_per_pulse = m
         self.planned = n
@@ -83,15 +90,16 @@ class PassAssembler:
 
     @property
     def last_seq(self) -> int:
-        return self.next_seq - 1
+        """The last sequence number stored (modulo 2^32: FIRST_SEQ - 1 before any)."""
+        return R.seq_add(self.next_seq, -1)
 
     def add(self, seq, time_s, position_m, flags, iq) -> None:
         """Append consecutive records (arrays from registers.decode_records); PassIncomplete on any defect."""
         for i in range(len(seq)):
-            if seq[i] != self.next_seq:
-                if seq[i] < self.next_seq:
+            if seq[i] != self.next_seq:  # compared modulo 2^32 (map 6: 0 follows 2^32 - 1)
+                if R.seq_diff(seq[i], self.next_seq) < 0:
                     raise PassIncomplete(f"pulse seq {seq[i]} repeated (expected {self.next_seq})")
-                raise PassIncomplete(f"pulses lost: seq {self.next_seq}-{seq[i] - 1} missing")
+                raise PassIncomplete(f"pulses lost: seq {self.next_seq}-{R.seq_add(seq[i], -1)} missing")
             if self.last_seen:
                 raise PassIncomplete(f"pulse seq {seq[i]} after the pass's LAST pulse")
             if self.count >= self.planned:
@@ -103,14 +111,14 @@ class PassAssembler:
                 raise PassIncomplete(f"pulse seq {seq[i]}: time {time_s[i]:.6f} s not after the previous pulse")
             self.time_s[k], self.position_m[k], self.iq[k] = time_s[i], position_m[i], iq[i]
             self.count += 1
-            self.next_seq += 1
+            self.next_seq = R.seq_add(self.next_seq, 1)
             self.last_seen = bool(flags[i] & R.RecordFlag.LAST)
 
     def finish(self, descriptor: dict) -> None:
         """The pass as the device reports it at the end must match what arrived, pulse for pulse."""
         d0 = self.descriptor
-        for name in ("TOKEN", "CYCLE", "FIRST_SEQ", "RANGE_WINDOW_START", "SAMPLES_PER_PULSE", "AMPLITUDE_SCALE",
-                     "HEIGHT", "TABLE_ANGLE", "START_TIME", "DIRECTION"):
+        for name in ("TOKEN", "CYCLE", "FIRST_SEQ", "PULSES_PLANNED", "RANGE_WINDOW_START", "SAMPLES_PER_PULSE",
+                     "AMPLITUDE_SCALE", "HEIGHT", "TABLE_ANGLE", "START_TIME", "DIRECTION"):
             if descriptor[name] != d0[name]:
                 raise PassIncomplete(f"PASS.{name} changed during the pass ({d0[name]} -> {descriptor[name]})")
         if descriptor["PASS_STATE"] != R.PassState.COMPLETE:
@@ -119,6 +127,8 @@ class PassAssembler:
             raise PassIncomplete(f"device buffer overflowed: {descriptor['OVERFLOW_COUNT']} pulses dropped")
         if descriptor["PULSES_PRODUCED"] != self.count or not self.last_seen:
             raise PassIncomplete(f"{self.count} pulses received, device produced {descriptor['PULSES_PRODUCED']}")
+        if self.count != self.planned:  # map 1.1, 4.4: a COMPLETE pass produced every pulse it planned
+            raise PassIncomplete(f"PULSES_PRODUCED {self.count} != PULSES_PLANNED {self.planned}: incomplete")
         steps = np.diff(self.position_m[:self.count])
         if not (np.all(steps > 0) or np.all(steps < 0)):
             raise PassIncomplete("rail positions not strictly monotonic (encoder fault)")
@@ -148,7 +158,16 @@ def _parse_time(iso: str | None) -> float:
     return dt.datetime.fromisoformat(iso.replace("Z", "+00:00")).timestamp()
 
 
-def write_scan(out_dir: Path, scan: ScanPass, pass_id: str) -> Path:
-    """Write the pass atomically under its archive path; FileExistsError if that pass is already there."""
+def write_scan(out_dir: Path, scan: ScanPass, pass_id: str, unique: str) -> Path:
+    """Write the pass atomically under its archive path. If that name is taken (a cycle counter that went back,
+    a pass acquired twice), the name gets `_<unique>` (the controller's boot id and pass token), then `_2`, `_3`,
+    ...: a whole pass is never dropped for its name, and never overwrites another."""
     path = Path(out_dir) / archive.default_relative_path(scan)
-    return archive.write_pass(path, scan, pass_id=pass_id, created_by=f"uwbcl {__version__} acquire")
+    candidates = [path, path.with_name(f"{path.stem}_{unique}{path.suffix}")]
+    candidates += [path.with_name(f"{path.stem}_{unique}_{k}{path.suffix}") for k in range(2, 1000)]
+    for candidate in candidates:
+        try:
+            return archive.write_pass(candidate, scan, pass_id=pass_id, created_by=f"uwbcl {__version__} acquire")
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"{path}: 1000 passes under this name")

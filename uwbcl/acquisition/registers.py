@@ -17,7 +17,9 @@ import struct
 from collections.abc import Iterable, Mapping, Sequence
 
 MAP_MAGIC = 0x5557  # "UW"
-MAP_VERSION = (1, 0)  # (major, minor): a client refuses a major it does not know
+MAP_VERSION = (1, 1)  # (major, minor): a client refuses a major it does not know; 1.1 = 1.0 + section 12
+SEQ_MODULUS = 2**32  # pulse sequence numbers, CYCLE_COUNTER, RESULT_SEQ: u32, wrapping 2^32 - 1 -> 0
+CMD_SEQ_MAX = 65535  # CMD_SEQ runs 1 .. 65535, 1, ...; 0 is never a command's (exception 03)
 MAX_REGISTERS_PER_READ = 125  # Modbus application protocol limit for FC03/FC04
 MAX_REGISTERS_PER_WRITE = 123  # FC16
 NOT_AVAILABLE_S32 = -0x80000000  # a result that could not be measured (too few plates, ...)
@@ -163,6 +165,32 @@ class Block:
         return {f.name: _value_from_raw(f, regs[f.offset:f.offset + f.size]) for f in self.fields}
 
 
+# --------------------------------------------------------------------------------------------- wrapping counters
+# Serial-number arithmetic (RFC 1982 style) for the u32 counters of the map: a is "before" b when b is less
+# than half the number space ahead of a. Buffers and cycle gaps are far below 2^31, so this is unambiguous.
+
+
+def seq_add(seq: int, n: int) -> int:
+    """seq + n modulo 2^32: what follows 2^32 - 1 is 0."""
+    return (int(seq) + int(n)) % SEQ_MODULUS
+
+
+def seq_diff(a: int, b: int) -> int:
+    """a - b as a signed distance in -2^31 .. 2^31 - 1 (positive: a is after b)."""
+    d = (int(a) - int(b)) % SEQ_MODULUS
+    return d - SEQ_MODULUS if d >= SEQ_MODULUS // 2 else d
+
+
+def seq_at_or_before(a: int, b: int) -> bool:
+    """a is b or comes before it, across the wrap ("at or below" in the map)."""
+    return seq_diff(a, b) <= 0
+
+
+def cmd_seq_next(seq: int) -> int:
+    """The CMD_SEQ after `seq`: 1 .. 65535, then 1 again (0 is not a command's)."""
+    return int(seq) % CMD_SEQ_MAX + 1
+
+
 # --------------------------------------------------------------------------------------------- enumerations
 
 
@@ -255,7 +283,8 @@ ENUM_DOCS = {
     "Fault.TABLE": "rotation table",
     "Fault.LIMIT": "travel limit reached unexpectedly",
     "Fault.BUFFER_OVERFLOW": "pulses of the current pass were dropped (cleared by the next START_PASS)",
-    "Fault.PASS_ABORTED": "the last pass was aborted: ABORT, a fault, or the cycle counter changed during it",
+    "Fault.PASS_ABORTED": "the last pass was aborted: ABORT, a fault, or the cycle counter changed during it "
+                          "(cleared by the next accepted START_PASS, CLEAR_FAULTS or a reboot)",
     "Fault.CYCLE_LINK_LOST": "no contact with the longwall control system",
     "State.BOOTING": "starting up; the controller may refuse connections",
     "State.IDLE": "ready for a command",
@@ -279,7 +308,8 @@ ENUM_DOCS = {
     "CommandResult.FAILED": "accepted, then stopped by a fault or a reboot while executing",
     "PassState.NONE": "no pass since boot",
     "PassState.RUNNING": "pulses are being produced",
-    "PassState.COMPLETE": "every pulse produced (some may have been dropped: OVERFLOW_COUNT)",
+    "PassState.COMPLETE": "every pulse produced, PULSES_PRODUCED = PULSES_PLANNED (some may have been dropped: "
+                          "OVERFLOW_COUNT)",
     "PassState.ABORTED": "stopped before the end: the pass is unusable",
     "ResultStatus.OK": "a trustworthy estimate",
     "ResultStatus.AMBIGUOUS": "another plate correspondence explains the data as well",
@@ -291,6 +321,80 @@ ENUM_DOCS = {
     "RecordFlag.LAST": "last pulse of the pass",
     "RecordFlag.SATURATED": "an I or Q sample of this pulse hit the converter's limit",
 }
+
+
+# --------------------------------------------------------------------------------------------- fault taxonomy
+
+
+class FaultClass(str, enum.Enum):
+    """What a fault costs (docs/modbus-register-map.md section 9). Only SERVICE stops acquisition."""
+
+    TRANSIENT = "transient"  # the same request is repeated after a backoff
+    REQUEST = "request"  # the request failed: repeated a few times, then the step it belongs to fails
+    PASS = "pass"  # the pass fails: ABORT sent, the pass is run again (max_attempts per pass)
+    NOTICE = "notice"  # logged (and counted); acquisition goes on
+    SERVICE = "service"  # acquisition stops with a message: the controller is not a compatible rig
+
+
+@dataclasses.dataclass(frozen=True)
+class FaultRule:
+    name: str
+    cls: FaultClass
+    when: str
+    action: str
+
+
+FAULT_TAXONOMY = (
+    FaultRule("NO_REPLY", FaultClass.TRANSIENT, "no reply within the timeout; connection dropped or refused",
+              "close the connection, reconnect with backoff (0.05 s doubling to reconnect_max_s, jitter), repeat"),
+    FaultRule("BUSY", FaultClass.TRANSIENT, "exception 04 or 06 (the request was not executed)",
+              "wait 20 ms doubling to 1 s, repeat; after 25 in a row the request fails (REFUSED)"),
+    FaultRule("DAMAGED", FaultClass.TRANSIENT, "CRC mismatch or wrong length in a reply",
+              "read again; after 10 in a row the request fails (REFUSED)"),
+    FaultRule("HUNG", FaultClass.TRANSIENT, "HEARTBEAT unchanged for 2 s while replies keep coming",
+              "log, reconnect"),
+    FaultRule("REFUSED", FaultClass.REQUEST, "exception 01, 02 or 03 (e.g. a request damaged on the way)",
+              "repeat up to 3 times with backoff; then the step fails: inside a pass the pass fails, outside "
+              "one the client waits (backoff) and starts the step again"),
+    FaultRule("REBOOT", FaultClass.PASS, "BOOT_ID changed",
+              "re-read IDENTITY and RADAR; the pass in progress is lost: run it again with the new values"),
+    FaultRule("DESCRIPTION_CHANGED", FaultClass.PASS,
+              "IDENTITY or RADAR, re-read on a new connection or boot, differ from what the pass assumed",
+              "ABORT, run the pass again with the new values"),
+    FaultRule("PASS_INCOMPLETE", FaultClass.PASS,
+              "sequence gap, OVERFLOW, PASS_STATE ABORTED, PULSES_PRODUCED != PULSES_PLANNED, a PASS value that "
+              "changed, a foreign TOKEN or CYCLE", "ABORT if still running, log, run the pass again"),
+    FaultRule("ABSURD_VALUE", FaultClass.PASS,
+              "a PASS or RADAR value the client will not use (sizes over its limits, a record that does not fit "
+              "WINDOW_REGS, AMPLITUDE_SCALE not finite > 0)", "ABORT, log, re-read, run the pass again"),
+    FaultRule("NO_PROGRESS", FaultClass.PASS,
+              "no new pulse and no change of STATE, PASS_STATE or PULSES_PRODUCED for stall_timeout_s",
+              "log, ABORT, run the pass again"),
+    FaultRule("COMMAND_FAILED", FaultClass.PASS,
+              "REJECTED_BUSY, REJECTED_NOT_READY, REJECTED_UNKNOWN, REJECTED_RANGE or FAILED; not DONE in time",
+              "ABORT, log, run the pass again"),
+    FaultRule("CYCLES_MISSED", FaultClass.NOTICE, "CYCLE_COUNTER moved on by more than 1 (modulo 2^32)",
+              "log the cycles never scanned; scan the new one"),
+    FaultRule("COUNTER_DECREASED", FaultClass.NOTICE, "CYCLE_COUNTER moved back (modulo 2^32)",
+              "log both values as a fault; scan the new value as a new cycle"),
+    FaultRule("RIG_ID_CHANGED", FaultClass.NOTICE, "IDENTITY.RIG_ID differs from the last one read",
+              "log both; later archives carry the new id"),
+    FaultRule("NAME_TAKEN", FaultClass.NOTICE, "the archive name of a whole pass is already taken",
+              "write it as <name>_b<BOOT_ID hex>_p<TOKEN>.h5 (then _2, _3, ...): never dropped"),
+    FaultRule("INCOMPATIBLE", FaultClass.SERVICE,
+              "MAGIC not 0x5557, MAP_MAJOR not 1 or WINDOW_ADDRESS not 1024, read twice",
+              "stop with a message naming the value"),
+    FaultRule("CONFIGURATION", FaultClass.SERVICE,
+              "a configured height or table angle outside the rig's RADAR limits",
+              "stop with a message naming the setting"),
+)
+FAULT_RULES = {f.name: f for f in FAULT_TAXONOMY}
+
+
+def fault_table() -> str:
+    rows = ["| fault | class | when | what the client does |", "|---|---|---|---|"]
+    rows += [f"| {f.name} | {f.cls.value} | {f.when} | {f.action} |" for f in FAULT_TAXONOMY]
+    return "\n".join(rows)
 
 
 # --------------------------------------------------------------------------------------------- blocks
@@ -315,11 +419,13 @@ STATUS = Block("STATUS", Table.INPUT, 32, 32, (
     Field("UPTIME", 6, "u32", 1e-3, "s", "time since boot, milliseconds"),
     Field("DEVICE_TIME", 8, "u64", 1e-3, "s", "device clock, milliseconds since 1970-01-01T00:00:00Z (UTC)"),
     Field("CYCLE_COUNTER", 12, "u32",
-          doc="cutting-cycle counter of the longwall control system: +1 when a cycle's conveyor push is done"),
+          doc="cutting-cycle counter of the longwall control system: +1 when a cycle's conveyor push is done; "
+              "2^32 - 1 is followed by 0"),
     Field("CARRIAGE_HEIGHT", 14, "s32", 1e-6, "m", "measured carriage (antenna phase centre) height, micrometres"),
     Field("CARRIAGE_POSITION", 16, "s32", 1e-6, "m", "measured rail position X_r, micrometres"),
     Field("TABLE_ANGLE", 18, "s32", 1e-3, "deg", "measured rotation-table angle, millidegrees"),
-    Field("CMD_ACK_SEQ", 20, "u16", doc="CMD_SEQ of the last command received (0 after boot)"),
+    Field("CMD_ACK_SEQ", 20, "u16", doc="CMD_SEQ of the last command received, i.e. written without an exception "
+                                         "reply (0 after boot)"),
     Field("CMD_ACK_CODE", 21, "u16", doc="CMD_CODE of that command"),
     Field("CMD_RESULT", 22, "u16", doc="its outcome: table Command results"),
 ), "live state; read it every poll")
@@ -331,7 +437,8 @@ RADAR = Block("RADAR", Table.INPUT, 64, 32, (
     Field("PRF", 6, "u32", 1e-3, "Hz", "pulse repetition frequency, millihertz"),
     Field("ANTENNA_APERTURE", 8, "u32", 1e-6, "m", "real antenna aperture along X_r, micrometres"),
     Field("BORESIGHT_Y_SIGN", 10, "s16", doc="side of the rail the rib is on: -1 (negative Y_r) or +1"),
-    Field("MAX_SAMPLES_PER_PULSE", 11, "u16", doc="largest SAMPLES_PER_PULSE the radar can deliver"),
+    Field("MAX_SAMPLES_PER_PULSE", 11, "u16", doc="largest SAMPLES_PER_PULSE the radar can deliver; "
+                                                   "10 + 9 + 2 * MAX_SAMPLES_PER_PULSE <= WINDOW_REGS"),
     Field("BUFFER_CAPACITY", 12, "u16", doc="pulses the ring buffer holds before it drops new ones"),
     Field("WINDOW_ADDRESS", 13, "u16", doc="input-register address of the pulse window (1024)"),
     Field("WINDOW_REGS", 14, "u16", doc="length of the pulse window in registers, header included"),
@@ -348,7 +455,8 @@ PASS = Block("PASS", Table.INPUT, 96, 32, (
     Field("CYCLE", 2, "u32", doc="CYCLE_COUNTER when the pass started"),
     Field("FIRST_SEQ", 4, "u32", doc="sequence number of the pass's first pulse"),
     Field("PULSES_PLANNED", 6, "u32", doc="pulses the pass will produce (travel / speed * PRF + 1)"),
-    Field("PULSES_PRODUCED", 8, "u32", doc="pulses produced so far, dropped ones included; final at COMPLETE"),
+    Field("PULSES_PRODUCED", 8, "u32", doc="pulses produced so far, dropped ones included; equal to PULSES_PLANNED "
+                                           "at COMPLETE"),
     Field("OVERFLOW_COUNT", 10, "u32", doc="pulses of this pass dropped because the buffer was full"),
     Field("RANGE_WINDOW_START", 12, "u32", 1e-12, "s", "two-way delay of fast-time sample 0, picoseconds"),
     Field("SAMPLES_PER_PULSE", 14, "u16", doc="M, complex samples in each pulse record"),
@@ -362,7 +470,8 @@ PASS = Block("PASS", Table.INPUT, 96, 32, (
 
 COMMAND = Block("COMMAND", Table.HOLDING, 0, 8, (
     Field("CMD_CODE", 0, "u16", doc="table Commands"),
-    Field("CMD_SEQ", 1, "u16", doc="1..65535, a new value for every new command; a repeated value is a retransmission"),
+    Field("CMD_SEQ", 1, "u16", doc="1..65535 (after 65535 comes 1; 0 gets exception 03), a new value for every new "
+                                   "command; a repeated value is a retransmission"),
     Field("ARG0", 2, "s32", doc="first argument (table Commands)"),
     Field("ARG1", 4, "s32", doc="second argument, 0 (reserved)"),
 ), "written by the client in one FC16 request of all 8 registers")
@@ -398,7 +507,8 @@ WINDOW_HEADER = Block("WINDOW_HEADER", Table.INPUT, WINDOW_ADDRESS, 10, (
     Field("OLDEST_SEQ", 0, "u32", doc="sequence number of record 0; 0 when RECORDS = 0"),
     Field("RECORDS", 2, "u16", doc="complete records that follow the header"),
     Field("RECORD_REGS", 3, "u16", doc="registers per record: 9 + 2 * SAMPLES_PER_PULSE"),
-    Field("NEWEST_SEQ", 4, "u32", doc="sequence number of the last pulse produced since boot; 0 if none"),
+    Field("NEWEST_SEQ", 4, "u32", doc="sequence number of the last pulse produced since boot (before the first: "
+                                      "the first's minus 1)"),
     Field("TOKEN", 6, "u32", doc="PASS.TOKEN of the pass the records belong to"),
 ), "start of the pulse window (section 6)")
 
@@ -480,4 +590,5 @@ def markdown_tables() -> dict[str, str]:
     out = {b.name: block_table(b) for b in (*INPUT_BLOCKS, WINDOW_HEADER, *HOLDING_BLOCKS)}
     for cls in (Status, Fault, State, Command, CommandResult, PassState, ResultStatus, RecordFlag):
         out[cls.__name__] = enum_table(cls)
+    out["FaultTaxonomy"] = fault_table()
     return out
