@@ -37,14 +37,13 @@ from pathlib import Path
 
 import numpy as np
 
-from uwbcl import archive, pipeline
+from uwbcl import archive, chain, pipeline
 from uwbcl.acquisition.client import AcquireSettings, AcquisitionSession
 from uwbcl.acquisition.device import DeviceConfig, LongwallFollower, RigController, RigServer
 from uwbcl.acquisition.faults import KINDS, parse_faults
 from uwbcl.acquisition.live import LiveProcessor, backend_available, processing_settings
 from uwbcl.acquisition.registers import SEQ_MODULUS
 from uwbcl.acquisition.rig import WorldConfig
-from uwbcl.displacement import estimate_advance
 from uwbcl.model import PassGeometry, ScanPass
 
 LOOPBACK = "127.0.0.1"
@@ -160,7 +159,7 @@ def study_accuracy(args, out: Path) -> bool:
         c, c0 = r["cycle"], r["previous_cycle"]
         true = device.campaign.rig_position_m(device.cycle_index(c)) - \
             device.campaign.rig_position_m(device.cycle_index(c0))
-        f = estimate_advance(located[c0].plates, located[c].plates, proc.association)
+        f = chain.rig_series([located[c0], located[c]], proc.association)[0].displacement
         rows.append((c, np.array([r["retreat_m"], r["creep_m"], r["vertical_m"]]) - true,
                      np.asarray(f.advance_m) - true, r["status"], f.status))
     print(" cycle | live - truth (mm): retreat  creep  vert | files - truth (mm): retreat  creep  vert | status")

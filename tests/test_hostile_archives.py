@@ -11,11 +11,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from test_archive import make_scan
 
 from uwbcl.archive import ArchiveError, read_pass, read_pass_header, write_pass
 from uwbcl.records import ReadLimits
-
-from test_archive import make_scan
 
 
 @pytest.fixture

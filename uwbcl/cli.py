@@ -6,7 +6,6 @@ import argparse
 import contextlib
 import json
 import logging
-import math
 import signal
 import sys
 from pathlib import Path
@@ -18,28 +17,12 @@ from .records import ALGORITHMS, BACKENDS, BatchError, ConfigError, OutputError
 from .scenarios import SCENARIOS
 
 
-def _heights(values) -> tuple[float, ...] | None:
-    """--heights 0.2 0.6 or --heights 0.2,0.6; ConfigError (a usage error) for anything but finite numbers."""
-    if not values:
-        return None
-    out = []
-    for text in (v for item in values for v in str(item).split(",") if v.strip()):
-        try:
-            h = float(text)
-        except ValueError:
-            raise ConfigError(None, "--heights", f"{text!r} is not a number") from None
-        if not math.isfinite(h):
-            raise ConfigError(None, "--heights", f"{text!r} is not a finite height")
-        out.append(h)
-    return tuple(out)
-
-
 def _simulate_shift(args: argparse.Namespace) -> int:
     from . import shift
 
     cfg = shift.ShiftConfig(cycles=args.cycles, rigs=args.rigs, first_cycle=args.first_cycle, seed=args.seed,
                             snr_db=args.snr_db, speed_jitter=args.speed_jitter,
-                            **({"heights_m": _heights(args.heights)} if args.heights else {}))
+                            **({"heights_m": config.parse_heights(args.heights)} if args.heights else {}))
     written = shift.write_shift(args.out_dir, cfg, overwrite=args.overwrite,
                                 created_by=f"uwbcl {__version__} simulate --scenario shift")
     print(f"wrote {len(written)} passes ({cfg.rigs} rigs, cycles {cfg.first_cycle}-"
@@ -52,7 +35,7 @@ def _simulate(args: argparse.Namespace) -> int:
         return _simulate_shift(args)
     scenario = SCENARIOS[args.scenario]
     out = Path(args.out_dir)
-    heights = _heights(args.heights)
+    heights = config.parse_heights(args.heights)
     passes = scenario.simulate(snr_db=args.snr_db, speed_jitter=args.speed_jitter, seed=args.seed,
                                heights_m=heights, rig_id=args.rig_id)
     written = []
@@ -87,7 +70,7 @@ def _process(args: argparse.Namespace) -> int:
         site = config.load_config(args.config) if args.config else config.SiteConfig()
         site = config.override(
             site, algorithm=args.algorithm, backend=args.backend, device=args.device, ac_mode=args.ac_mode,
-            jobs=args.jobs, web_depth_m=args.web_depth, heights_m=_heights(args.heights),
+            jobs=args.jobs, web_depth_m=args.web_depth, heights_m=config.parse_heights(args.heights),
             prior_window_m=tuple(args.prior_window) if args.prior_window else None,
             cache=False if args.no_cache else None, plots=True if args.plots else None,
             cycle_images=True if args.cycle_images else None)

@@ -237,6 +237,23 @@ def validate(cfg: SiteConfig, path=None) -> None:
     _check_ranges(settings, path)
 
 
+def parse_heights(values) -> tuple[float, ...] | None:
+    """Rail heights from command-line words, `0.2 0.6` or `0.2,0.6`; ConfigError (a usage error) for anything but
+    finite numbers."""
+    if not values:
+        return None
+    out = []
+    for text in (v for item in values for v in str(item).split(",") if v.strip()):
+        try:
+            h = float(text)
+        except ValueError:
+            raise ConfigError(None, "--heights", f"{text!r} is not a number") from None
+        if not math.isfinite(h):
+            raise ConfigError(None, "--heights", f"{text!r} is not a finite height")
+        out.append(h)
+    return tuple(out)
+
+
 def load_config(path: str | os.PathLike[str]) -> SiteConfig:
     return parse_config(read_toml(path), path)
 

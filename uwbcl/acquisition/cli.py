@@ -15,13 +15,8 @@ import threading
 import time
 from pathlib import Path
 
+from ..config import parse_heights
 from ..scenarios import SCENARIOS
-
-
-def _heights(values) -> tuple[float, ...] | None:
-    if not values:
-        return None
-    return tuple(float(v) for item in values for v in str(item).split(",") if v.strip())
 
 
 def add_acquisition_commands(sub) -> None:
@@ -189,7 +184,7 @@ def _acquire(args: argparse.Namespace) -> int:
     try:
         settings = load_settings(
             args.config, host=args.host, port=args.port, unit_id=args.unit_id, out=args.out,
-            heights_m=_heights(args.heights), cycles=args.cycles, rotation_table_angle_deg=args.angle,
+            heights_m=parse_heights(args.heights), cycles=args.cycles, rotation_table_angle_deg=args.angle,
             rib_distance_m=args.rib_distance, reference_height_m=args.reference_height, rig_id=args.rig_id,
             timeout_s=args.timeout, max_attempts=args.max_attempts, process=args.process, backend=args.backend,
             web_depth_m=args.web_depth)

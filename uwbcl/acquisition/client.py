@@ -22,14 +22,8 @@ import threading
 import time
 from pathlib import Path
 
-try:
-    import tomllib
-except ModuleNotFoundError:  # Python 3.10
-    try:
-        import tomli as tomllib  # type: ignore[no-redef]
-    except ModuleNotFoundError:
-        tomllib = None  # type: ignore[assignment]
-
+from ..config import read_toml
+from ..records import ConfigError
 from . import registers as R
 from .recorder import (
     AbsurdValue,
@@ -65,10 +59,6 @@ class CycleSuperseded(Exception):
     def __init__(self, counter: int):
         super().__init__(f"cycle counter moved on to {counter}")
         self.counter = counter
-
-
-class ConfigError(ValueError):
-    pass
 
 
 # ============================================================================================== settings
@@ -113,39 +103,32 @@ class AcquireSettings:
 
     def validate(self) -> None:
         if not self.heights_m:
-            raise ConfigError("heights_m: at least one height")
+            raise ConfigError(None, "acquire.heights_m", "at least one height")
         if len({round(h * 1000) for h in self.heights_m}) != len(self.heights_m):
-            raise ConfigError("heights_m: heights must differ by at least 1 mm")
+            raise ConfigError(None, "acquire.heights_m", "heights must differ by at least 1 mm")
         if not -89.0 < self.rotation_table_angle_deg < 89.0:
-            raise ConfigError("rotation_table_angle_deg: must be within (-89, 89)")
+            raise ConfigError(None, "acquire.rotation_table_angle_deg", "must be within (-89, 89)")
         for name in ("timeout_s", "reconnect_max_s", "stall_timeout_s", "command_timeout_s", "poll_s",
                      "rib_distance_m", "max_request_rate_hz"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"{name}: must be > 0")
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ConfigError(None, f"acquire.{name}", f"must be finite and > 0, got {getattr(self, name)}")
         if self.max_attempts < 1 or self.cycles < 0:
-            raise ConfigError("max_attempts must be >= 1 and cycles >= 0")
+            raise ConfigError(None, "acquire.max_attempts/cycles", "max_attempts must be >= 1 and cycles >= 0")
         if not 0 < self.port < 65536 or not 0 <= self.unit_id <= 255:
-            raise ConfigError("port must be in 1..65535 and unit_id in 0..255")
+            raise ConfigError(None, "acquire.port/unit_id", "port must be in 1..65535 and unit_id in 0..255")
 
 
 def load_settings(path: str | Path | None, **overrides) -> AcquireSettings:
     """Settings from the `[acquire]` table of a TOML file, then the non-None overrides (command-line flags)."""
     values: dict = {}
     if path is not None:
-        if tomllib is None:
-            raise ConfigError(f"{path}: reading TOML needs Python >= 3.11 or the 'tomli' package")
-        try:
-            with open(path, "rb") as f:
-                doc = tomllib.load(f)
-        except (OSError, tomllib.TOMLDecodeError) as exc:
-            raise ConfigError(f"{path}: {exc}") from None
-        table = doc.get("acquire", {})
+        table = read_toml(path).get("acquire", {})  # the one site file and its checks (uwbcl.config)
         if not isinstance(table, dict):
-            raise ConfigError(f"{path}: [acquire] must be a table")
+            raise ConfigError(path, "acquire", "must be a table ([acquire])")
         fields = {f.name: f for f in dataclasses.fields(AcquireSettings)}
         for key, value in table.items():
             if key not in fields:
-                raise ConfigError(f"{path}: [acquire] {key}: unknown setting")
+                raise ConfigError(path, f"[acquire] {key}", f"unknown setting; expected one of {', '.join(fields)}")
             values[key] = _coerce(path, key, value, fields[key].type)
     values.update({k: v for k, v in overrides.items() if v is not None})
     if "heights_m" in values:
@@ -154,7 +137,7 @@ def load_settings(path: str | Path | None, **overrides) -> AcquireSettings:
     try:
         settings.validate()
     except ConfigError as exc:
-        raise ConfigError(f"{path or 'settings'}: {exc}") from None
+        raise ConfigError(path or "settings", exc.key, exc.reason) from None
     return settings
 
 
@@ -162,10 +145,10 @@ def _coerce(path, key, value, type_name):
     expected = {"str": str, "int": int, "float": (int, float), "bool": bool}.get(str(type_name))
     if str(type_name).startswith("tuple"):
         if not isinstance(value, list) or not all(isinstance(v, (int, float)) for v in value):
-            raise ConfigError(f"{path}: [acquire] {key}: expected a list of numbers")
+            raise ConfigError(path, f"[acquire] {key}", "expected a list of numbers")
         return tuple(float(v) for v in value)
     if expected is None or not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
-        raise ConfigError(f"{path}: [acquire] {key}: expected {type_name}, got {value!r}")
+        raise ConfigError(path, f"[acquire] {key}", f"expected {type_name}, got {value!r}")
     return float(value) if type_name == "float" else value
 
 

@@ -6,7 +6,6 @@ refused, and a pass that delivers more pulses than it announced is cut off.
 from __future__ import annotations
 
 import dataclasses
-import datetime as dt
 import math
 from pathlib import Path
 
@@ -14,6 +13,7 @@ import numpy as np
 
 from .. import __version__, archive
 from ..model import PassGeometry, RadarParameters, ScanPass
+from ..utc import format_utc
 from . import registers as R
 
 
@@ -143,19 +143,7 @@ class PassAssembler:
         return ScanPass(radar=radar_parameters(radar), geometry=geometry,
                         range_window_start_s=d["RANGE_WINDOW_START"], pulse_time_s=self.time_s[:n].copy(),
                         pulse_position_m=self.position_m[:n].copy(), echo=echo, rig_id=rig_id, cycle=cycle,
-                        pass_start_time=iso_utc(d["START_TIME"]))
-
-
-def iso_utc(epoch_s: float) -> str:
-    t = dt.datetime.fromtimestamp(round(epoch_s, 3), tz=dt.timezone.utc)
-    return t.strftime("%Y-%m-%dT%H:%M:%S.") + f"{t.microsecond // 1000:03d}Z"
-
-
-def _parse_time(iso: str | None) -> float:
-    """Seconds since 1970 of an ISO 8601 UTC time from iso_utc (0.0 for none)."""
-    if not iso:
-        return 0.0
-    return dt.datetime.fromisoformat(iso.replace("Z", "+00:00")).timestamp()
+                        pass_start_time=format_utc(d["START_TIME"]))
 
 
 def write_scan(out_dir: Path, scan: ScanPass, pass_id: str, unique: str) -> Path:
