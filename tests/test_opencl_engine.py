@@ -19,6 +19,7 @@ from uwbcl import opencl, pipeline
 from uwbcl.focus import backprojection as bp
 from uwbcl.focus import coefficients as coef
 from uwbcl.focus import nlcs
+from uwbcl.focus.processing import DeviceMemory, DeviceMemoryError, KernelArgumentError
 from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2
 
 pytestmark = pytest.mark.opencl
@@ -395,6 +396,114 @@ def test_doppler_band_rows_hold_every_row_the_band_mask_passes(scenario):
         g = nlcs.focus_grid(scan)
         x = nlcs.slant_squint_sine(g)
         lo, hi = g.doppler_band
-        rows = np.flatnonzero(((x >= lo) & (x <= hi) & (np.abs(x) < 0.98)).any(axis=1)) - g.n_azimuth // 2
+        passed = (x >= lo) & (x <= hi) & (np.abs(x) < nlcs.SQUINT_SINE_CAP)
+        rows = np.flatnonzero(passed.any(axis=1)) - g.n_azimuth // 2
         first, count = _doppler_band_rows(g)
         assert first <= rows[0] and rows[-1] <= first + count - 1 and count <= rows.size + 4
+
+
+# ------------------------------------------------------------------------------------------------ device spine
+def test_the_engine_has_no_positional_launch_path_left():
+    """Kernels are launched only by `OpenclProcessing.launch` / `prepare` (named, checked arguments): the
+    orchestration and FFT modules neither hold kernel objects nor set arguments by position."""
+    import inspect
+
+    from uwbcl.focus import device_fft, engine as engine_module
+
+    for module in (engine_module, device_fft):
+        source = inspect.getsource(module)
+        for positional in ("enqueue_nd_range_kernel", "set_args", "set_arg(", "Kernel(", "all_kernels",
+                           ".kernels["):
+            assert positional not in source, (module.__name__, positional)
+    assert not hasattr(engine_module.FocusEngine, "_run") and not hasattr(engine_module.FocusEngine, "kernels")
+
+
+def test_every_kernel_of_the_program_is_launched_by_name_in_a_run_of_every_entry_point(jittery_pass, grid):
+    import pyopencl.array as cla
+
+    from uwbcl.focus.engine import FocusEngine
+
+    eng = FocusEngine(profile=True)
+    named = []
+    launch, enqueue = eng.launch, eng.enqueue
+    eng.launch = lambda name, size, **args: (named.append(name), launch(name, size, **args))[1]
+    eng.enqueue = lambda prepared: (named.append(prepared.name), enqueue(prepared))[1]
+    products = eng.nlcs_focus(jittery_pass)
+    echo, x_rel = nlcs.prepare_track(jittery_pass, grid)
+    eng.nlcs_model_spectra(products, x_rel, [echo], np.arange(-20, 20))
+    eng.calibration_spectra(products, grid.range_bins_m[[30]], np.linspace(-1.0, 1.0, 5))
+    eng.backprojection_focus(jittery_pass)
+    for n in (1 << 10, 1 << 11):  # lengths whose radix plans hold a radix-2 and a radix-4 pass
+        eng.fft(cla.zeros(eng.queue, (n, 4), np.complex64), 0)
+    profiled = {label for _, label, _, _ in eng._profile} & set(eng.signatures)
+    assert set(named) == set(eng.signatures) == profiled
+
+
+def test_a_launch_with_two_argument_names_swapped_is_refused_naming_the_kernel(engine, grid):
+    x_rel = np.linspace(-1.0, 1.0, grid.n_track)
+    idx, w = nlcs.lagrange_weights(x_rel, grid.t_track_s * grid.speed_m_s, 6)
+    args = dict(s=engine.buffer("echo", grid, n_pulses=grid.n_track), out=engine.buffer("azimuth", grid),
+                first=engine.to_device("first", idx[:, 0], grid), weights=engine.reals("weights", w, grid, taps=6),
+                order=6, n_track=grid.n_track, n_azimuth=grid.n_azimuth, n_range=grid.n_range,
+                sample_rate_hz=grid.sample_rate_hz, carrier_hz=grid.carrier_frequency_hz, track_dt_s=grid.dt_s,
+                p2_m_s2=0.0)
+    size = (grid.n_range, grid.n_azimuth)
+    with pytest.raises(KernelArgumentError, match="kernel resample_to_uniform_track: argument first"):
+        engine.launch("resample_to_uniform_track", size, **dict(args, first=args["weights"], weights=args["first"]))
+    with pytest.raises(KernelArgumentError, match="kernel resample_to_uniform_track: argument order"):
+        engine.launch("resample_to_uniform_track", size, **dict(args, order=args["sample_rate_hz"],
+                                                                sample_rate_hz=args["order"]))
+    engine.launch("resample_to_uniform_track", size, **args)  # the same launch, named right, runs
+
+
+def test_a_launch_with_an_unknown_or_missing_argument_is_refused_naming_the_kernel(engine, grid):
+    s = engine.buffer("filter_h7", grid)
+    with pytest.raises(KernelArgumentError, match="kernel apply_filter: missing n_range; unknown n_rng"):
+        engine.launch("apply_filter", (grid.n_range, grid.n_azimuth), s=s, filter=s, n_rng=grid.n_range)
+    with pytest.raises(KernelArgumentError, match="no kernel 'apply_filters'"):
+        engine.launch("apply_filters", (grid.n_range, grid.n_azimuth), s=s, filter=s, n_range=grid.n_range)
+
+
+def test_buffers_are_declared_with_their_shapes_and_dtypes(engine, grid):
+    assert engine.buffer("azimuth", grid).shape == (grid.n_azimuth, grid.n_range)
+    assert engine.buffer("eta1", grid).dtype == engine.real
+    with pytest.raises(ValueError, match="buffer 'x_rel': host array of shape"):
+        engine.to_device("x_rel", np.zeros(5), grid, n_pulses=6)
+    with pytest.raises(KeyError, match="not declared"):
+        engine.buffer("t_scratch", grid)
+
+
+def test_the_squint_cap_reaches_the_kernels_as_a_define(engine):
+    assert float(engine.defines["SQUINT_SINE_CAP"]) == nlcs.SQUINT_SINE_CAP
+
+
+def test_the_memory_check_refuses_a_pass_that_would_not_fit_before_it_runs(engine, jittery_pass, grid, monkeypatch):
+    need = engine.nlcs_footprint(grid, jittery_pass.n_pulses)
+    assert need > 8 * grid.n_azimuth * grid.n_range * 4  # the padded arrays alone: azimuth, scratch, H7, reference
+    launches = []
+    monkeypatch.setattr(engine, "launch", lambda *a, **k: launches.append(a))
+    monkeypatch.setattr(engine, "memory_limits", DeviceMemory(global_bytes=need - 1, max_alloc_bytes=1 << 30))
+    with pytest.raises(DeviceMemoryError, match=r"nlcs_focus: its buffers need .* MiB, more than"):
+        engine.nlcs_focus(jittery_pass)
+    monkeypatch.setattr(engine, "memory_limits", DeviceMemory(global_bytes=1 << 40, max_alloc_bytes=1 << 16))
+    with pytest.raises(DeviceMemoryError, match="backprojection_focus: buffer fine"):
+        engine.backprojection_focus(jittery_pass)
+    assert launches == []  # refused before anything ran
+
+
+def test_profiling_gives_a_table_of_the_stages_and_the_same_results_as_without(engine, jittery_pass):
+    from uwbcl.focus.engine import FocusEngine
+
+    profiled = FocusEngine(profile=True)
+    profiled.reset_profile()
+    image = profiled.nlcs_focus(jittery_pass).image
+    assert np.array_equal(image, engine.nlcs_focus(jittery_pass).image)
+    summary = {t.stage: t for t in profiled.profile_summary()}
+    assert {"filter tables", "reference spectra", "echo chain", "H8 table", "H8 and spectrum rows",
+            "image"} <= set(summary)
+    assert summary["echo chain"].calls == 1 and summary["echo chain"].commands >= 12
+    assert all(t.total_ms > 0 for t in summary.values())
+    table = profiled.profile_table()
+    assert "echo chain" in table and "nlcs_filter" in table and "total ms" in table
+    with pytest.raises(RuntimeError, match="profiling is off"):
+        engine.profile_summary()

@@ -76,7 +76,7 @@ def _process(args: argparse.Namespace) -> int:
         site = config.load_config(args.config) if args.config else config.SiteConfig()
         site = config.override(
             site, algorithm=args.algorithm, backend=args.backend, device=args.device, ac_mode=args.ac_mode,
-            jobs=args.jobs, web_depth_m=args.web_depth, heights_m=_heights(args.heights),
+            jobs=1 if args.profile else args.jobs, web_depth_m=args.web_depth, heights_m=_heights(args.heights),
             prior_window_m=tuple(args.prior_window) if args.prior_window else None,
             cache=False if args.no_cache else None, plots=True if args.plots else None,
             cycle_images=True if args.cycle_images else None)
@@ -84,7 +84,7 @@ def _process(args: argparse.Namespace) -> int:
     except config.ConfigError as exc:
         print(f"uwbcl process: {exc}", file=sys.stderr)
         return 2
-    if settings.backend == "opencl" and not _engine_ready(settings.device):
+    if settings.backend == "opencl" and not _engine_ready(settings.device, args.profile):
         return 2
     in_dir = Path(args.in_dir)
     if not in_dir.is_dir():
@@ -96,6 +96,8 @@ def _process(args: argparse.Namespace) -> int:
     except batch.BatchError as exc:
         print(f"uwbcl process: {exc}", file=sys.stderr)
         return 2
+    if args.profile:
+        _print_profile(settings)
     flagged = sum(r["status"] != "ok" for r in report.rows)
     print(f"{report.n_passes} passes ({report.n_detected} focused, {report.n_cached} from the cache), "
           f"{len(report.cycles)} cycles located, {len(report.rows)} displacements ({flagged} flagged) "
@@ -108,19 +110,32 @@ def _process(args: argparse.Namespace) -> int:
     return 0
 
 
-def _engine_ready(device: str | None) -> bool:
-    """Start the OpenCL engine before any work, so a missing runtime is one clear message, not a failure per pass."""
+def _engine_ready(device: str | None, profile: bool = False) -> bool:
+    """Start the OpenCL engine before any work, so a missing runtime is one clear message, not a failure per pass
+    (with `profile`, an engine that records every device command: `_print_profile`)."""
     from . import opencl
     from .focus.engine import shared_engine
 
     try:
-        engine = shared_engine(device)
+        engine = shared_engine(device, profile=profile or None)
     except opencl.OpenClUnavailable as exc:
         print(f"uwbcl: OpenCL backend unavailable: {exc}", file=sys.stderr)
         return False
     logging.getLogger("uwbcl").info("OpenCL engine on %s (start-up %.2f s)", engine.device.name.strip(),
                                     engine.startup_s)
     return True
+
+
+def _print_profile(settings) -> None:
+    """`process --profile`: the shared engine's per-stage device times (it ran every pass: --jobs 1)."""
+    if settings.backend != "opencl":
+        print("--profile: the numpy backend has no device profile", file=sys.stderr)
+        return
+    from .focus.engine import shared_engine
+
+    engine = shared_engine(settings.device)
+    print(f"device time per stage on {engine.device.name.strip()} (passes read from the cache are not focused):")
+    print(engine.profile_table())
 
 
 def _devices(args: argparse.Namespace) -> int:
@@ -172,7 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--ac-mode", choices=("exact", "series"), default=None,
                    help="NLCS azimuth compression: exact-reference (default) or the series of eq. 17")
     q.add_argument("--jobs", type=int, default=None,
-                   help="worker processes (default: all cores with numpy, 1 with opencl)")
+                   help="worker processes (default: all cores with numpy, 2 with opencl)")
     q.add_argument("--web-depth", type=float, default=None,
                    help="nominal advance per cycle in metres: the prior that resolves look-alike plates")
     q.add_argument("--prior-window", type=float, nargs=3, metavar=("X", "Y", "Z"),
@@ -182,6 +197,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--cycle-images", action="store_true",
                    help="write a focused image per pass with the detections marked (slow: refocuses)")
     q.add_argument("--no-cache", action="store_true", help="refocus every pass, ignoring OUT/.uwbcl-cache")
+    q.add_argument("--profile", action="store_true",
+                   help="opencl: print the device time per focusing stage after the run (runs with --jobs 1)")
     q.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
     q.set_defaults(func=_process)
 

@@ -269,10 +269,7 @@ class FocusEngine(OpenclProcessing):
             self.fft(ref, 0, inverse=True)
             self._launch("apply_filter", grid.n_azimuth, grid.n_range, s=ref, filter=h7, n_range=grid.n_range)
             self.fft(ref, 0)
-            host = np.empty(ref.shape, ref.dtype)
-            read = self._cl.enqueue_copy(self.queue, host, ref.data, is_blocking=False)
-            self._record("read-back", read)
-        return host, read
+            return self.host_async(ref)
 
     def _reference_spectra_result(self, pending, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid,
                                   aperture_m: float) -> np.ndarray:

@@ -282,8 +282,9 @@ class OpenclProcessing:
         self._in_flight: list = []  # host arrays of uploads not yet known to be complete
         self.memory_limits = DeviceMemory(int(device.global_mem_size), int(device.max_mem_alloc_size))
         self._stages: list[str] = ["(none)"]
-        self._profile: list | None = [] if profile else None
+        self._profile: list | None = [] if profile else None  # (stage, label, event, end marker or None)
         self._profile_calls: dict[str, int] = {}
+        self._profile_totals: dict[tuple[str, str], list] = {}  # (stage, label) -> [commands, ms], folded
 
     @property
     def profiling(self) -> bool:
@@ -382,6 +383,14 @@ class OpenclProcessing:
         self._in_flight.clear()
         return out
 
+    def host_async(self, arr):
+        """Queue a read-back of `arr` without waiting: (host array, event); the array is valid once the event
+        has completed (`event.wait()`)."""
+        out = np.empty(arr.shape, arr.dtype)
+        event = self._cl.enqueue_copy(self.queue, out, arr.base_data, src_offset=arr.offset, is_blocking=False)
+        self._record("read-back", event)
+        return out, event
+
     def fill(self, arr, value) -> None:
         """Set every element of `arr` to `value` (of the array's dtype) with a fill command, not a kernel."""
         event = self._cl.enqueue_fill_buffer(self.queue, arr.data, arr.dtype.type(value), 0, arr.nbytes)
@@ -432,9 +441,13 @@ class OpenclProcessing:
         """Context manager: device commands queued inside are profiled under `name` (the innermost stage)."""
         return _Stage(self, name)
 
+    PROFILE_EVENTS_KEPT = 20000  # recorded events are folded into totals beyond this (a long batch)
+
     def _record(self, label: str, event, end_event=None) -> None:
         if self._profile is not None:
             self._profile.append((self._stages[-1], label, event, end_event))
+            if len(self._profile) > self.PROFILE_EVENTS_KEPT:
+                self._fold_profile()
 
     def marker(self):
         """A marker event (for timing commands whose events a library does not return, such as VkFFT's)."""
@@ -448,28 +461,31 @@ class OpenclProcessing:
         if self._profile is not None:
             self._profile.clear()
             self._profile_calls.clear()
+            self._profile_totals.clear()
 
-    def _durations(self):
-        """(stage, label, ms) of every recorded command (waits for the queue)."""
+    def _fold_profile(self) -> None:
+        """Add the device time of every recorded command to the totals per (stage, label) and drop the events
+        (waits for the queue)."""
         self.queue.finish()
-        out = []
-        for stage, label, event, end in self._profile or ():
+        for stage, label, event, end in self._profile:
             if end is None:
                 ns = event.profile.end - event.profile.start
             else:  # between two markers: from the end of the first to the end of the second
                 ns = end.profile.end - event.profile.end
-            out.append((stage, label, ns * 1e-6))
-        return out
+            row = self._profile_totals.setdefault((stage, label), [0, 0.0])
+            row[0] += 1
+            row[1] += ns * 1e-6
+        self._profile.clear()
 
     def profile_summary(self, by: str = "stage") -> list[StageTiming]:
         """Per stage (by="stage") or per kernel/command (by="command"): calls, commands and device ms."""
         if self._profile is None:
             raise RuntimeError("profiling is off: construct the engine with profile=True")
+        self._fold_profile()
         rows: dict[str, list] = {}
-        for stage, label, ms in self._durations():
-            key = stage if by == "stage" else label
-            row = rows.setdefault(key, [0, 0.0])
-            row[0] += 1
+        for (stage, label), (n, ms) in self._profile_totals.items():
+            row = rows.setdefault(stage if by == "stage" else label, [0, 0.0])
+            row[0] += n
             row[1] += ms
         return [StageTiming(k, self._profile_calls.get(k, 0) if by == "stage" else n, n, ms)
                 for k, (n, ms) in rows.items()]
