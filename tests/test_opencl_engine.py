@@ -126,7 +126,8 @@ def test_extended_nlcs_phase_matches_the_reference_for_a_nonzero_p2(engine, jitt
     x = noise((x_rel.size, grid.n_range), 3)
     p2 = 0.02  # m/s^2; zero under P1 on a straight rail, so exercise the hook explicitly
     ref = nlcs.pad_azimuth(nlcs.extended_nlcs(nlcs.resample_to_uniform_track(x, x_rel, grid), p2, grid), grid)
-    out = engine.resample_to_uniform_track(engine.to_device("echo", x, grid, n_pulses=x.shape[0]), x_rel, grid, p2)
+    d = engine.to_device("echo", x, grid, n_pulses=x.shape[0])
+    out = engine.resample_to_uniform_track(d, x_rel, grid, p2)
     assert rel_err(centred(out.get()), ref) < STAGE_TOL
 
 
@@ -402,20 +403,22 @@ def test_doppler_band_rows_hold_every_row_the_band_mask_passes(scenario):
         assert first <= rows[0] and rows[-1] <= first + count - 1 and count <= rows.size + 4
 
 
-# ------------------------------------------------------------------------------------------------ device spine
+# -------------------------------------------------------------------------------------------- device spine
 def test_the_engine_has_no_positional_launch_path_left():
     """Kernels are launched only by `OpenclProcessing.launch` / `prepare` (named, checked arguments): the
     orchestration and FFT modules neither hold kernel objects nor set arguments by position."""
     import inspect
 
-    from uwbcl.focus import device_fft, engine as engine_module
+    from uwbcl.focus import device_fft
+    from uwbcl.focus import engine as engine_module
 
     for module in (engine_module, device_fft):
         source = inspect.getsource(module)
         for positional in ("enqueue_nd_range_kernel", "set_args", "set_arg(", "Kernel(", "all_kernels",
                            ".kernels["):
             assert positional not in source, (module.__name__, positional)
-    assert not hasattr(engine_module.FocusEngine, "_run") and not hasattr(engine_module.FocusEngine, "kernels")
+    assert not hasattr(engine_module.FocusEngine, "_run")
+    assert not hasattr(engine_module.FocusEngine, "kernels")
 
 
 def test_every_kernel_of_the_program_is_launched_by_name_in_a_run_of_every_entry_point(jittery_pass, grid):
@@ -442,17 +445,18 @@ def test_every_kernel_of_the_program_is_launched_by_name_in_a_run_of_every_entry
 def test_a_launch_with_two_argument_names_swapped_is_refused_naming_the_kernel(engine, grid):
     x_rel = np.linspace(-1.0, 1.0, grid.n_track)
     idx, w = nlcs.lagrange_weights(x_rel, grid.t_track_s * grid.speed_m_s, 6)
-    args = dict(s=engine.buffer("echo", grid, n_pulses=grid.n_track), out=engine.buffer("azimuth", grid),
-                first=engine.to_device("first", idx[:, 0], grid), weights=engine.reals("weights", w, grid, taps=6),
-                order=6, n_track=grid.n_track, n_azimuth=grid.n_azimuth, n_range=grid.n_range,
-                sample_rate_hz=grid.sample_rate_hz, carrier_hz=grid.carrier_frequency_hz, track_dt_s=grid.dt_s,
-                p2_m_s2=0.0)
+    args = {"s": engine.buffer("echo", grid, n_pulses=grid.n_track), "out": engine.buffer("azimuth", grid),
+            "first": engine.to_device("first", idx[:, 0], grid),
+            "weights": engine.reals("weights", w, grid, taps=6), "order": 6, "n_track": grid.n_track,
+            "n_azimuth": grid.n_azimuth, "n_range": grid.n_range, "sample_rate_hz": grid.sample_rate_hz,
+            "carrier_hz": grid.carrier_frequency_hz, "track_dt_s": grid.dt_s, "p2_m_s2": 0.0}
     size = (grid.n_range, grid.n_azimuth)
     with pytest.raises(KernelArgumentError, match="kernel resample_to_uniform_track: argument first"):
-        engine.launch("resample_to_uniform_track", size, **dict(args, first=args["weights"], weights=args["first"]))
+        engine.launch("resample_to_uniform_track", size,
+                      **{**args, "first": args["weights"], "weights": args["first"]})
     with pytest.raises(KernelArgumentError, match="kernel resample_to_uniform_track: argument order"):
-        engine.launch("resample_to_uniform_track", size, **dict(args, order=args["sample_rate_hz"],
-                                                                sample_rate_hz=args["order"]))
+        engine.launch("resample_to_uniform_track", size,
+                      **{**args, "order": args["sample_rate_hz"], "sample_rate_hz": args["order"]})
     engine.launch("resample_to_uniform_track", size, **args)  # the same launch, named right, runs
 
 
@@ -477,9 +481,10 @@ def test_the_squint_cap_reaches_the_kernels_as_a_define(engine):
     assert float(engine.defines["SQUINT_SINE_CAP"]) == nlcs.SQUINT_SINE_CAP
 
 
-def test_the_memory_check_refuses_a_pass_that_would_not_fit_before_it_runs(engine, jittery_pass, grid, monkeypatch):
+def test_the_memory_check_refuses_a_pass_that_would_not_fit_before_it_runs(engine, jittery_pass, grid,
+                                                                           monkeypatch):
     need = engine.nlcs_footprint(grid, jittery_pass.n_pulses)
-    assert need > 8 * grid.n_azimuth * grid.n_range * 4  # the padded arrays alone: azimuth, scratch, H7, reference
+    assert need > 8 * grid.n_azimuth * grid.n_range * 4  # the padded arrays: azimuth, scratch, H7, reference
     launches = []
     monkeypatch.setattr(engine, "launch", lambda *a, **k: launches.append(a))
     monkeypatch.setattr(engine, "memory_limits", DeviceMemory(global_bytes=need - 1, max_alloc_bytes=1 << 30))

@@ -76,7 +76,8 @@ def _process(args: argparse.Namespace) -> int:
         site = config.load_config(args.config) if args.config else config.SiteConfig()
         site = config.override(
             site, algorithm=args.algorithm, backend=args.backend, device=args.device, ac_mode=args.ac_mode,
-            jobs=1 if args.profile else args.jobs, web_depth_m=args.web_depth, heights_m=_heights(args.heights),
+            jobs=1 if args.profile else args.jobs, web_depth_m=args.web_depth,
+            heights_m=_heights(args.heights),
             prior_window_m=tuple(args.prior_window) if args.prior_window else None,
             cache=False if args.no_cache else None, plots=True if args.plots else None,
             cycle_images=True if args.cycle_images else None)
@@ -111,8 +112,8 @@ def _process(args: argparse.Namespace) -> int:
 
 
 def _engine_ready(device: str | None, profile: bool = False) -> bool:
-    """Start the OpenCL engine before any work, so a missing runtime is one clear message, not a failure per pass
-    (with `profile`, an engine that records every device command: `_print_profile`)."""
+    """Start the OpenCL engine before any work, so a missing runtime is one clear message, not a failure per
+    pass (with `profile`, an engine that records every device command: `_print_profile`)."""
     from . import opencl
     from .focus.engine import shared_engine
 
@@ -134,7 +135,8 @@ def _print_profile(settings) -> None:
     from .focus.engine import shared_engine
 
     engine = shared_engine(settings.device)
-    print(f"device time per stage on {engine.device.name.strip()} (passes read from the cache are not focused):")
+    print(f"device time per stage on {engine.device.name.strip()} "
+          "(passes read from the cache are not focused):")
     print(engine.profile_table())
 
 

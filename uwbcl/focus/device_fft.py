@@ -47,9 +47,9 @@ class DeviceFft:
         self._launches: dict = {}  # (buffer, scratch, twiddle, shape, inverse) -> [PreparedLaunch]
 
     def fft(self, arr, axis: int, inverse: bool = False) -> None:
-        """In-place complex FFT along one axis (complex64 or complex128); the inverse is normalised by 1/N like
-        numpy. Power-of-two complex64 azimuth (axis 0) transforms of 2-D arrays with a multiple of 4 columns use
-        our Stockham kernels (fft.cl), the rest VkFFT."""
+        """In-place complex FFT along one axis (complex64 or complex128); the inverse is normalised by 1/N
+        like numpy. Power-of-two complex64 azimuth (axis 0) transforms of 2-D arrays with a multiple of 4
+        columns use our Stockham kernels (fft.cl), the rest VkFFT."""
         if (axis == 0 and arr.ndim == 2 and arr.dtype == np.complex64 and is_power_of_two(arr.shape[0])
                 and arr.shape[1] % 4 == 0):
             self.azimuth_fft(arr, inverse)
@@ -57,12 +57,13 @@ class DeviceFft:
         key = (arr.shape, axis, arr.dtype)
         app = self._plans.get(key)
         if app is None:
-            app = self._plans[key] = self._vkfft_app(arr.shape, arr.dtype, self.proc.queue, ndim=1, axes=(axis,),
-                                                     inplace=True, norm=1)
+            app = self._plans[key] = self._vkfft_app(arr.shape, arr.dtype, self.proc.queue, ndim=1,
+                                                     axes=(axis,), inplace=True, norm=1)
         if self.proc.profiling:  # VkFFT returns no events: time it between two markers
             before = self.proc.marker()
             (app.ifft if inverse else app.fft)(arr, arr)
-            self.proc.record_span(f"vkfft axis {axis}{' inverse' if inverse else ''}", before, self.proc.marker())
+            label = f"vkfft axis {axis}{' inverse' if inverse else ''}"
+            self.proc.record_span(label, before, self.proc.marker())
         else:
             (app.ifft if inverse else app.fft)(arr, arr)
 
@@ -80,7 +81,7 @@ class DeviceFft:
         key = (arr.data.int_ptr, scratch.data.int_ptr, twiddle.data.int_ptr, arr.shape, bool(inverse))
         launches = self._launches.get(key)
         if launches is None:
-            if len(self._launches) >= self.LAUNCH_SETS_KEPT:  # buffers of passes long gone: bound what is kept
+            if len(self._launches) >= self.LAUNCH_SETS_KEPT:  # buffers of passes long gone: bound the cache
                 self._launches.clear()
             launches = self._launches[key] = self._azimuth_fft_launches(arr, scratch, twiddle, inverse)
         for launch in launches:
@@ -94,9 +95,9 @@ class DeviceFft:
         launches, src, dst, ns = [], arr, scratch, 1
         for i, radix in enumerate(radices):
             scale = 1.0 / n if inverse and i == len(radices) - 1 else 1.0
-            launches.append(self.proc.prepare(f"azimuth_fft_radix{radix}", (n_cols // 4, n // radix), x=src, y=dst,
-                                              twiddle=twiddle, n=n, n_cols=n_cols, ns=ns, inverse=int(inverse),
-                                              scale=scale))
+            launches.append(self.proc.prepare(f"azimuth_fft_radix{radix}", (n_cols // 4, n // radix), x=src,
+                                              y=dst, twiddle=twiddle, n=n, n_cols=n_cols, ns=ns,
+                                              inverse=int(inverse), scale=scale))
             ns *= radix
             src, dst = dst, src
         return launches
@@ -106,7 +107,9 @@ class DeviceFft:
         once against numpy, complex64.
         Returns what failed, or "" when the forward and inverse transforms agree to `tol`."""
         rng = np.random.default_rng(0)
-        x = (rng.standard_normal(SELF_TEST_SHAPE) + 1j * rng.standard_normal(SELF_TEST_SHAPE)).astype(np.complex64)
+        x = rng.standard_normal(SELF_TEST_SHAPE) + 1j * rng.standard_normal(SELF_TEST_SHAPE)
+        x = x.astype(np.complex64)
+
         failure = ""
         for axis in axes:
             d = self.proc.to_device("selftest", x, None)

@@ -1,4 +1,5 @@
-"""The OpenCL focusing engine: the NLCS chain and backprojection of `nlcs.py` / `backprojection.py` on a device.
+"""The OpenCL focusing engine: the NLCS chain and backprojection of `nlcs.py` / `backprojection.py` on a
+device.
 
 Three layers (docs/opencl.md, "Structure"):
 
@@ -13,8 +14,8 @@ One engine is reused across passes (buffers and plans are kept per shape, so a b
 allocates once). Coefficients are computed on the host (`coefficients.py`, a few scalars per range bin); every
 phase function is evaluated in the kernels from them (`kernels/*.cl`). Data are complex64 on the device; phase
 arguments are evaluated in float64 where the device has fp64 (docs/opencl.md, error budget). The reference
-spectra of the exact-reference H8 are computed in complex64; the few bins whose band edge is within rounding of
-the fit's threshold are recomputed on the host in float64 (`REFERENCE_EDGE_MARGIN`).
+spectra of the exact-reference H8 are computed in complex64; the few bins whose band edge is within rounding
+of the fit's threshold are recomputed on the host in float64 (`REFERENCE_EDGE_MARGIN`).
 
 Azimuth arrays live on the device in FFT (natural) order; the numpy reference keeps them centred. The engine
 converts at the edges only (writing the resampled track in natural order, fftshift of the read-back image).
@@ -40,7 +41,7 @@ PROGRAM_FILES = ("common.cl", "range.cl", "azimuth.cl", "fft.cl", "backprojectio
 # complex64 (measured complex64 error on PoCL: 3e-7 of the peak); such bins are recomputed in float64.
 REFERENCE_EDGE_MARGIN = 3e-6
 LAGRANGE_TAPS = 6  # taps of the motion-compensation resampling (nlcs.lagrange_weights' order)
-ROW_STEP = 128  # band buffers' row counts are rounded up to this, so their range-FFT plans recur across passes
+ROW_STEP = 128  # band buffers' row counts are rounded up to this: their range-FFT plans recur across passes
 AC_TERMS_BOUND = 9  # H8 polynomial terms at most: the degree-8 exact-reference fit (the series has 5)
 BP_UPSAMPLE = 16  # backprojection's range upsampling
 NLCS_COEFFICIENTS = ("eta1", "y3", "y4", "q2", "q3", "q4")
@@ -67,13 +68,13 @@ C64 = np.complex64
 # Every device buffer of the engine. Shapes are functions of the focus grid (for per-column arrays such as the
 # calibration's, of the grid with n_range = columns) and of the named extents the grid does not fix.
 BUFFERS = (
-    BufferSpec("echo", lambda g, n_pulses: (n_pulses, g.n_range), C64, doc="an echo, then its range spectrum"),
+    BufferSpec("echo", lambda g, n_pulses: (n_pulses, g.n_range), C64, doc="an echo, then its range FFT"),
     BufferSpec("x_rel", lambda g, n_pulses: (n_pulses,), REAL, True, "logged rail positions - centre (m)"),
-    BufferSpec("first", lambda g: (g.n_track,), np.int32, True, "first Lagrange tap (pulse) per track sample"),
+    BufferSpec("first", lambda g: (g.n_track,), np.int32, True, "first Lagrange tap pulse per track sample"),
     BufferSpec("weights", lambda g, taps: (g.n_track, taps), REAL, True, "Lagrange weights per track sample"),
     BufferSpec("azimuth", _full_shape, C64, doc="the padded (range-)Doppler array of an echo, FFT order"),
     BufferSpec("doppler_rows", _band_shape, C64, doc="the Doppler band's rows of `azimuth`"),
-    BufferSpec("filter_src", _band_shape, C64, doc="H3 * band mask * H4 * range-IFFT delay origin, band rows"),
+    BufferSpec("filter_src", _band_shape, C64, doc="H3 * band mask * H4 * range-IFFT delay, band rows"),
     BufferSpec("filter_h5h6", _band_shape, C64, doc="H5 H6 on the band rows"),
     BufferSpec("filter_h7", _full_shape, C64, doc="H7, whole azimuth axis"),
     *(BufferSpec(name, _per_bin, REAL, True, "NLCS coefficient per bin") for name in NLCS_COEFFICIENTS),
@@ -81,10 +82,10 @@ BUFFERS = (
     BufferSpec("ac_first", _per_bin, np.int32, True, "H8 band: first signed azimuth index per bin"),
     BufferSpec("ac_last", _per_bin, np.int32, True, "H8 band: last signed azimuth index per bin"),
     BufferSpec("filter_h8", lambda g, rows: (rows, g.n_range), C64, doc="H8 on the image spectrum's rows"),
-    BufferSpec("h8_rows", lambda g, rows: (padded_rows(rows, g), g.n_range), C64, doc="the image's spectrum rows"),
+    BufferSpec("h8_rows", lambda g, rows: (padded_rows(rows, g), g.n_range), C64, doc="image spectrum rows"),
     BufferSpec("model_rows", lambda g, rows: (padded_rows(rows, g), g.n_range), C64,
                doc="a neighbour model's spectrum rows"),
-    *(BufferSpec(name, lambda g, columns: (g.n_azimuth, columns), C64, doc="simulated targets, one per column")
+    *(BufferSpec(name, lambda g, columns: (g.n_azimuth, columns), C64, doc="simulated targets per column")
       for name in ("reference", "calibration")),
     *(BufferSpec(f"{name}_{what}", lambda g, columns: (columns,), REAL, True, "per column")
       for name in ("reference", "calibration") for what in ("r", "t_n")),
@@ -123,7 +124,7 @@ class FocusEngine(OpenclProcessing):
         if fp64_phase and not has_fp64:
             raise opencl.OpenClUnavailable(f"{dev.name.strip()} has no fp64; use fp64_phase=False")
         self.fp64_phase = has_fp64 if fp64_phase is None else fp64_phase
-        # repr of a float is its shortest exact form: the kernels compare with the same double as the reference
+        # repr of a float is its shortest exact form: the kernels compare with the reference's own double
         super().__init__(dev, PROGRAM_FILES, BUFFERS, defines={"SQUINT_SINE_CAP": repr(nlcs.SQUINT_SINE_CAP)},
                          fp64=self.fp64_phase, profile=profile)
         self.ffts = device_fft.DeviceFft(self, VkFFTApp)
@@ -132,7 +133,8 @@ class FocusEngine(OpenclProcessing):
         with self.stage("FFT self-test"):
             failure = self.ffts.self_test_failure()
         if failure:
-            raise opencl.OpenClUnavailable(f"{failure}; this OpenCL runtime miscompiles it, use --backend numpy")
+            raise opencl.OpenClUnavailable(f"{failure}; this OpenCL runtime miscompiles it, "
+                                           "use --backend numpy")
         self.startup_s = time.perf_counter() - t0
 
     def __repr__(self) -> str:
@@ -159,7 +161,8 @@ class FocusEngine(OpenclProcessing):
         rows = _doppler_band_rows(grid)[1]  # the image spectrum's rows lie inside the Doppler band's
         return [("echo", {"n_pulses": n_pulses}), ("x_rel", {"n_pulses": n_pulses}), ("first", {}),
                 ("weights", {"taps": LAGRANGE_TAPS}), ("azimuth", {}),
-                ("fft_scratch", {"n": grid.n_azimuth, "cols": grid.n_range}), ("fft_twiddle", {"n": grid.n_azimuth}),
+                ("fft_scratch", {"n": grid.n_azimuth, "cols": grid.n_range}),
+                ("fft_twiddle", {"n": grid.n_azimuth}),
                 ("doppler_rows", {}), ("filter_src", {}), ("filter_h5h6", {}), ("filter_h7", {}),
                 *((name, {}) for name in NLCS_COEFFICIENTS), ("ac_poly", {"n_terms": AC_TERMS_BOUND}),
                 ("ac_first", {}), ("ac_last", {}), ("filter_h8", {"rows": rows}), ("h8_rows", {"rows": rows})]
@@ -181,7 +184,8 @@ class FocusEngine(OpenclProcessing):
                      carrier_hz=grid.carrier_frequency_hz, sin_squint=grid.sin_squint)
 
     def resample_to_uniform_track(self, s, x_rel_m: np.ndarray, grid: nlcs.FocusGrid, p2_m_s2: float = 0.0):
-        """Lagrange resampling onto the uniform track, ENLCS H2, padding: -> (n_azimuth, n_range), FFT order."""
+        """Lagrange resampling onto the uniform track, ENLCS H2 (eq. 6), padding: -> (n_azimuth, n_range),
+        FFT order."""
         idx, w = nlcs.lagrange_weights(x_rel_m, grid.t_track_s * grid.speed_m_s, LAGRANGE_TAPS)
         out = self.buffer("azimuth", grid)
         self._launch("resample_to_uniform_track", grid.n_azimuth, grid.n_range, s=s, out=out,
@@ -199,8 +203,8 @@ class FocusEngine(OpenclProcessing):
         return 0 if first_row is None else int(first_row) % grid.n_azimuth
 
     def secondary_range_compression(self, s, grid: nlcs.FocusGrid, first_row: int | None = None) -> None:
-        """H3 * band mask * H4 and the range IFFT's delay origin (eqs. 9-11), in place on the 2-D spectrum (or on
-        its rows from signed azimuth index first_row on)."""
+        """H3 * band mask * H4 and the range IFFT's delay origin (eqs. 9-11), in place on the 2-D spectrum
+        (or on its rows from signed azimuth index first_row on)."""
         lo, hi = grid.doppler_band
         self._launch("secondary_range_compression", s.shape[0], grid.n_range, s=s, n_range=grid.n_range,
                      n_azimuth=grid.n_azimuth, sample_rate_hz=grid.sample_rate_hz,
@@ -232,7 +236,8 @@ class FocusEngine(OpenclProcessing):
         first = np.searchsorted(f, ac.f_lo_hz, side="left") - grid.n_azimuth // 2
         last = np.searchsorted(f, ac.f_hi_hz, side="right") - 1 - grid.n_azimuth // 2  # first > last: empty
         self._launch("azimuth_compression", s.shape[0], grid.n_range, s=s,
-                     poly=self.reals("ac_poly", ac.poly, grid, n_terms=ac.poly.shape[1]), n_coeff=ac.poly.shape[1],
+                     poly=self.reals("ac_poly", ac.poly, grid, n_terms=ac.poly.shape[1]),
+                     n_coeff=ac.poly.shape[1],
                      band_first=self.to_device("ac_first", first, grid),
                      band_last=self.to_device("ac_last", last, grid), n_range=grid.n_range,
                      n_azimuth=grid.n_azimuth, azimuth_df_hz=grid.azimuth_df_hz, f_scale_hz=ac.f_scale_hz,
@@ -247,10 +252,11 @@ class FocusEngine(OpenclProcessing):
 
     def exact_reference_azimuth_compression(self, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid,
                                             aperture_m: float, degree: int = 8) -> nlcs.AzimuthCompression:
-        """As `nlcs.exact_reference_azimuth_compression`, with the reference spectra computed on the device."""
+        """As `nlcs.exact_reference_azimuth_compression`, the reference spectra computed on the device."""
         return nlcs.fit_azimuth_compression(self.reference_spectra(k, grid, aperture_m), k, grid, degree)
 
-    def reference_spectra(self, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, aperture_m: float) -> np.ndarray:
+    def reference_spectra(self, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, aperture_m: float
+                          ) -> np.ndarray:
         """X_ref of every bin after H6/H7 (centred f_a, complex128), computed in complex64 on the device.
 
         The fit picks each bin's segment and band with a hard threshold on |X_ref|, which float32 rounding can
@@ -260,7 +266,7 @@ class FocusEngine(OpenclProcessing):
                                               aperture_m)
 
     def _enqueue_reference_spectra(self, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, aperture_m: float):
-        """Queue the device part of `reference_spectra` and its read-back; returns (host array, read event)."""
+        """Queue the device part of `reference_spectra` and its read-back: (host array, read event)."""
         h7 = self._pass_filters(grid, k).h7
         with self.stage("reference spectra"):
             ref = self.point_response(k.r_m, np.zeros(grid.n_range), grid, aperture_m, "reference")
@@ -309,8 +315,8 @@ class FocusEngine(OpenclProcessing):
         grid = products.grid
         r_cols = np.repeat(np.asarray(r_m, dtype=float), t_n_s.size)
         t_cols = np.tile(np.asarray(t_n_s, dtype=float), np.size(r_m))
-        # the azimuth FFT kernels take columns four at a time; widths in steps of 16 recur from pass to pass, so
-        # the buffer and its FFT launches are reused
+        # the azimuth FFT kernels take columns four at a time; widths in steps of 16 recur from pass to pass,
+        # so the buffer and its FFT launches are reused
         width = -(-r_cols.size // 16) * 16
         r_cols = np.concatenate([r_cols, np.repeat(r_cols[-1:], width - r_cols.size)])
         t_cols = np.concatenate([t_cols, np.repeat(t_cols[-1:], width - t_cols.size)])
@@ -353,14 +359,16 @@ class FocusEngine(OpenclProcessing):
         k = coef.nlcs_coefficients(grid.range_bins_m, grid.speed_m_s, grid.sin_squint, grid.wavelength_m)
         p2 = coef.enlcs_coefficient(grid.range_bins_m, grid.speed_m_s, grid.sin_squint)
         if np.ptp(p2) > 0:
-            raise NotImplementedError("the engine applies H2 with one p2 per pass; p2 varies across range here")
+            raise NotImplementedError("the engine applies H2 with one p2 per pass; "
+                                      "p2 varies across range here")
         aperture = scan.radar.antenna_aperture_m
         ac = compression or (nlcs.series_azimuth_compression(k, grid) if ac_mode == "series" else None)
         pending = self._enqueue_reference_spectra(k, grid, aperture) if ac is None else None
         # queued behind the reference spectra: the device runs the chain while the host fits H8 to them
         s = self._nlcs_spectrum(echo, x_rel, grid, k, float(p2[0]))
         if ac is None:
-            ac = nlcs.fit_azimuth_compression(self._reference_spectra_result(pending, k, grid, aperture), k, grid)
+            x_ref = self._reference_spectra_result(pending, k, grid, aperture)
+            ac = nlcs.fit_azimuth_compression(x_ref, k, grid)
         # H8 on the rows that hold the image's spectrum (zero elsewhere); those rows are also read back, so
         # detection needs no 2-D FFT of the image
         rows = nlcs.spectrum_rows(grid, ac)
@@ -368,8 +376,8 @@ class FocusEngine(OpenclProcessing):
         with self.stage("H8 and spectrum rows"):
             band = self.buffer("h8_rows", grid, rows=rows.size)
             origin = self._row_origin(grid, rows[0])
-            self._launch("gather_rows", rows.size, grid.n_range, full=s, out=band, filter=h8, row_origin=origin,
-                         n_azimuth=grid.n_azimuth, n_range=grid.n_range)
+            self._launch("gather_rows", rows.size, grid.n_range, full=s, out=band, filter=h8,
+                         row_origin=origin, n_azimuth=grid.n_azimuth, n_range=grid.n_range)
             self._launch("scatter_rows", grid.n_azimuth, grid.n_range, band=band, full=s, row_origin=origin,
                          n_rows=rows.size, n_azimuth=grid.n_azimuth, n_range=grid.n_range)
             spectrum = self._range_spectra(band, rows, grid)
@@ -380,10 +388,11 @@ class FocusEngine(OpenclProcessing):
                                  spectrum=spectrum)
 
     def _pass_filters(self, grid: nlcs.FocusGrid, k: coef.NlcsCoefficients) -> _PassFilters:
-        """The grid-only filters of the chain as device tables, made once per grid by the stage kernels (from
-        their scalars, applied to ones) and then applied to every echo of the pass: the image's and detection's
-        neighbour models'. SRC and H5/H6 live on the Doppler band's rows only (the band mask zeroes the rest),
-        padded to a multiple of ROW_STEP rows so the band's range IFFT plan is reused across passes."""
+        """The grid-only filters of the chain as device tables, made once per grid by the stage kernels
+        (from their scalars, applied to ones) and then applied to every echo of the pass: the image's and
+        detection's neighbour models'. SRC and H5/H6 live on the Doppler band's rows only (the band mask
+        zeroes the rest), padded to a multiple of ROW_STEP rows so the band's range IFFT plan is reused across
+        passes."""
         if self._filters is not None and self._filters.grid == grid:
             return self._filters
         with self.stage("filter tables"):
@@ -413,8 +422,8 @@ class FocusEngine(OpenclProcessing):
         self._h8_tables["h8"] = (ac, grid, (lo, hi), table)
         return table
 
-    def _nlcs_spectrum(self, echo: np.ndarray, x_rel: np.ndarray, grid: nlcs.FocusGrid, k: coef.NlcsCoefficients,
-                       p2: float):
+    def _nlcs_spectrum(self, echo: np.ndarray, x_rel: np.ndarray, grid: nlcs.FocusGrid,
+                       k: coef.NlcsCoefficients, p2: float):
         """echo -> the range-Doppler array before H8 (device, whole spectrum in FFT order)."""
         f = self._pass_filters(grid, k)
         with self.stage("echo chain"):
@@ -426,8 +435,8 @@ class FocusEngine(OpenclProcessing):
             origin = self._row_origin(grid, f.first_row)
             band = self.buffer("doppler_rows", grid)
             n_band = band.shape[0]
-            self._launch("gather_rows", n_band, grid.n_range, full=s, out=band, filter=f.src, row_origin=origin,
-                         n_azimuth=grid.n_azimuth, n_range=grid.n_range)
+            self._launch("gather_rows", n_band, grid.n_range, full=s, out=band, filter=f.src,
+                         row_origin=origin, n_azimuth=grid.n_azimuth, n_range=grid.n_range)
             self.fft(band, 1, inverse=True)
             self._launch("apply_filter", n_band, grid.n_range, s=band, filter=f.h5h6, n_range=grid.n_range)
             self._launch("scatter_rows", grid.n_azimuth, grid.n_range, band=band, full=s, row_origin=origin,
@@ -461,8 +470,9 @@ class FocusEngine(OpenclProcessing):
         if not np.array_equal(rows, np.arange(lo, hi + 1)) or not -n // 2 <= lo <= hi < n // 2:
             raise ValueError("rows must be contiguous signed azimuth indices in [-n/2, n/2)")
         entries = [e for e in self._nlcs_entries(grid, len(x_rel_m)) if e[0] not in ("filter_h8", "h8_rows")]
-        self.check_footprint("nlcs_model_spectra", grid,
-                             entries + [("filter_h8", {"rows": rows.size}), ("model_rows", {"rows": rows.size})])
+        entries += [("filter_h8", {"rows": rows.size}), ("model_rows", {"rows": rows.size})]
+        self.check_footprint("nlcs_model_spectra", grid, entries)
+
         h8 = self._h8_table(ac, grid, lo, hi)
         band = self.buffer("model_rows", grid, rows=rows.size)
         out = []
@@ -470,7 +480,8 @@ class FocusEngine(OpenclProcessing):
             s = self._nlcs_spectrum(echo, x_rel_m, grid, k, float(p2[0]))
             with self.stage("model spectrum rows"):
                 self._launch("gather_rows", rows.size, grid.n_range, full=s, out=band, filter=h8,
-                             row_origin=self._row_origin(grid, lo), n_azimuth=grid.n_azimuth, n_range=grid.n_range)
+                             row_origin=self._row_origin(grid, lo), n_azimuth=grid.n_azimuth,
+                             n_range=grid.n_range)
                 out.append(self._range_spectra(band, rows, grid))
         return np.array(out)
 
@@ -480,7 +491,7 @@ class FocusEngine(OpenclProcessing):
         self.fft(band, 1)
         return nlcs.spectrum_rows_from_range_spectra(self.host(band[:rows.size]), rows, grid)
 
-    # ------------------------------------------------------------------------------------------ backprojection
+    # -------------------------------------------------------------------------------------- backprojection
     def range_compress(self, scan: ScanPass, grid: nlcs.FocusGrid, upsample: int = BP_UPSAMPLE):
         """H4 and band-limited upsampling of every pulse (mirrors `backprojection.range_compress`); the result
         stays on the device, its host copy is returned for sub-cell refinement."""
@@ -498,7 +509,8 @@ class FocusEngine(OpenclProcessing):
         return fine, bp.RangeCompressed(data, x_rel, grid.range_window_start_s,
                                         1.0 / (grid.sample_rate_hz * upsample))
 
-    def backprojection_focus(self, scan: ScanPass, *, pixel_m: float = 0.01, grid: nlcs.FocusGrid | None = None,
+    def backprojection_focus(self, scan: ScanPass, *, pixel_m: float = 0.01,
+                             grid: nlcs.FocusGrid | None = None,
                              range_margin_m: float = 0.1) -> bp.BackprojectionProducts:
         """BP image on the device (mirrors `backprojection.backprojection_focus`)."""
         grid = nlcs.focus_grid(scan) if grid is None else grid
@@ -540,7 +552,8 @@ def _doppler_band_rows(grid: nlcs.FocusGrid) -> tuple[int, int]:
     f_lo, f_hi = nlcs.doppler_band_hz(grid)
     if f_lo > f_hi:
         return 0, 1
-    scale = (grid.carrier_frequency_hz + grid.f_range_hz) / grid.carrier_frequency_hz * (grid.n_azimuth * grid.dt_s)
+    scale = ((grid.carrier_frequency_hz + grid.f_range_hz) / grid.carrier_frequency_hz
+             * (grid.n_azimuth * grid.dt_s))
     first = int(np.floor((f_lo * scale).min())) - 1
     last = int(np.ceil((f_hi * scale).max())) + 1
     first, last = max(first, -(grid.n_azimuth // 2)), min(last, grid.n_azimuth // 2 - 1)
@@ -548,8 +561,9 @@ def _doppler_band_rows(grid: nlcs.FocusGrid) -> tuple[int, int]:
 
 
 def undecided_band_edges(mag: np.ndarray, grid: nlcs.FocusGrid, margin: float) -> np.ndarray:
-    """Bins (columns of |X_ref|) whose H8 segment ends, as `nlcs.fit_azimuth_compression` picks them, could move if
-    every magnitude moved by up to `margin` times the bin's peak."""
+    """Bins (columns of |X_ref|) whose H8 segment ends, as `nlcs.fit_azimuth_compression` picks them, could
+    move if every magnitude moved by up to `margin` times the bin's peak."""
+
     peak = mag.max(axis=0)
     threshold = nlcs.STRONG_REFERENCE_FRACTION * peak
     f_lo, f_hi = nlcs.doppler_band_hz(grid)

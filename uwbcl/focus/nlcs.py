@@ -24,10 +24,10 @@ from ..model import SPEED_OF_LIGHT_M_S, ScanPass
 from . import coefficients as coef
 
 C = SPEED_OF_LIGHT_M_S
-# The largest |sine of the slant squint| X the chain admits (the band mask of eqs. 9-10, the H8 band): it keeps
-# the mask away from end-fire, |X| = 1, where sqrt(1 - X^2) in the reference spectrum's phase (eq. 7 under P1)
-# has an infinite slope. One home: kernels/range.cl gets it as -DSQUINT_SINE_CAP (FocusEngine's build), scipy32
-# imports it.
+# The largest |sine of the slant squint| X the chain admits (the band mask of eqs. 9-10, the H8 band): it
+# keeps the mask away from end-fire, |X| = 1, where sqrt(1 - X^2) in the reference spectrum's phase (eq. 7
+# under P1) has an infinite slope. One home: kernels/range.cl gets it as -DSQUINT_SINE_CAP (the engine's
+# build), scipy32 imports it.
 SQUINT_SINE_CAP = 0.98
 
 

@@ -1,18 +1,21 @@
-"""The device spine of the OpenCL engine, in the style of silx's `OpenclProcessing`: context, queue, program,
-a kernel table, a buffer table, the device-memory check and optional profiling. Nothing here knows about radar.
+"""The device spine of the OpenCL engine, in the style of silx's `OpenclProcessing`: context, queue,
+program, a kernel table, a buffer table, the device-memory check and optional profiling. Nothing here
+knows about radar.
 
 * **Kernel table.** The program is built from `.cl` files with `-D` defines; the `__kernel` signatures of the
   sources are parsed (`parse_kernel_signatures`: argument names, address qualifiers, C types, with the build's
   typedefs resolved, so `real_t` is float or double per build) and every launch names its arguments
-  (`launch("nlcs_filter", size, s=..., eta1=..., n_range=...)`). A missing, unknown or wrongly typed argument is
-  a `KernelArgumentError` that names the kernel and the argument; scalars are converted to the signature's type.
+  (`launch("nlcs_filter", size, s=..., eta1=..., n_range=...)`). A missing, unknown or wrongly typed
+  argument is a `KernelArgumentError` that names the kernel and the argument; scalars are converted to the
+  signature's type.
 * **Buffer table.** Every device buffer is declared up front (`BufferSpec`: name, shape as a function of the
   focus grid and a few named extents, dtype); buffers are kept between passes per name and shape.
 * **Memory.** `check_footprint` adds up the bytes of the buffers a pass will use, from the table, and refuses
   the pass (`DeviceMemoryError`) before anything is allocated if it exceeds the device's global memory or one
   buffer exceeds its largest allocation (`memory_limits`, overridable).
-* **Profiling.** With `profile=True` the queue records timestamps; every launch, FFT, upload, fill and read-back
-  is recorded under the innermost `stage(...)` and `profile_table()` prints calls, total and mean device time.
+* **Profiling.** With `profile=True` the queue records timestamps; every launch, FFT, upload, fill and
+  read-back is recorded under the innermost `stage(...)`; `profile_table()` prints calls, total and mean
+  device time.
 """
 
 from __future__ import annotations
@@ -73,9 +76,9 @@ class KernelSignature:
 
 
 def _preprocess(source: str, defines: dict[str, str]) -> str:
-    """Comments removed, continued lines joined, #ifdef/#ifndef/#else/#endif resolved against `defines` (and the
-    source's own #defines); other directives dropped. Enough for signatures, not a C preprocessor."""
-    source = re.sub(r"/\*.*?\*/|//[^\n]*", " ", source, flags=re.S).replace("\\\n", " ")
+    """Comments removed, continued lines joined, #ifdef/#ifndef/#else/#endif resolved against `defines`
+    (and the source's own #defines); other directives dropped. Enough for signatures, not a C preprocessor."""
+    source = re.sub(r"/\*.*?\*/|//[^\n]*", " ", source, flags=re.DOTALL).replace("\\\n", " ")
     defined = set(defines)
     active = [True]  # one entry per open conditional, and the file level
     out = []
@@ -114,7 +117,7 @@ def parse_kernel_signatures(source: str, defines: dict[str, str] | None = None) 
     kernel name -> KernelSignature (arguments in order, C types resolved through simple typedefs).
     """
     text = _preprocess(source, defines or {})
-    typedefs = dict((alias, base) for base, alias in re.findall(r"\btypedef\s+(\w+)\s+(\w+)\s*;", text))
+    typedefs = {alias: base for base, alias in re.findall(r"\btypedef\s+(\w+)\s+(\w+)\s*;", text)}
 
     def resolve(t: str) -> str:
         seen = set()
@@ -135,8 +138,9 @@ def parse_kernel_signatures(source: str, defines: dict[str, str] | None = None) 
             c_type = " ".join(words)
             c_type = {"unsigned int": "uint", "unsigned char": "uchar", "unsigned short": "ushort",
                       "unsigned long": "ulong"}.get(c_type, c_type)
-            args.append(KernelArg(name=tokens[-1], address=address, c_type=resolve(c_type), pointer="*" in tokens,
-                                  const="const" in tokens and "*" in tokens))
+            pointer = "*" in tokens
+            args.append(KernelArg(name=tokens[-1], address=address, c_type=resolve(c_type), pointer=pointer,
+                                  const=pointer and "const" in tokens))
         out[name] = KernelSignature(name, tuple(args))
     return out
 
@@ -144,7 +148,7 @@ def parse_kernel_signatures(source: str, defines: dict[str, str] | None = None) 
 class _Launcher:
     """One kernel with the conversion plan of its arguments, in signature order (made once per kernel)."""
 
-    __slots__ = ("kernel", "signature", "names", "plan")
+    __slots__ = ("kernel", "names", "plan", "signature")
 
     def __init__(self, kernel, signature: KernelSignature):
         self.kernel = kernel
@@ -186,8 +190,9 @@ class _Launcher:
         want = f"a device array of {arg.dtype}" if arg.pointer else f"a {arg.dtype} scalar"
         got = (f"an array of {value.dtype}" if hasattr(value, "dtype") and np.ndim(value) > 0
                else f"{type(value).__name__} {value!r}")
-        return KernelArgumentError(f"kernel {self.signature.name}: argument {name} "
-                                   f"({'pointer to ' if arg.pointer else ''}{arg.c_type}) wants {want}, got {got}")
+        c_type = f"pointer to {arg.c_type}" if arg.pointer else arg.c_type
+        return KernelArgumentError(f"kernel {self.signature.name}: argument {name} ({c_type}) wants {want}, "
+                                   f"got {got}")
 
 
 @dataclasses.dataclass
@@ -222,7 +227,7 @@ class DeviceMemory:
 
 # ------------------------------------------------------------------------------------------ profiling
 class _Stage:
-    __slots__ = ("owner", "name")
+    __slots__ = ("name", "owner")
 
     def __init__(self, owner: OpenclProcessing, name: str):
         self.owner, self.name = owner, name
@@ -292,11 +297,9 @@ class OpenclProcessing:
 
     # ---- kernels
     def launch(self, name: str, global_size: tuple[int, ...], **args):
-        """Launch kernel `name` on `global_size` with its arguments by name (device arrays for pointers, Python
-        or numpy numbers for scalars, converted to the signature's types); returns the event."""
-        launcher = self._launchers.get(name)
-        if launcher is None:
-            raise KernelArgumentError(f"no kernel {name!r} in the program (kernels: {', '.join(self._launchers)})")
+        """Launch kernel `name` on `global_size` with its arguments by name (device arrays for pointers,
+        Python or numpy numbers for scalars, converted to the signature's types); returns the event."""
+        launcher = self._launcher(name)
         event = launcher.kernel(self.queue, global_size, None, *launcher.values(args))
         if self._profile is not None:
             self._profile.append((self._stages[-1], name, event, None))
@@ -305,12 +308,17 @@ class OpenclProcessing:
     def prepare(self, name: str, global_size: tuple[int, ...], **args) -> PreparedLaunch:
         """A launch of `name` with its arguments checked and set now, on a kernel object of its own, to be
         enqueued any number of times (`enqueue`)."""
-        launcher = self._launchers.get(name)
-        if launcher is None:
-            raise KernelArgumentError(f"no kernel {name!r} in the program (kernels: {', '.join(self._launchers)})")
+        launcher = self._launcher(name)
         kernel = self._cl.Kernel(self.program, name)
         kernel.set_args(*launcher.values(args))
         return PreparedLaunch(name, kernel, tuple(global_size))
+
+    def _launcher(self, name: str) -> _Launcher:
+        launcher = self._launchers.get(name)
+        if launcher is None:
+            raise KernelArgumentError(f"no kernel {name!r} in the program "
+                                      f"(kernels: {', '.join(self._launchers)})")
+        return launcher
 
     def enqueue(self, launch: PreparedLaunch):
         event = self._cl.enqueue_nd_range_kernel(self.queue, launch.kernel, launch.global_size, None)
@@ -375,8 +383,8 @@ class OpenclProcessing:
         return arr
 
     def host(self, arr) -> np.ndarray:
-        """Blocking read-back (of a device array or a leading-axis slice of one); every upload queued before it
-        has completed afterwards."""
+        """Blocking read-back (of a device array or a leading-axis slice of one); every upload queued before
+        it has completed afterwards."""
         out = np.empty(arr.shape, arr.dtype)
         event = self._cl.enqueue_copy(self.queue, out, arr.base_data, src_offset=arr.offset, is_blocking=True)
         self._record("read-back", event)
@@ -387,7 +395,8 @@ class OpenclProcessing:
         """Queue a read-back of `arr` without waiting: (host array, event); the array is valid once the event
         has completed (`event.wait()`)."""
         out = np.empty(arr.shape, arr.dtype)
-        event = self._cl.enqueue_copy(self.queue, out, arr.base_data, src_offset=arr.offset, is_blocking=False)
+        event = self._cl.enqueue_copy(self.queue, out, arr.base_data, src_offset=arr.offset,
+                                      is_blocking=False)
         self._record("read-back", event)
         return out, event
 
@@ -428,8 +437,9 @@ class OpenclProcessing:
                 f"{limits.max_alloc_bytes / 2**20:.1f} MiB {self.device.name.strip()} allocates at once")
         if need > limits.global_bytes:
             raise DeviceMemoryError(
-                f"{what}: its buffers need {need / 2**20:.1f} MiB, more than the {limits.global_bytes / 2**20:.1f} "
-                f"MiB of {self.device.name.strip()} (largest {largest}: {sizes[largest] / 2**20:.1f} MiB)")
+                f"{what}: its buffers need {need / 2**20:.1f} MiB, more than the "
+                f"{limits.global_bytes / 2**20:.1f} MiB of {self.device.name.strip()} "
+                f"(largest {largest}: {sizes[largest] / 2**20:.1f} MiB)")
         held = sum(a.nbytes for a in self._buffers.values())
         if need + held > limits.global_bytes:
             self._buffers.clear()
