@@ -302,7 +302,7 @@ class OpenclProcessing:
         launcher = self._launcher(name)
         event = launcher.kernel(self.queue, global_size, None, *launcher.values(args))
         if self._profile is not None:
-            self._profile.append((self._stages[-1], name, event, None))
+            self._record(name, event)
         return event
 
     def prepare(self, name: str, global_size: tuple[int, ...], **args) -> PreparedLaunch:
@@ -323,7 +323,7 @@ class OpenclProcessing:
     def enqueue(self, launch: PreparedLaunch):
         event = self._cl.enqueue_nd_range_kernel(self.queue, launch.kernel, launch.global_size, None)
         if self._profile is not None:
-            self._profile.append((self._stages[-1], launch.name, event, None))
+            self._record(launch.name, event)
         return event
 
     # ---- buffers
