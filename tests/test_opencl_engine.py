@@ -512,3 +512,21 @@ def test_profiling_gives_a_table_of_the_stages_and_the_same_results_as_without(e
     assert "echo chain" in table and "nlcs_filter" in table and "total ms" in table
     with pytest.raises(RuntimeError, match="profiling is off"):
         engine.profile_summary()
+
+
+def test_process_with_profile_prints_the_stage_table_and_writes_the_same_outputs(tmp_path, monkeypatch, capsys):
+    from uwbcl.cli import main
+    from uwbcl.focus import engine as engine_module
+
+    monkeypatch.setattr(engine_module, "_ENGINES", {})  # this test's engines only
+    assert main(["simulate", str(tmp_path / "in"), "--scenario", "paper-sim2", "--snr-db", "10"]) == 0
+    assert main(["process", str(tmp_path / "in"), "--out", str(tmp_path / "plain"), "--jobs", "1",
+                 "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["process", str(tmp_path / "in"), "--out", str(tmp_path / "profiled"), "--profile",
+                 "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    for stage in ("reference spectra", "echo chain", "image", "calibration", "total ms", "azimuth_fft_radix8"):
+        assert stage in out
+    for name in ("displacements.csv", "targets.csv"):
+        assert (tmp_path / "plain" / name).read_bytes() == (tmp_path / "profiled" / name).read_bytes()
