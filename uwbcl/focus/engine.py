@@ -347,8 +347,22 @@ class FocusEngine(OpenclProcessing):
                    compression: nlcs.AzimuthCompression | None = None) -> nlcs.NlcsProducts:
         """Focus one pass with the modified NLCS chain on the device (mirrors `nlcs.nlcs_focus`).
 
-        Raises `processing.DeviceMemoryError` before anything runs if the pass's buffers would not fit the
-        device (`nlcs_footprint`)."""
+        Parameters
+        ----------
+        scan : the pass (echo (n_pulses, n_range), logged rail positions, radar, geometry).
+        ac_mode : "exact" (H8 fitted to the exact reference spectra) or "series" (eq. 17).
+        grid : the focus grid (default `nlcs.focus_grid(scan)`).
+        compression : an H8 already computed for this grid (overrides ac_mode).
+
+        Returns
+        -------
+        NlcsProducts: image (n_azimuth, n_range) complex64, centred azimuth time by range bin; the spectrum
+        rows detection interpolates; grid, coefficients, H8.
+
+        Raises
+        ------
+        processing.DeviceMemoryError before anything runs if the pass's buffers would not fit the device
+        (`nlcs_footprint`)."""
         if ac_mode not in ("exact", "series"):
             raise ValueError(f"unknown azimuth compression mode {ac_mode!r} (exact|series)")
         grid = nlcs.focus_grid(scan) if grid is None else grid
@@ -512,7 +526,19 @@ class FocusEngine(OpenclProcessing):
     def backprojection_focus(self, scan: ScanPass, *, pixel_m: float = 0.01,
                              grid: nlcs.FocusGrid | None = None,
                              range_margin_m: float = 0.1) -> bp.BackprojectionProducts:
-        """BP image on the device (mirrors `backprojection.backprojection_focus`)."""
+        """BP image on the device (mirrors `backprojection.backprojection_focus`).
+
+        Parameters
+        ----------
+        scan : the pass.
+        pixel_m : pixel size (m) along both image axes.
+        grid : the focus grid (default `nlcs.focus_grid(scan)`).
+        range_margin_m : image extent beyond the range window (m).
+
+        Returns
+        -------
+        BackprojectionProducts: image (n_u, n_r) complex64 on the (u = v t_n, r_LRCM) axes (m), the
+        range-compressed pulses."""
         grid = nlcs.focus_grid(scan) if grid is None else grid
         u_axis, r_axis = bp.image_axes(grid, pixel_m, range_margin_m)
         pulses = {"n_pulses": scan.n_pulses}
