@@ -17,6 +17,12 @@ typedef float real_t;
 
 typedef float2 cplx_t;
 
+/* Build-time constants from the host (`-D`), so each has one home in Python:
+ * SQUINT_SINE_CAP  the largest |sine of the slant squint| the band mask admits (uwbcl.focus.nlcs). */
+#ifndef SQUINT_SINE_CAP
+#error "build with -DSQUINT_SINE_CAP (uwbcl.focus.nlcs.SQUINT_SINE_CAP)"
+#endif
+
 #define UWBCL_PI 3.14159265358979323846
 #define UWBCL_TWO_PI 6.28318530717958647692
 #define UWBCL_C 299792458.0

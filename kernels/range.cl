@@ -63,7 +63,7 @@ __kernel void secondary_range_compression(__global float2 *restrict s, const int
     const real_t x = sin_squint + UWBCL_C * f_a / (2.0 * speed_m_s * (carrier_hz + f_r));
     const real_t x0 = sin_squint + UWBCL_C * f_a / (2.0 * speed_m_s * carrier_hz);
     const int idx = row * n_range + k;
-    if (!(x >= band_lo && x <= band_hi && fabs(x) < 0.98)) {
+    if (!(x >= band_lo && x <= band_hi && fabs(x) < SQUINT_SINE_CAP)) {
         s[idx] = (float2)(0.0f, 0.0f);
         return;
     }

@@ -20,6 +20,7 @@ from uwbcl.detect import calibration
 from uwbcl.focus import backprojection as bp
 from uwbcl.focus import coefficients as coef
 from uwbcl.focus import nlcs
+from uwbcl.focus.processing import DeviceMemory, DeviceMemoryError, KernelArgumentError
 from uwbcl.focus.protocol import Focuser
 from uwbcl.records import ProcessingSettings
 from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2
@@ -83,8 +84,10 @@ def test_azimuth_ffts_match_numpy_forward_and_inverse(engine, shape, dtype, tol)
     """complex64 powers of two with a multiple of 4 columns run fft.cl, the rest VkFFT."""
     if dtype == np.complex128 and not engine.fp64_phase:
         pytest.skip("device without fp64")
+    import pyopencl.array as cla
+
     x = noise(shape, shape[0]).astype(dtype)
-    d = engine.to_device("fft_test", x)
+    d = cla.to_device(engine.queue, x)  # any device array: these shapes are not the engine's buffers
     engine.fft(d, 0)
     assert rel_err(d.get(), np.fft.fft(x.astype(np.complex128), axis=0)) < tol
     engine.fft(d, 0, inverse=True)
@@ -92,10 +95,10 @@ def test_azimuth_ffts_match_numpy_forward_and_inverse(engine, shape, dtype, tol)
 
 
 def test_radix_plans_multiply_to_the_length_with_an_even_pass_count_where_possible():
-    from uwbcl.focus.engine import _radix_plan
+    from uwbcl.focus.device_fft import radix_plan
 
     for m in range(1, 16):
-        plan = _radix_plan(1 << m)
+        plan = radix_plan(1 << m)
         assert np.prod(plan) == 1 << m and set(plan) <= {2, 4, 8}
         assert len(plan) % 2 == 0 or m <= 2
 
@@ -106,7 +109,7 @@ def test_range_fft_and_walk_correction_match_the_reference(engine, jittery_pass,
     echo, x_rel = nlcs.prepare_track(jittery_pass, grid)
     x = noise((echo.shape[0], grid.n_range), 1)
     ref = nlcs.linear_range_walk_correction(nlcs.range_fft(x, grid), x_rel, grid)
-    d = engine.to_device("t_echo", x, np.complex64)
+    d = engine.to_device("echo", x, grid, n_pulses=x.shape[0])
     engine.fft(d, 1)
     engine.range_walk_correction(d, x_rel, grid)
     assert rel_err(d.get(), ref) < STAGE_TOL
@@ -116,7 +119,7 @@ def test_resampling_onto_the_uniform_track_matches_the_reference(engine, jittery
     _, x_rel = nlcs.prepare_track(jittery_pass, grid)
     x = noise((x_rel.size, grid.n_range), 2)
     ref = nlcs.pad_azimuth(nlcs.resample_to_uniform_track(x, x_rel, grid), grid)
-    d = engine.to_device("t_in", x, np.complex64)
+    d = engine.to_device("echo", x, grid, n_pulses=x.shape[0])
     out = engine.resample_to_uniform_track(d, x_rel, grid)
     assert rel_err(centred(out.get()), ref) < STAGE_TOL
 
@@ -126,14 +129,15 @@ def test_extended_nlcs_phase_matches_the_reference_for_a_nonzero_p2(engine, jitt
     x = noise((x_rel.size, grid.n_range), 3)
     p2 = 0.02  # m/s^2; zero under P1 on a straight rail, so exercise the hook explicitly
     ref = nlcs.pad_azimuth(nlcs.extended_nlcs(nlcs.resample_to_uniform_track(x, x_rel, grid), p2, grid), grid)
-    out = engine.resample_to_uniform_track(engine.to_device("t_in", x, np.complex64), x_rel, grid, p2)
+    d = engine.to_device("echo", x, grid, n_pulses=x.shape[0])
+    out = engine.resample_to_uniform_track(d, x_rel, grid, p2)
     assert rel_err(centred(out.get()), ref) < STAGE_TOL
 
 
 def test_secondary_range_compression_and_range_ifft_match_the_reference(engine, grid):
     x = noise((grid.n_azimuth, grid.n_range), 4)
     ref = nlcs.range_ifft(nlcs.secondary_range_compression(x, grid), grid)
-    d = engine.to_device("t_2d", natural(x), np.complex64)
+    d = engine.to_device("azimuth", natural(x), grid)
     engine.secondary_range_compression(d, grid)
     engine.fft(d, 1, inverse=True)
     assert rel_err(centred(d.get()), ref) < STAGE_TOL
@@ -153,7 +157,7 @@ def test_nlcs_filter_scaling_and_compression_match_the_reference(engine, grid, n
         (lambda s: nlcs.azimuth_compression(s, ac, grid), lambda d: engine.azimuth_compression(d, ac, grid)),
     ]
     for reference_stage, device_stage in steps:
-        d = engine.to_device("t_2d", natural(x), np.complex64)
+        d = engine.to_device("azimuth", natural(x), grid)
         device_stage(d)
         assert rel_err(centred(d.get()), reference_stage(x)) < STAGE_TOL
 
@@ -163,11 +167,11 @@ def test_reference_point_response_matches_the_slow_time_model(engine, grid, n_ra
     grid = dataclasses.replace(grid, n_range=n_range or grid.n_range)
     r_m = grid.range_bins_m
     ref = nlcs.slow_time_point_response(r_m, 0.0, grid, 0.14, rail_only=False)
-    d = engine.point_response(r_m, np.zeros(r_m.size), grid, 0.14, "t_ref")
+    d = engine.point_response(r_m, np.zeros(r_m.size), grid, 0.14, "reference")
     assert rel_err(centred(d.get()), ref) < STAGE_TOL
     t_n = np.linspace(-1.5, 1.5, r_m.size)  # rail-only targets across (and beyond) the rail, as the calibration
     ref = nlcs.slow_time_point_response(r_m, t_n, grid, 0.14)
-    d = engine.point_response(r_m, t_n, grid, 0.14, "t_rail", rail_only=True)
+    d = engine.point_response(r_m, t_n, grid, 0.14, "calibration", rail_only=True)
     assert rel_err(centred(d.get()), ref) < STAGE_TOL
 
 
@@ -291,10 +295,10 @@ def test_backprojection_image_matches_the_reference(engine, jittery_pass):
 
 def test_engine_buffers_and_plans_are_reused_across_passes(engine, jittery_pass):
     engine.nlcs_focus(jittery_pass)
-    buffers, plans = dict(engine._buffers), dict(engine._plans)
+    buffers, plans = dict(engine._buffers), dict(engine.ffts._plans)
     engine.nlcs_focus(jittery_pass)
     assert all(engine._buffers[k] is v for k, v in buffers.items() if k in engine._buffers)
-    assert engine._plans.keys() == plans.keys() and all(engine._plans[k] is plans[k] for k in plans)
+    assert engine.ffts._plans.keys() == plans.keys() and all(engine.ffts._plans[k] is plans[k] for k in plans)
 
 
 @pytest.mark.parametrize("algorithm", ["nlcs", "bp"])
@@ -399,6 +403,136 @@ def test_doppler_band_rows_hold_every_row_the_band_mask_passes(scenario):
         g = nlcs.focus_grid(scan)
         x = nlcs.slant_squint_sine(g)
         lo, hi = g.doppler_band
-        rows = np.flatnonzero(((x >= lo) & (x <= hi) & (np.abs(x) < 0.98)).any(axis=1)) - g.n_azimuth // 2
+        passed = (x >= lo) & (x <= hi) & (np.abs(x) < nlcs.SQUINT_SINE_CAP)
+        rows = np.flatnonzero(passed.any(axis=1)) - g.n_azimuth // 2
         first, count = _doppler_band_rows(g)
         assert first <= rows[0] and rows[-1] <= first + count - 1 and count <= rows.size + 4
+
+
+# -------------------------------------------------------------------------------------------- device spine
+def test_the_engine_has_no_positional_launch_path_left():
+    """Kernels are launched only by `OpenclProcessing.launch` / `prepare` (named, checked arguments): the
+    orchestration and FFT modules neither hold kernel objects nor set arguments by position."""
+    import inspect
+
+    from uwbcl.focus import device_fft
+    from uwbcl.focus import engine as engine_module
+
+    for module in (engine_module, device_fft):
+        source = inspect.getsource(module)
+        for positional in ("enqueue_nd_range_kernel", "set_args", "set_arg(", "Kernel(", "all_kernels",
+                           ".kernels["):
+            assert positional not in source, (module.__name__, positional)
+    assert not hasattr(engine_module.FocusEngine, "_run")
+    assert not hasattr(engine_module.FocusEngine, "kernels")
+
+
+def test_every_kernel_of_the_program_is_launched_by_name_in_a_run_of_every_entry_point(jittery_pass, grid):
+    import pyopencl.array as cla
+
+    from uwbcl.focus.engine import FocusEngine
+
+    eng = FocusEngine(profile=True)
+    named = []
+    launch, enqueue = eng.launch, eng.enqueue
+    eng.launch = lambda name, size, **args: (named.append(name), launch(name, size, **args))[1]
+    eng.enqueue = lambda prepared: (named.append(prepared.name), enqueue(prepared))[1]
+    products = eng.nlcs_focus(jittery_pass)
+    echo, x_rel = nlcs.prepare_track(jittery_pass, grid)
+    eng.nlcs_model_spectra(products, x_rel, [echo], np.arange(-20, 20))
+    eng.calibration_spectra(products, grid.range_bins_m[[30]], np.linspace(-1.0, 1.0, 5))
+    eng.backprojection_focus(jittery_pass)
+    for n in (1 << 10, 1 << 11):  # lengths whose radix plans hold a radix-2 and a radix-4 pass
+        eng.fft(cla.zeros(eng.queue, (n, 4), np.complex64), 0)
+    profiled = {label for _, label, _, _ in eng._profile} & set(eng.signatures)
+    assert set(named) == set(eng.signatures) == profiled
+
+
+def test_a_launch_with_two_argument_names_swapped_is_refused_naming_the_kernel(engine, grid):
+    x_rel = np.linspace(-1.0, 1.0, grid.n_track)
+    idx, w = nlcs.lagrange_weights(x_rel, grid.t_track_s * grid.speed_m_s, 6)
+    args = {"s": engine.buffer("echo", grid, n_pulses=grid.n_track), "out": engine.buffer("azimuth", grid),
+            "first": engine.to_device("first", idx[:, 0], grid),
+            "weights": engine.reals("weights", w, grid, taps=6), "order": 6, "n_track": grid.n_track,
+            "n_azimuth": grid.n_azimuth, "n_range": grid.n_range, "sample_rate_hz": grid.sample_rate_hz,
+            "carrier_hz": grid.carrier_frequency_hz, "track_dt_s": grid.dt_s, "p2_m_s2": 0.0}
+    size = (grid.n_range, grid.n_azimuth)
+    with pytest.raises(KernelArgumentError, match="kernel resample_to_uniform_track: argument first"):
+        engine.launch("resample_to_uniform_track", size,
+                      **{**args, "first": args["weights"], "weights": args["first"]})
+    with pytest.raises(KernelArgumentError, match="kernel resample_to_uniform_track: argument order"):
+        engine.launch("resample_to_uniform_track", size,
+                      **{**args, "order": args["sample_rate_hz"], "sample_rate_hz": args["order"]})
+    engine.launch("resample_to_uniform_track", size, **args)  # the same launch, named right, runs
+
+
+def test_a_launch_with_an_unknown_or_missing_argument_is_refused_naming_the_kernel(engine, grid):
+    s = engine.buffer("filter_h7", grid)
+    with pytest.raises(KernelArgumentError, match="kernel apply_filter: missing n_range; unknown n_rng"):
+        engine.launch("apply_filter", (grid.n_range, grid.n_azimuth), s=s, filter=s, n_rng=grid.n_range)
+    with pytest.raises(KernelArgumentError, match="no kernel 'apply_filters'"):
+        engine.launch("apply_filters", (grid.n_range, grid.n_azimuth), s=s, filter=s, n_range=grid.n_range)
+
+
+def test_buffers_are_declared_with_their_shapes_and_dtypes(engine, grid):
+    assert engine.buffer("azimuth", grid).shape == (grid.n_azimuth, grid.n_range)
+    assert engine.buffer("eta1", grid).dtype == engine.real
+    with pytest.raises(ValueError, match="buffer 'x_rel': host array of shape"):
+        engine.to_device("x_rel", np.zeros(5), grid, n_pulses=6)
+    with pytest.raises(KeyError, match="not declared"):
+        engine.buffer("t_scratch", grid)
+
+
+def test_the_squint_cap_reaches_the_kernels_as_a_define(engine):
+    assert float(engine.defines["SQUINT_SINE_CAP"]) == nlcs.SQUINT_SINE_CAP
+
+
+def test_the_memory_check_refuses_a_pass_that_would_not_fit_before_it_runs(engine, jittery_pass, grid,
+                                                                           monkeypatch):
+    need = engine.nlcs_footprint(grid, jittery_pass.n_pulses)
+    assert need > 8 * grid.n_azimuth * grid.n_range * 4  # the padded arrays: azimuth, scratch, H7, reference
+    launches = []
+    monkeypatch.setattr(engine, "launch", lambda *a, **k: launches.append(a))
+    monkeypatch.setattr(engine, "memory_limits", DeviceMemory(global_bytes=need - 1, max_alloc_bytes=1 << 30))
+    with pytest.raises(DeviceMemoryError, match=r"nlcs_focus: its buffers need .* MiB, more than"):
+        engine.nlcs_focus(jittery_pass)
+    monkeypatch.setattr(engine, "memory_limits", DeviceMemory(global_bytes=1 << 40, max_alloc_bytes=1 << 16))
+    with pytest.raises(DeviceMemoryError, match="backprojection_focus: buffer fine"):
+        engine.backprojection_focus(jittery_pass)
+    assert launches == []  # refused before anything ran
+
+
+def test_profiling_gives_a_table_of_the_stages_and_the_same_results_as_without(engine, jittery_pass):
+    from uwbcl.focus.engine import FocusEngine
+
+    profiled = FocusEngine(profile=True)
+    profiled.reset_profile()
+    image = profiled.nlcs_focus(jittery_pass).image
+    assert np.array_equal(image, engine.nlcs_focus(jittery_pass).image)
+    summary = {t.stage: t for t in profiled.profile_summary()}
+    assert {"filter tables", "reference spectra", "echo chain", "H8 table", "H8 and spectrum rows",
+            "image"} <= set(summary)
+    assert summary["echo chain"].calls == 1 and summary["echo chain"].commands >= 12
+    assert all(t.total_ms > 0 for t in summary.values())
+    table = profiled.profile_table()
+    assert "echo chain" in table and "nlcs_filter" in table and "total ms" in table
+    with pytest.raises(RuntimeError, match="profiling is off"):
+        engine.profile_summary()
+
+
+def test_process_with_profile_prints_the_stage_table_and_writes_the_same_outputs(tmp_path, monkeypatch, capsys):
+    from uwbcl.cli import main
+    from uwbcl.focus import engine as engine_module
+
+    monkeypatch.setattr(engine_module, "_ENGINES", {})  # this test's engines only
+    assert main(["simulate", str(tmp_path / "in"), "--scenario", "paper-sim2", "--snr-db", "10"]) == 0
+    assert main(["process", str(tmp_path / "in"), "--out", str(tmp_path / "plain"), "--jobs", "1",
+                 "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["process", str(tmp_path / "in"), "--out", str(tmp_path / "profiled"), "--profile",
+                 "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    for stage in ("reference spectra", "echo chain", "image", "calibration", "total ms", "azimuth_fft_radix8"):
+        assert stage in out
+    for name in ("displacements.csv", "targets.csv"):
+        assert (tmp_path / "plain" / name).read_bytes() == (tmp_path / "profiled" / name).read_bytes()

@@ -70,7 +70,8 @@ def _process(args: argparse.Namespace) -> int:
         site = config.load_config(args.config) if args.config else config.SiteConfig()
         site = config.override(
             site, algorithm=args.algorithm, backend=args.backend, device=args.device, ac_mode=args.ac_mode,
-            jobs=args.jobs, web_depth_m=args.web_depth, heights_m=config.parse_heights(args.heights),
+            jobs=1 if args.profile else args.jobs, web_depth_m=args.web_depth,
+            heights_m=config.parse_heights(args.heights),
             prior_window_m=tuple(args.prior_window) if args.prior_window else None,
             cache=False if args.no_cache else None, plots=True if args.plots else None,
             cycle_images=True if args.cycle_images else None)
@@ -78,7 +79,7 @@ def _process(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"uwbcl process: {exc}", file=sys.stderr)
         return 2
-    if settings.backend == "opencl" and not _engine_ready(settings.device):
+    if settings.backend == "opencl" and not _engine_ready(settings.device, args.profile):
         return 2
     in_dir, out_dir = Path(args.in_dir), Path(args.out)
     usage = _directories_problem(in_dir, out_dir)
@@ -99,6 +100,8 @@ def _process(args: argparse.Namespace) -> int:
         print(f"uwbcl process: stopped by {exc.name}; workers stopped, partial work discarded, the previous "
               "outputs are intact", file=sys.stderr)
         return 128 + exc.signum
+    if args.profile:
+        _print_profile(settings)
     flagged = sum(r["status"] != "ok" for r in report.rows)
     extra = "".join([f", {len(report.warnings)} warnings" if report.warnings else "",
                      f", {report.n_cache_damaged} damaged cache entries recomputed" if report.n_cache_damaged
@@ -151,19 +154,32 @@ def _signals_as_interrupts():
             signal.signal(s, h)
 
 
-def _engine_ready(device: str | None) -> bool:
+def _engine_ready(device: str | None, profile: bool = False) -> bool:
     """Start the OpenCL engine before any work, so a missing runtime is one clear message, not a failure per pass."""
     from . import opencl
     from .focus.engine import shared_engine
 
     try:
-        engine = shared_engine(device)
+        engine = shared_engine(device, profile=profile or None)
     except opencl.OpenClUnavailable as exc:
         print(f"uwbcl: OpenCL backend unavailable: {exc}", file=sys.stderr)
         return False
     logging.getLogger("uwbcl").info("OpenCL engine on %s (start-up %.2f s)", engine.device.name.strip(),
                                     engine.startup_s)
     return True
+
+
+def _print_profile(settings) -> None:
+    """`process --profile`: the shared engine's per-stage device times (it ran every pass: --jobs 1)."""
+    if settings.backend != "opencl":
+        print("--profile: the numpy backend has no device profile", file=sys.stderr)
+        return
+    from .focus.engine import shared_engine
+
+    engine = shared_engine(settings.device)
+    print(f"device time per stage on {engine.device.name.strip()} "
+          "(passes read from the cache are not focused):")
+    print(engine.profile_table())
 
 
 def _devices(args: argparse.Namespace) -> int:
@@ -332,6 +348,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--cycle-images", action="store_true",
                    help="write a focused image per pass with the detections marked (slow: refocuses)")
     q.add_argument("--no-cache", action="store_true", help="refocus every pass, ignoring OUT/.uwbcl-cache")
+    q.add_argument("--profile", action="store_true",
+                   help="opencl: print the device time per focusing stage after the run (runs with --jobs 1)")
     q.add_argument("--no-progress", action="store_true", help="no progress bar even on a terminal")
     q.add_argument("--follow-symlinks", action="store_true",
                    help="read archives linked from outside ARCHIVE_DIR and enter linked directories")

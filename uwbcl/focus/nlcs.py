@@ -24,6 +24,11 @@ from ..model import SPEED_OF_LIGHT_M_S, ScanPass
 from . import coefficients as coef
 
 C = SPEED_OF_LIGHT_M_S
+# The largest |sine of the slant squint| X the chain admits (the band mask of eqs. 9-10, the H8 band): it
+# keeps the mask away from end-fire, |X| = 1, where sqrt(1 - X^2) in the reference spectrum's phase (eq. 7
+# under P1) has an infinite slope. One home: kernels/range.cl gets it as -DSQUINT_SINE_CAP (the engine's
+# build), scipy32 imports it.
+SQUINT_SINE_CAP = 0.98
 
 
 # --------------------------------------------------------------------------------------------- transforms
@@ -82,6 +87,16 @@ class FocusGrid:
     @property
     def t_track_s(self) -> np.ndarray:
         return (np.arange(self.n_track) - (self.n_track - 1) // 2) * self.dt_s
+
+    @property
+    def azimuth_df_hz(self) -> float:
+        """Azimuth frequency step of the padded grid, 1 / (n_azimuth dt)."""
+        return 1.0 / (self.n_azimuth * self.dt_s)
+
+    @property
+    def half_track_s(self) -> float:
+        """Azimuth time from the aperture centre to either end of the rail (uniform track)."""
+        return 0.5 * (self.n_track - 1) * self.dt_s
 
     @property
     def t_azimuth_s(self) -> np.ndarray:
@@ -214,7 +229,7 @@ def secondary_range_compression(s2: np.ndarray, grid: FocusGrid) -> np.ndarray:
     phi0 = reference_spectrum_phase(x0, grid.carrier_frequency_hz, grid)
     h3 = np.exp(-1j * (phi - phi0 + 4.0 * np.pi * grid.f_range_hz[None, :] * grid.reference_range_m / C))
     lo, hi = grid.doppler_band
-    mask = (x >= lo) & (x <= hi) & (np.abs(x) < 0.98)
+    mask = (x >= lo) & (x <= hi) & (np.abs(x) < SQUINT_SINE_CAP)
     h4 = pulse_spectrum(grid.f_range_hz, grid.pulse_sigma_s)  # conj(P) of a real, even pulse
     return s2 * h3 * mask * h4[None, :]
 
@@ -275,7 +290,7 @@ def doppler_band_hz(grid: FocusGrid) -> tuple[float, float]:
     """Azimuth frequencies of the beam's slant-squint support at the carrier."""
     lo, hi = grid.doppler_band
     k = 2.0 * grid.speed_m_s / grid.wavelength_m
-    return (max(lo, -0.98) - grid.sin_squint) * k, (min(hi, 0.98) - grid.sin_squint) * k
+    return (max(lo, -SQUINT_SINE_CAP) - grid.sin_squint) * k, (min(hi, SQUINT_SINE_CAP) - grid.sin_squint) * k
 
 
 def series_azimuth_compression(k: coef.NlcsCoefficients, grid: FocusGrid) -> AzimuthCompression:
@@ -300,8 +315,7 @@ def slow_time_point_response(r_bin_m, t_n_s, grid: FocusGrid, aperture_m: float,
     rng = np.sqrt(r0**2 + (v * tau) ** 2 - 2 * r0 * v * tau * s)
     sin_look = (r0 * s - v * tau) / rng
     beam = geo.two_way_beam_gain(np.arcsin(sin_look), math.asin(s), aperture_m, lam)
-    half_track = 0.5 * (grid.n_track - 1) * grid.dt_s
-    gain = beam * ((np.abs(t) <= half_track + 1e-12) if rail_only else 1.0)
+    gain = beam * ((np.abs(t) <= grid.half_track_s + 1e-12) if rail_only else 1.0)
     seen = gain != 0  # the main lobe covers a fraction of the padded slow time: no phase needed elsewhere
     out = np.zeros(gain.shape, dtype=np.complex128)
     out[seen] = gain[seen] * np.exp(-4j * np.pi / lam * (rng + v * s * t)[seen])

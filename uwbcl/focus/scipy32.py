@@ -89,7 +89,7 @@ def doppler_band_rows(grid: nlcs.FocusGrid) -> tuple[np.ndarray, np.ndarray, np.
     """Rows (FFT order) where the band mask of eqs. (9-10) passes anything, their X(f_r, f_a) and mask."""
     x = np.fft.ifftshift(nlcs.slant_squint_sine(grid), axes=0)
     lo, hi = grid.doppler_band
-    mask = (x >= lo) & (x <= hi) & (np.abs(x) < 0.98)
+    mask = (x >= lo) & (x <= hi) & (np.abs(x) < nlcs.SQUINT_SINE_CAP)
     rows = np.flatnonzero(mask.any(axis=1))
     return rows, x[rows], mask[rows]
 
