@@ -3,10 +3,10 @@
 
 For each case a valid pass archive is mutated (attributes removed, retyped, NaN or huge; datasets reshaped or
 retyped; soft, external and looping links; virtual datasets and external storage; truncations; bit flips;
-compression bombs; huge declared shapes; lossy filters; non-regular files) and `uwbcl process` runs over a tree
-holding it beside a good cycle. Each case must end in: no traceback, no hang, no file opened outside the tree
-(checked with strace), peak memory below a bound, and either a rejection naming the file in errors.csv or a
-result equal to the unmutated file's.
+compression bombs; huge declared shapes; lossy filters; non-regular files) and `uwbcl process` runs over a
+tree holding it beside a good cycle. Each case must end in: no traceback, no hang, no file opened outside the
+tree (checked with strace), peak memory below a bound, and either a rejection naming the file in errors.csv or
+a result equal to the unmutated file's.
 
     python scripts/fuzz_archives.py --cases 500 --seed 1            # the campaign (a few minutes per 100)
     python scripts/fuzz_archives.py --cases 40 --seed 3 --batch 40  # one run over 40 cases (fast)
@@ -37,8 +37,8 @@ import numpy as np
 from uwbcl import archive, shift
 
 KINDS = ("attr_removed", "attr_retyped", "attr_nonfinite", "attr_huge", "dataset_reshaped", "dataset_retyped",
-         "soft_link", "soft_loop", "external_link", "external_passwd", "virtual", "external_storage", "truncated",
-         "bit_flips", "bomb", "huge_declared", "lossy_filter", "fifo", "directory", "empty")
+         "soft_link", "soft_loop", "external_link", "external_passwd", "virtual", "external_storage",
+         "truncated", "bit_flips", "bomb", "huge_declared", "lossy_filter", "fifo", "directory", "empty")
 TIMEOUT_S = 120.0
 RSS_LIMIT_KB = 1 << 20  # 1 GiB
 
@@ -57,110 +57,217 @@ def _objects(f: h5py.File) -> list[h5py.HLObject]:
     return out
 
 
+# ---------------------------------------------------------------------------------------- mutations
+# Each mutation draws from `rng` in a fixed order, so a seed names the same campaign every time.
+
+
+def _empty(path: Path, rng: np.random.Generator) -> str:
+    path.write_bytes(b"")
+    return "empty file"
+
+
+def _truncate(path: Path, rng: np.random.Generator) -> str:
+    data = path.read_bytes()
+    n = int(rng.integers(0, len(data)))
+    path.write_bytes(data[:n])
+    return f"truncated to {n} of {len(data)} bytes"
+
+
+def _flip_bits(path: Path, rng: np.random.Generator) -> str:
+    data = bytearray(path.read_bytes())
+    flips = int(rng.integers(1, 9))
+    for _ in range(flips):
+        i = int(rng.integers(0, len(data)))
+        data[i] ^= 1 << int(rng.integers(0, 8))
+    path.write_bytes(bytes(data))
+    return f"{flips} bits flipped"
+
+
+def _fifo(path: Path, rng: np.random.Generator) -> str:
+    path.unlink()
+    os.mkfifo(path)
+    return "fifo"
+
+
+def _directory(path: Path, rng: np.random.Generator) -> str:
+    path.unlink()
+    path.mkdir()
+    return "directory"
+
+
+# Mutations of the file as a whole, without opening it as HDF5.
+FILE_MUTATIONS = {"truncated": _truncate, "bit_flips": _flip_bits, "empty": _empty, "fifo": _fifo,
+                  "directory": _directory}
+
+
+def _remove_attr(obj: h5py.HLObject, name: str, rng: np.random.Generator) -> None:
+    del obj.attrs[name]
+
+
+def _retype_attr(obj: h5py.HLObject, name: str, rng: np.random.Generator) -> None:
+    choice = int(rng.integers(0, 4))
+    obj.attrs[name] = ["text", 1.5, np.int8(3), np.array([1.0, 2.0])][choice]
+
+
+def _nonfinite_attr(obj: h5py.HLObject, name: str, rng: np.random.Generator) -> None:
+    obj.attrs[name] = [np.nan, np.inf, -np.inf][int(rng.integers(0, 3))]
+
+
+def _huge_attr(obj: h5py.HLObject, name: str, rng: np.random.Generator) -> None:
+    obj.attrs[name] = [1e300, -1e300, np.int64(2**62), np.zeros(5000)][int(rng.integers(0, 4))]
+
+
+# Mutations of one attribute of a random object; any other "attr*" kind makes it huge.
+ATTR_MUTATIONS = {"attr_removed": _remove_attr, "attr_retyped": _retype_attr,
+                  "attr_nonfinite": _nonfinite_attr}
+
+
+def _mutate_attr(objs: list[h5py.HLObject], kind: str, rng: np.random.Generator) -> str:
+    obj = objs[int(rng.integers(0, len(objs)))]
+    names = list(obj.attrs)
+    if not names:
+        return "no attribute"
+    name = names[int(rng.integers(0, len(names)))]
+    where = f"{obj.name}@{name}"
+    ATTR_MUTATIONS.get(kind, _huge_attr)(obj, name, rng)
+    return f"{kind} {where}"
+
+
+@dataclasses.dataclass
+class _Target:
+    """The dataset a mutation replaces, with what is needed to put something else in its place."""
+
+    ds: h5py.Dataset
+    datasets: list[h5py.Dataset]
+    outside: Path
+
+    def __post_init__(self) -> None:
+        self.name, self.attrs = self.ds.name, dict(self.ds.attrs)
+        self.parent = self.ds.parent
+        self.base = self.name.rsplit("/", 1)[1]
+
+    def link(self, link: h5py.SoftLink | h5py.ExternalLink) -> None:
+        del self.parent[self.base]
+        self.parent[self.base] = link
+
+    def recreate(self, **kw) -> h5py.Dataset:
+        del self.parent[self.base]
+        new = self.parent.create_dataset(self.base, **kw)
+        for k, v in self.attrs.items():
+            new.attrs[k] = v
+        return new
+
+
+def _reshape(t: _Target, rng: np.random.Generator) -> str | None:
+    data = t.ds[()]
+    t.recreate(data=data.reshape(-1)[: max(1, data.size // 2)])
+    return None
+
+
+def _retype(t: _Target, rng: np.random.Generator) -> str | None:
+    data = t.ds[()]
+    t.recreate(data=(np.abs(data) if np.iscomplexobj(data) else data).astype(np.int8))
+    return None
+
+
+def _soft_link(t: _Target, rng: np.random.Generator) -> str | None:
+    other = t.datasets[(t.datasets.index(t.ds) + 1) % len(t.datasets)].name
+    t.link(h5py.SoftLink(other))
+    return None
+
+
+def _soft_loop(t: _Target, rng: np.random.Generator) -> str | None:
+    t.link(h5py.SoftLink(t.name))
+    return None
+
+
+def _external_link(t: _Target, rng: np.random.Generator) -> str | None:
+    t.link(h5py.ExternalLink(str(t.outside), t.name))
+    return None
+
+
+def _external_passwd(t: _Target, rng: np.random.Generator) -> str | None:
+    t.link(h5py.ExternalLink("/etc/passwd", "/x"))
+    return None
+
+
+def _virtual(t: _Target, rng: np.random.Generator) -> str | None:
+    shape = t.ds.shape
+    layout = h5py.VirtualLayout(shape=shape, dtype=t.ds.dtype)
+    layout[...] = h5py.VirtualSource(str(t.outside), t.name, shape=shape)
+    del t.parent[t.base]
+    new = t.parent.create_virtual_dataset(t.base, layout)
+    for k, v in t.attrs.items():
+        new.attrs[k] = v
+    return None
+
+
+def _external_storage(t: _Target, rng: np.random.Generator) -> str | None:
+    raw = t.outside.with_suffix(".raw")
+    t.recreate(shape=t.ds.shape, dtype=t.ds.dtype, external=[(str(raw), 0, h5py.h5f.UNLIMITED)])
+    return None
+
+
+def _bomb(t: _Target, rng: np.random.Generator) -> str | None:
+    """Zeros written through gzip: ~32 MB per row in a few kB."""
+    rows = int(rng.integers(1, 9))
+    t.recreate(shape=(rows, 1 << 22), dtype="c8", chunks=(1, 1 << 20), compression="gzip",
+               compression_opts=9)
+    row = np.zeros(1 << 22, dtype="c8")
+    for i in range(rows):
+        t.parent[t.base][i] = row
+    return None
+
+
+def _huge_declared(t: _Target, rng: np.random.Generator) -> str | None:
+    t.recreate(shape=(10**6, 10**6), dtype="c8", chunks=(64, 64))
+    return None
+
+
+def _lossy_filter(t: _Target, rng: np.random.Generator) -> str | None:
+    data = t.ds[()]
+    if data.dtype.kind not in "fi":
+        return "not a real dataset: " + t.name
+    t.recreate(data=data, scaleoffset=3 if data.dtype.kind == "f" else 0, chunks=data.shape)
+    return None
+
+
+# Mutations of one random dataset; each returns None or, when it could not apply, what happened instead.
+DATASET_MUTATIONS = {
+    "dataset_reshaped": _reshape, "dataset_retyped": _retype, "soft_link": _soft_link,
+    "soft_loop": _soft_loop,
+    "external_link": _external_link, "external_passwd": _external_passwd, "virtual": _virtual,
+    "external_storage": _external_storage, "bomb": _bomb, "huge_declared": _huge_declared,
+    "lossy_filter": _lossy_filter,
+}
+
+
+def _mutate_dataset(objs: list[h5py.HLObject], kind: str, rng: np.random.Generator, outside: Path) -> str:
+    datasets = [o for o in objs if isinstance(o, h5py.Dataset)]
+    target = _Target(datasets[int(rng.integers(0, len(datasets)))], datasets, outside)
+    mutation = DATASET_MUTATIONS.get(kind)
+    detail = mutation(target, rng) if mutation else None
+    return detail or f"{kind} {target.name}"
+
+
 def mutate(path: Path, kind: str, rng: np.random.Generator, outside: Path) -> str:
     """Damage the archive at `path` in place the way `kind` says; returns what was done."""
-    if kind in ("truncated", "bit_flips", "empty"):
-        data = bytearray(path.read_bytes())
-        if kind == "empty":
-            path.write_bytes(b"")
-            return "empty file"
-        if kind == "truncated":
-            n = int(rng.integers(0, len(data)))
-            path.write_bytes(bytes(data[:n]))
-            return f"truncated to {n} of {len(data)} bytes"
-        flips = int(rng.integers(1, 9))
-        for _ in range(flips):
-            i = int(rng.integers(0, len(data)))
-            data[i] ^= 1 << int(rng.integers(0, 8))
-        path.write_bytes(bytes(data))
-        return f"{flips} bits flipped"
-    if kind in ("fifo", "directory"):
-        path.unlink()
-        os.mkfifo(path) if kind == "fifo" else path.mkdir()
-        return kind
+    if kind in FILE_MUTATIONS:
+        return FILE_MUTATIONS[kind](path, rng)
     with h5py.File(path, "r+") as f:
         objs = _objects(f)
         if kind.startswith("attr"):
-            obj = objs[int(rng.integers(0, len(objs)))]
-            names = list(obj.attrs)
-            if not names:
-                return "no attribute"
-            name = names[int(rng.integers(0, len(names)))]
-            where = f"{obj.name}@{name}"
-            if kind == "attr_removed":
-                del obj.attrs[name]
-            elif kind == "attr_retyped":
-                choice = int(rng.integers(0, 4))
-                obj.attrs[name] = ["text", 1.5, np.int8(3), np.array([1.0, 2.0])][choice]
-            elif kind == "attr_nonfinite":
-                obj.attrs[name] = [np.nan, np.inf, -np.inf][int(rng.integers(0, 3))]
-            else:
-                obj.attrs[name] = [1e300, -1e300, np.int64(2**62), np.zeros(5000)][int(rng.integers(0, 4))]
-            return f"{kind} {where}"
-        datasets = [o for o in objs if isinstance(o, h5py.Dataset)]
-        ds = datasets[int(rng.integers(0, len(datasets)))]
-        name, attrs = ds.name, dict(ds.attrs)
-        parent = ds.parent
-        base = name.rsplit("/", 1)[1]
-
-        def recreate(**kw):
-            del parent[base]
-            new = parent.create_dataset(base, **kw)
-            for k, v in attrs.items():
-                new.attrs[k] = v
-
-        if kind == "dataset_reshaped":
-            data = ds[()]
-            recreate(data=data.reshape(-1)[: max(1, data.size // 2)])
-        elif kind == "dataset_retyped":
-            data = ds[()]
-            recreate(data=(np.abs(data) if np.iscomplexobj(data) else data).astype(np.int8))
-        elif kind == "soft_link":
-            other = datasets[(datasets.index(ds) + 1) % len(datasets)].name
-            del parent[base]
-            parent[base] = h5py.SoftLink(other)
-        elif kind == "soft_loop":
-            del parent[base]
-            parent[base] = h5py.SoftLink(name)
-        elif kind == "external_link":
-            del parent[base]
-            parent[base] = h5py.ExternalLink(str(outside), name)
-        elif kind == "external_passwd":
-            del parent[base]
-            parent[base] = h5py.ExternalLink("/etc/passwd", "/x")
-        elif kind == "virtual":
-            shape = ds.shape
-            layout = h5py.VirtualLayout(shape=shape, dtype=ds.dtype)
-            layout[...] = h5py.VirtualSource(str(outside), name, shape=shape)
-            del parent[base]
-            new = parent.create_virtual_dataset(base, layout)
-            for k, v in attrs.items():
-                new.attrs[k] = v
-        elif kind == "external_storage":
-            raw = outside.with_suffix(".raw")
-            recreate(shape=ds.shape, dtype=ds.dtype, external=[(str(raw), 0, h5py.h5f.UNLIMITED)])
-        elif kind == "bomb":  # zeros written through gzip: ~32 MB per row in a few kB
-            rows = int(rng.integers(1, 9))
-            recreate(shape=(rows, 1 << 22), dtype="c8", chunks=(1, 1 << 20), compression="gzip", compression_opts=9)
-            row = np.zeros(1 << 22, dtype="c8")
-            for i in range(rows):
-                parent[base][i] = row
-        elif kind == "huge_declared":
-            recreate(shape=(10**6, 10**6), dtype="c8", chunks=(64, 64))
-        elif kind == "lossy_filter":
-            data = ds[()]
-            if data.dtype.kind not in "fi":
-                return "not a real dataset: " + name
-            recreate(data=data, scaleoffset=3 if data.dtype.kind == "f" else 0, chunks=data.shape)
-        return f"{kind} {name}"
+            return _mutate_attr(objs, kind, rng)
+        return _mutate_dataset(objs, kind, rng, outside)
 
 
 def opened_outside(strace_log: Path, allowed: list[Path]) -> list[str]:
     """Paths the run opened that lie under none of `allowed` and are not the interpreter's own files."""
     ok = [str(p.resolve()) for p in allowed]
     system = ("/usr/", "/lib", "/etc/ld.so", "/proc/", "/sys/", "/dev/", sys.prefix, sys.base_prefix,
-              os.path.dirname(os.__file__), str(Path(archive.__file__).resolve().parents[1]), "/tmp/", "/etc/localtime",
-              "/etc/nsswitch", "/etc/host", "/etc/resolv", "/etc/ssl", "/etc/OpenCL", "/root/.cache", "/etc/pocl")
+              os.path.dirname(os.__file__), str(Path(archive.__file__).resolve().parents[1]), "/tmp/",
+              "/etc/localtime", "/etc/nsswitch", "/etc/host", "/etc/resolv", "/etc/ssl", "/etc/OpenCL",
+              "/root/.cache", "/etc/pocl")
     out = []
     for line in strace_log.read_text(errors="replace").splitlines():
         m = re.search(r'open(?:at)?\((?:AT_FDCWD|\d+), "([^"]+)"', line)
@@ -173,9 +280,9 @@ def opened_outside(strace_log: Path, allowed: list[Path]) -> list[str]:
     return sorted(set(out))
 
 
-def run_batch(cases: list[Case], good: Path, rng: np.random.Generator, work: Path) -> dict[int, str]:
-    """One `uwbcl process` over a tree with `cases` mutated copies of `good`; {case index: outcome}."""
-    tree, out = work / "tree", work / "out"
+def _build_tree(cases: list[Case], good: Path, rng: np.random.Generator, work: Path) -> dict[int, Path]:
+    """`work`/tree holding `good` and one mutated copy per case; {case index: its path}."""
+    tree = work / "tree"
     shutil.rmtree(work, ignore_errors=True)
     tree.mkdir(parents=True)
     outside = work / "outside.h5"
@@ -187,9 +294,61 @@ def run_batch(cases: list[Case], good: Path, rng: np.random.Generator, work: Pat
         shutil.copy(good, path)
         try:
             c.detail = mutate(path, c.kind, rng, outside)
-        except Exception as e:  # noqa: BLE001 - h5py may refuse a mutation: the case is then the unmutated file
+        except Exception as e:  # noqa: BLE001 - h5py may refuse a mutation: the case is the unmutated file
             c.detail = f"mutation not applied ({type(e).__name__})"
         originals[c.index] = path
+    return originals
+
+
+def _broken_rules(proc: subprocess.CompletedProcess, rss_before: int, rss: int, log: Path,
+                  work: Path) -> list[str]:
+    """The rules the run broke: a traceback, an unexpected exit, too much memory, an open outside the tree."""
+    tree, out, outside = work / "tree", work / "out", work / "outside.h5"
+    broken = []
+    if "Traceback" in proc.stderr:
+        broken.append("TRACEBACK")
+    if proc.returncode not in (0, 1):
+        broken.append(f"EXIT_{proc.returncode}")
+    if rss > RSS_LIMIT_KB and rss > rss_before:
+        broken.append("MEMORY")
+    outside_opens = opened_outside(log, [tree, out, work]) if log.exists() else []
+    if any(p == str(outside.resolve()) or p.startswith("/etc/passwd") for p in outside_opens):
+        broken.append("OPENED_OUTSIDE")
+    return broken
+
+
+def _rejected_names(out: Path) -> dict[str, str]:
+    """{file name: error kind} for every file errors.csv names."""
+    named = {}
+    errors = out / "errors.csv"
+    if errors.exists():
+        with errors.open(encoding="utf-8") as f:
+            for row in csv.DictReader(f):
+                for name in row["file"].split("; "):
+                    named[name] = row["kind"]
+    return named
+
+
+def _case_outcome(c: Case, path: Path, broken: list[str], named: dict[str, str],
+                  good_echo: np.ndarray) -> str:
+    """One case's outcome: the rules the run broke, a rejection by name, or whether its values changed."""
+    if broken:
+        return "+".join(broken)
+    if c.name in named:
+        return f"rejected:{named[c.name]}"
+    if path.is_dir():
+        return "rejected:a_directory_not_a_file"  # searched as a directory, never read
+    try:
+        same = np.array_equal(archive.read_pass(path).echo, good_echo)
+    except Exception:  # noqa: BLE001
+        same = False
+    return "accepted_unchanged" if same else "accepted_changed"
+
+
+def run_batch(cases: list[Case], good: Path, rng: np.random.Generator, work: Path) -> dict[int, str]:
+    """One `uwbcl process` over a tree with `cases` mutated copies of `good`; {case index: outcome}."""
+    tree, out = work / "tree", work / "out"
+    originals = _build_tree(cases, good, rng, work)
     log = work / "strace.log"
     cmd = [sys.executable, "-m", "uwbcl.cli", "process", str(tree), "--out", str(out), "--backend", "numpy",
            "--jobs", "1", "--no-progress"]
@@ -198,43 +357,16 @@ def run_batch(cases: list[Case], good: Path, rng: np.random.Generator, work: Pat
     before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     t0 = time.monotonic()
     try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=TIMEOUT_S * max(1, len(cases) / 20))
+        proc = subprocess.run(cmd, capture_output=True, text=True,
+                              timeout=TIMEOUT_S * max(1, len(cases) / 20))
     except subprocess.TimeoutExpired:
         return {c.index: "HANG" for c in cases}
     elapsed = time.monotonic() - t0
     rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    broken = []
-    if "Traceback" in proc.stderr:
-        broken.append("TRACEBACK")
-    if proc.returncode not in (0, 1):
-        broken.append(f"EXIT_{proc.returncode}")
-    if rss > RSS_LIMIT_KB and rss > before:
-        broken.append("MEMORY")
-    outside_opens = opened_outside(log, [tree, out, work]) if log.exists() else []
-    if any(p == str(outside.resolve()) or p.startswith("/etc/passwd") for p in outside_opens):
-        broken.append("OPENED_OUTSIDE")
-    named = {}
-    errors = out / "errors.csv"
-    if errors.exists():
-        with errors.open(encoding="utf-8") as f:
-            for row in csv.DictReader(f):
-                for name in row["file"].split("; "):
-                    named[name] = row["kind"]
+    broken = _broken_rules(proc, before, rss, log, work)
+    named = _rejected_names(out)
     good_echo = archive.read_pass(good).echo
-    result = {}
-    for c in cases:
-        if broken:
-            result[c.index] = "+".join(broken)
-        elif c.name in named:
-            result[c.index] = f"rejected:{named[c.name]}"
-        elif originals[c.index].is_dir():
-            result[c.index] = "rejected:a_directory_not_a_file"  # searched as a directory, never read
-        else:
-            try:
-                same = np.array_equal(archive.read_pass(originals[c.index]).echo, good_echo)
-            except Exception:  # noqa: BLE001
-                same = False
-            result[c.index] = "accepted_unchanged" if same else "accepted_changed"
+    result = {c.index: _case_outcome(c, originals[c.index], broken, named, good_echo) for c in cases}
     print(f"  batch of {len(cases)}: exit {proc.returncode}, {elapsed:.1f} s, peak RSS {rss / 1024:.0f} MiB",
           file=sys.stderr)
     return result

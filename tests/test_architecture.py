@@ -1,4 +1,5 @@
-"""The layers of docs/architecture.md hold: no upward import and no import cycle, function-level imports too."""
+"""The layers of docs/architecture.md hold: no upward import and no import cycle, function-level imports
+too."""
 
 from __future__ import annotations
 
@@ -140,7 +141,8 @@ def test_a_deliberate_upward_import_inside_a_function_is_caught(tmp_path, layers
         dst.parent.mkdir(parents=True, exist_ok=True)
         dst.write_text(src.read_text())
     locate = pkg / "locate.py"
-    locate.write_text(locate.read_text() + "\n\ndef _upward():\n    from . import batch  # noqa\n    return batch\n")
+    locate.write_text(locate.read_text()
+                      + "\n\ndef _upward():\n    from . import batch  # noqa\n    return batch\n")
     graph = import_graph(pkg)
     found = violations(graph, layers)
     assert any(re.match(r"uwbcl\.locate \(locate\) imports uwbcl\.batch \(batch\)", v) for v in found), found

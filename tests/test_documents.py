@@ -1,5 +1,6 @@
 """The documents are the repository's own: no citation of design notes kept outside it, and every label of
-docs/method.md (C1.. corrections to the paper, D1.. derivations) that code or documents cite is defined there."""
+docs/method.md (C1.. corrections to the paper, D1.. derivations) that code or documents cite is defined
+there."""
 
 from __future__ import annotations
 

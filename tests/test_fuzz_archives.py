@@ -1,6 +1,7 @@
-"""A bounded sample of the fuzz campaign (scripts/fuzz_archives.py) on every run: mutated archives of every kind
-end in a rejection naming the file or an unchanged result; never a traceback, a hang, an open outside the tree
-or unbounded memory. strace must be installed (scripts/install.sh test installs it): the test fails, not skips."""
+"""A bounded sample of the fuzz campaign (scripts/fuzz_archives.py) on every run: mutated archives of every
+kind end in a rejection naming the file or an unchanged result; never a traceback, a hang, an open outside the
+tree or unbounded memory. strace must be installed (scripts/install.sh test installs it): the test fails, not
+skips."""
 
 from __future__ import annotations
 
@@ -34,11 +35,12 @@ def test_every_kind_of_mutated_archive_is_rejected_by_name_or_unchanged_and_noth
     assert broken == {}
     assert {c.kind for c in cases} == set(fuzz.KINDS)
     for c in cases:
-        assert outcome[c.index].startswith("rejected") or outcome[c.index].startswith("accepted"), (c, outcome)
+        assert outcome[c.index].startswith(("rejected", "accepted")), (c, outcome)
     structural = [c for c in cases if c.kind in ("soft_loop", "external_link", "external_passwd", "virtual",
                                                  "external_storage", "huge_declared", "fifo", "empty")]
     assert all(outcome[c.index].startswith("rejected") for c in structural), [
-        (c.kind, c.detail, outcome[c.index]) for c in structural if not outcome[c.index].startswith("rejected")]
+        (c.kind, c.detail, outcome[c.index])
+        for c in structural if not outcome[c.index].startswith("rejected")]
 
 
 def test_the_outside_open_check_sees_a_file_outside_the_allowed_trees(tmp_path):

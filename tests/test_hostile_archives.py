@@ -103,7 +103,8 @@ def test_a_dataset_declaring_a_trillion_samples_is_refused_before_any_read(good)
         read_pass_header(bad)
 
 
-def test_a_compression_bomb_within_the_limits_is_refused_by_a_lower_limit_and_read_within_bounded_memory(good):
+def test_a_compression_bomb_within_the_limits_is_refused_by_a_lower_limit_and_read_within_bounded_memory(
+        good):
     def bomb(f):
         del f["echo"]
         ds = f.create_dataset("echo", shape=(21, 4_000_000), dtype="c8", chunks=(1, 1 << 18),
@@ -126,14 +127,16 @@ def test_filters_other_than_the_standard_lossless_ones_are_refused(good):
         ds = f["pulses"].create_dataset("position_m", data=data, scaleoffset=6, chunks=(21,))
         ds.attrs["units"] = "m"
 
-    refused(copy_with(good, good.with_name("lossy.h5"), scaleoffset), "/pulses/position_m", "not one of the allowed")
+    refused(copy_with(good, good.with_name("lossy.h5"), scaleoffset), "/pulses/position_m",
+            "not one of the allowed")
 
 
 def test_lzf_and_shuffle_are_accepted(good):
     def lzf(f):
         data = f["pulses/position_m"][()]
         del f["pulses/position_m"]
-        ds = f["pulses"].create_dataset("position_m", data=data, compression="lzf", shuffle=True, chunks=(21,))
+        ds = f["pulses"].create_dataset("position_m", data=data, compression="lzf", shuffle=True,
+                                        chunks=(21,))
         ds.attrs["units"] = "m"
 
     read_pass(copy_with(good, good.with_name("lzf.h5"), lzf))

@@ -23,7 +23,8 @@ from uwbcl import archive, batch, outputs, shift
 from uwbcl.cli import main
 from uwbcl.records import AssociationSettings, BatchOptions, OutputOptions, ProcessingSettings
 
-SETTINGS = ProcessingSettings(backend="numpy", association=AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0)))
+SETTINGS = ProcessingSettings(backend="numpy",
+                              association=AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0)))
 CONFIG = shift.ShiftConfig(rigs=1, cycles=3, seed=5)
 OUTPUTS = ("displacements.csv", "displacements.h5", "targets.csv", "errors.csv")
 
@@ -180,7 +181,8 @@ def test_rig_ids_never_become_paths_outside_the_output_directory(tmp_path, rig_i
     assert report.errors == []
     new = {p for p in tmp_path.rglob("*")} | set(Path("/tmp").glob("timeseries_*"))
     allowed = {out.resolve(), *out.resolve().parents}
-    escaped = [p for p in new - before if p.resolve() not in allowed and out.resolve() not in p.resolve().parents]
+    escaped = [p for p in new - before
+               if p.resolve() not in allowed and out.resolve() not in p.resolve().parents]
     assert escaped == []
     pngs = list((out / "plots").glob("*.png"))
     assert len(pngs) == 1 and len(pngs[0].name) <= outputs.MAX_NAME_LENGTH + 20
@@ -202,8 +204,8 @@ def test_safe_names_keep_safe_ids_and_make_every_other_one_a_distinct_plain_name
     ("[detection]\nseparation_m = -0.15\n", "detection.separation_m"),
     ("[limits]\nmax_echo_samples = 0\n", "limits.max_echo_samples"),
 ])
-def test_config_values_that_break_the_maths_are_usage_errors_naming_the_key(archive_dir, tmp_path, capsys, toml,
-                                                                            key):
+def test_config_values_that_break_the_maths_are_usage_errors_naming_the_key(
+        archive_dir, tmp_path, capsys, toml, key):
     cfg = tmp_path / "site.toml"
     cfg.write_text(toml)
     assert main(["process", str(archive_dir), "--out", str(tmp_path / "o"), "--backend", "numpy",
@@ -221,7 +223,8 @@ def test_a_binary_or_utf16_config_is_a_usage_error(archive_dir, tmp_path, capsys
 
 @pytest.mark.parametrize("flags", [["--web-depth", "inf"], ["--heights", "nan", "0.6"], ["--heights", "low"]])
 def test_non_finite_or_non_numeric_flags_are_usage_errors(archive_dir, tmp_path, capsys, flags):
-    assert main(["process", str(archive_dir), "--out", str(tmp_path / "o"), "--backend", "numpy", *flags]) == 2
+    assert main(["process", str(archive_dir), "--out", str(tmp_path / "o"), "--backend", "numpy",
+                 *flags]) == 2
     assert "Traceback" not in capsys.readouterr().err
 
 
@@ -274,8 +277,8 @@ print("renames", calls[0])
 '''
 
 
-def test_a_kill_at_every_rename_leaves_one_complete_set_and_a_rerun_gives_the_uninterrupted_outputs(tree, clean,
-                                                                                                    tmp_path):
+def test_a_kill_at_every_rename_leaves_one_complete_set_and_a_rerun_gives_the_uninterrupted_outputs(
+        tree, clean, tmp_path):
     src, out = tree
     extra = tmp_path / "extra"
     shift.write_shift(extra, shift.ShiftConfig(rigs=1, cycles=5, seed=5))
@@ -295,8 +298,8 @@ def test_a_kill_at_every_rename_leaves_one_complete_set_and_a_rerun_gives_the_un
     def run(n: int) -> subprocess.CompletedProcess:
         shutil.rmtree(full, ignore_errors=True)
         shutil.copytree(template, full, symlinks=True)
-        return subprocess.run([sys.executable, str(script), str(extra), str(full), str(n)], capture_output=True,
-                              text=True)
+        return subprocess.run([sys.executable, str(script), str(extra), str(full), str(n)],
+                              capture_output=True, text=True)
 
     n_renames = int(run(0).stdout.split()[-1])
     assert n_renames >= 5
@@ -321,7 +324,8 @@ def test_a_full_disk_names_the_path_keeps_the_old_outputs_and_exits_1(tree, clea
         return real(path, data)
 
     monkeypatch.setattr(outputs, "write_bytes_atomic", full)
-    assert main(["process", str(src), "--out", str(out), "--backend", "numpy", "--jobs", "1", "--no-cache"]) == 1
+    assert main(["process", str(src), "--out", str(out), "--backend", "numpy", "--jobs", "1",
+                 "--no-cache"]) == 1
     err = capsys.readouterr().err
     assert "No space left on device" in err and "errors.csv" in err and "Traceback" not in err
     assert outputs_of(out) == old
@@ -351,8 +355,8 @@ def _alive(pid: int) -> bool:
 @pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143), (signal.SIGKILL, -9)])
 def test_a_signal_stops_the_run_cleanly_and_no_worker_outlives_it(archive_dir, tmp_path, sig, code):
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "uwbcl.cli", "process", str(archive_dir), "--out", str(out),
-                             "--backend", "numpy", "--jobs", "2", "--no-cache"],
+    proc = subprocess.Popen([sys.executable, "-m", "uwbcl.cli", "process", str(archive_dir),
+                             "--out", str(out), "--backend", "numpy", "--jobs", "2", "--no-cache"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
     workers: list[int] = []

@@ -1,5 +1,6 @@
-"""One displacement estimator everywhere: `uwbcl acquire --process` (acquire-results.csv and the RESULT registers)
-and `uwbcl process` (displacements.csv) give the same numbers for the same passes (chain.RigChain)."""
+"""One displacement estimator everywhere: `uwbcl acquire --process` (acquire-results.csv and the RESULT
+registers) and `uwbcl process` (displacements.csv) give the same numbers for the same passes
+(chain.RigChain)."""
 
 from __future__ import annotations
 

@@ -22,7 +22,8 @@ from uwbcl import batch, shift
 from uwbcl.cli import main
 from uwbcl.records import AssociationSettings, BatchError, BatchOptions, OutputOptions, ProcessingSettings
 
-SETTINGS = ProcessingSettings(backend="numpy", association=AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0)))
+SETTINGS = ProcessingSettings(backend="numpy",
+                              association=AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0)))
 OUTPUTS = ("displacements.csv", "displacements.h5", "targets.csv", "errors.csv")
 CONFIG = shift.ShiftConfig(rigs=1, cycles=3, seed=5)
 
@@ -143,7 +144,8 @@ class Killed(Exception):
     pass
 
 
-def test_a_run_killed_midway_and_restarted_writes_what_an_uninterrupted_run_writes(archive_dir, clean, tmp_path):
+def test_a_run_killed_midway_and_restarted_writes_what_an_uninterrupted_run_writes(
+        archive_dir, clean, tmp_path):
     out = tmp_path / "out"
 
     def die_after_two(done: int) -> None:
@@ -319,7 +321,8 @@ def test_a_pass_at_a_height_the_site_does_not_use_is_rejected(archive_dir, clean
 
 def test_outputs_options_leave_out_what_is_not_wanted(archive_dir, clean, tmp_path):
     out = warm_out(clean[0], tmp_path)
-    batch.process_directory(archive_dir, out, SETTINGS, options(outputs=OutputOptions(hdf5=False, targets=False)))
+    batch.process_directory(archive_dir, out, SETTINGS,
+                            options(outputs=OutputOptions(hdf5=False, targets=False)))
     assert (out / "displacements.csv").exists() and (out / "errors.csv").exists()
     assert not (out / "displacements.h5").exists() and not (out / "targets.csv").exists()
 
@@ -355,7 +358,8 @@ def test_plots_without_matplotlib_stop_the_run_before_it_starts(archive_dir, tmp
 
     monkeypatch.setattr(builtins, "__import__", no_matplotlib)
     with pytest.raises(BatchError, match="uwbcl\\[plot\\]"):
-        batch.process_directory(archive_dir, tmp_path / "out", SETTINGS, options(outputs=OutputOptions(plots=True)))
+        batch.process_directory(archive_dir, tmp_path / "out", SETTINGS,
+                                options(outputs=OutputOptions(plots=True)))
     assert not (tmp_path / "out" / "displacements.csv").exists()
 
 

@@ -52,8 +52,8 @@ def test_every_section_reaches_the_settings_it_names(tmp_path):
 
 
 def test_command_line_flags_override_the_file(tmp_path):
-    cfg = config.override(config.load_config(write(tmp_path, SITE)), web_depth_m=0.95, jobs=None, backend=None,
-                          plots=None, hdf5=True)
+    cfg = config.override(config.load_config(write(tmp_path, SITE)), web_depth_m=0.95, jobs=None,
+                          backend=None, plots=None, hdf5=True)
     s = cfg.processing_settings()
     assert s.association.prior_advance_m[0] == 0.95
     assert cfg.jobs == 3 and s.backend == "numpy"  # flags left unset keep the file's values

@@ -21,9 +21,9 @@ import logging
 import math
 import os
 import stat
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import h5py
 import numpy as np
@@ -87,19 +87,22 @@ def default_pass_id(scan: ScanPass) -> str:
 
 
 def default_relative_path(scan: ScanPass) -> Path:
-    """``<rig_id>/<YYYY-MM-DD>/<rig_id>_c<cycle:06d>_h<height_mm:04d>.h5``, the date being the UTC pass start."""
+    """``<rig_id>/<YYYY-MM-DD>/<rig_id>_c<cycle:06d>_h<height_mm:04d>.h5``, the date being the UTC pass
+    start."""
     day = parse_utc(scan.pass_start_time).date().isoformat()
     name = f"{scan.rig_id}_c{scan.cycle:06d}_h{height_mm(scan.geometry.height_m):04d}{FILE_SUFFIX}"
     return Path(scan.rig_id, day, name)
 
 
 def find_pass_files(root: str | os.PathLike[str]) -> list[Path]:
-    """Finished scan files under ``root``, sorted; hidden files (in-progress ``.partial`` writes) are skipped."""
+    """Finished scan files under ``root``, sorted; hidden files (in-progress ``.partial`` writes) are
+    skipped."""
     return walk_pass_files(root).files
 
 
 def display_name(text: str) -> str:
-    """A file name as text that can always be written (UTF-8 CSV, logs): undecodable bytes as \\xNN escapes."""
+    """A file name as text that can always be written (UTF-8 CSV, logs): undecodable bytes as \\xNN
+    escapes."""
     return os.fsencode(text).decode("utf-8", "backslashreplace")
 
 
@@ -141,44 +144,56 @@ def walk_pass_files(root: str | os.PathLike[str], *, skip: tuple[Path, ...] = ()
     stack = [str(root)]
     while stack:
         directory = stack.pop()
-        try:
-            st = os.stat(directory)
-            if (st.st_dev, st.st_ino) in seen_dirs or (st.st_dev, st.st_ino) in skip_ids:
-                continue
-            seen_dirs.add((st.st_dev, st.st_ino))
-            with os.scandir(directory) as it:
-                entries = sorted(it, key=lambda e: e.name)
-        except OSError as e:
-            report(directory, "unreadable_directory", f"cannot list: {e.strerror or e}")
-            continue
-        for entry in entries:
-            name = entry.name
-            try:
-                name.encode("utf-8")
-            except UnicodeEncodeError:
-                report(entry.path, "undecodable_name", "the name is not valid UTF-8; rename it to be read")
-                continue
-            if name.startswith("."):
-                if name.endswith(PARTIAL_SUFFIX):
-                    continue  # a write in progress (or a dead one): never an archive
-                if _is_dir(entry):
-                    report(entry.path, "hidden_directory", "hidden directories are not searched")
-                elif name.endswith(FILE_SUFFIX):
-                    report(entry.path, "hidden_file", "hidden files are not read")
-                continue
-            if entry.is_symlink():
-                _walk_link(entry, real_root, follow_symlinks, walk, stack, report, rel)
-            elif _is_dir(entry):
-                stack.append(entry.path)
-            elif name.endswith(FILE_SUFFIX):
-                if entry.is_file(follow_symlinks=False):
-                    walk.files.append(Path(entry.path))
-                else:
-                    report(entry.path, "not_a_regular_file", "a FIFO, device or socket, not an archive")
+        for entry in _list_directory(directory, seen_dirs, skip_ids, report):
+            _walk_entry(entry, real_root, follow_symlinks, walk, stack, report, rel)
     walk.files.sort()
     walk.problems.sort()
     walk.warnings.sort()
     return walk
+
+
+def _list_directory(directory: str, seen_dirs: set[tuple[int, int]], skip_ids: set[tuple[int, int]],
+                    report) -> list[os.DirEntry]:
+    """The entries of `directory` sorted by name; none for a directory already seen (a loop) or skipped,
+    and none, reported, for one that cannot be listed."""
+    try:
+        st = os.stat(directory)
+        if (st.st_dev, st.st_ino) in seen_dirs or (st.st_dev, st.st_ino) in skip_ids:
+            return []
+        seen_dirs.add((st.st_dev, st.st_ino))
+        with os.scandir(directory) as it:
+            return sorted(it, key=lambda e: e.name)
+    except OSError as e:
+        report(directory, "unreadable_directory", f"cannot list: {e.strerror or e}")
+        return []
+
+
+def _walk_entry(entry: os.DirEntry, real_root: str, follow: bool, walk: TreeWalk, stack: list, report,
+                rel) -> None:
+    """One directory entry: an archive to read, a directory to enter, a finding, or nothing."""
+    name = entry.name
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        report(entry.path, "undecodable_name", "the name is not valid UTF-8; rename it to be read")
+        return
+    if name.startswith("."):
+        if name.endswith(PARTIAL_SUFFIX):
+            return  # a write in progress (or a dead one): never an archive
+        if _is_dir(entry):
+            report(entry.path, "hidden_directory", "hidden directories are not searched")
+        elif name.endswith(FILE_SUFFIX):
+            report(entry.path, "hidden_file", "hidden files are not read")
+        return
+    if entry.is_symlink():
+        _walk_link(entry, real_root, follow, walk, stack, report, rel)
+    elif _is_dir(entry):
+        stack.append(entry.path)
+    elif name.endswith(FILE_SUFFIX):
+        if entry.is_file(follow_symlinks=False):
+            walk.files.append(Path(entry.path))
+        else:
+            report(entry.path, "not_a_regular_file", "a FIFO, device or socket, not an archive")
 
 
 def _is_dir(entry: os.DirEntry) -> bool:
@@ -188,7 +203,8 @@ def _is_dir(entry: os.DirEntry) -> bool:
         return False
 
 
-def _walk_link(entry: os.DirEntry, real_root: str, follow: bool, walk: TreeWalk, stack: list, report, rel) -> None:
+def _walk_link(entry: os.DirEntry, real_root: str, follow: bool, walk: TreeWalk, stack: list, report,
+               rel) -> None:
     try:
         st = os.stat(entry.path)  # follows the link
     except OSError as e:
@@ -201,7 +217,8 @@ def _walk_link(entry: os.DirEntry, real_root: str, follow: bool, walk: TreeWalk,
         if follow:
             stack.append(entry.path)
         else:
-            report(entry.path, "directory_link", "a symbolic link to a directory; not followed (--follow-symlinks)")
+            report(entry.path, "directory_link",
+                   "a symbolic link to a directory; not followed (--follow-symlinks)")
         return
     if not entry.name.endswith(FILE_SUFFIX):
         return
@@ -210,7 +227,8 @@ def _walk_link(entry: os.DirEntry, real_root: str, follow: bool, walk: TreeWalk,
     elif inside or follow:
         walk.files.append(Path(entry.path))
         where = "inside the tree" if inside else "outside the tree (--follow-symlinks)"
-        walk.warnings.append((rel(entry.path), "symlink", f"a symbolic link to {display_name(target)}, {where}"))
+        walk.warnings.append(
+            (rel(entry.path), "symlink", f"a symbolic link to {display_name(target)}, {where}"))
     else:
         report(entry.path, "outside_link", f"a symbolic link to {display_name(target)}, outside the input "
                                            "directory; not read (--follow-symlinks)")
@@ -508,8 +526,8 @@ def _check_size(path: Any, echo: h5py.Dataset, time_ds: h5py.Dataset, position_d
         raise ArchiveError(path, "/echo", f"{n_samples} samples per pulse exceed the limit of "
                            f"{limits.max_samples_per_pulse} (limits.max_samples_per_pulse)")
     if n_pulses * n_samples > limits.max_echo_samples:
-        raise ArchiveError(path, "/echo", f"{n_pulses} x {n_samples} = {n_pulses * n_samples} samples exceed the "
-                           f"limit of {limits.max_echo_samples} (limits.max_echo_samples)")
+        raise ArchiveError(path, "/echo", f"{n_pulses} x {n_samples} = {n_pulses * n_samples} samples "
+                           f"exceed the limit of {limits.max_echo_samples} (limits.max_echo_samples)")
     for ds in (time_ds, position_ds):
         if ds.size > limits.max_pulses:
             raise ArchiveError(path, ds.name, f"{ds.size} values exceed the limit of {limits.max_pulses} "
@@ -523,7 +541,8 @@ def _check_storage(path: Any, ds: h5py.Dataset) -> None:
     dcpl = ds.id.get_create_plist()
     if dcpl.get_external_count():
         name = dcpl.get_external(0)[0]
-        raise ArchiveError(path, ds.name, f"external raw storage in {name!r} (data outside the file); not read")
+        raise ArchiveError(path, ds.name,
+                           f"external raw storage in {name!r} (data outside the file); not read")
     for i in range(dcpl.get_nfilters()):
         code, _, _, name = dcpl.get_filter(i)
         if code not in ALLOWED_FILTERS:
@@ -561,9 +580,17 @@ def _read_values(f: h5py.File, path: Any, name: str) -> np.ndarray:
 
 
 def _check_header(path: Any, h: dict[str, Any]) -> None:
-    def fail(field: str, reason: str) -> None:
+    def fail(field: str, reason: str) -> NoReturn:
         raise ArchiveError(path, field, reason)
 
+    _check_root_attrs(h, fail)
+    _check_radar_attrs(h, fail)
+    if h["n_pulses"] < 2:
+        fail("/echo", f"needs at least 2 pulses, got {h['n_pulses']}")
+    _check_geometry_attrs(h, fail)
+
+
+def _check_root_attrs(h: dict[str, Any], fail: Callable[[str, str], NoReturn]) -> None:
     for name in _ROOT_STR:
         if not isinstance(h[name], str):
             fail(f"/@{name}", f"expected a string, got {type(h[name]).__name__}")
@@ -576,6 +603,9 @@ def _check_header(path: Any, h: dict[str, Any]) -> None:
         fail("/@pass_start_time", str(e))
     if h["cycle"] < 0:
         fail("/@cycle", f"must be >= 0, got {h['cycle']}")
+
+
+def _check_radar_attrs(h: dict[str, Any], fail: Callable[[str, str], NoReturn]) -> None:
     for name in _RADAR_FLOAT:
         if not math.isfinite(h[name]):
             fail(f"/radar@{name}", f"must be finite, got {h[name]}")
@@ -591,8 +621,9 @@ def _check_header(path: Any, h: dict[str, Any]) -> None:
         fail("/radar@pulse_shape", f"expected {PULSE_SHAPE!r}, got {h['pulse_shape']!r}")
     if h["samples_per_pulse"] < 1:
         fail("/radar@samples_per_pulse", f"must be >= 1, got {h['samples_per_pulse']}")
-    if h["n_pulses"] < 2:
-        fail("/echo", f"needs at least 2 pulses, got {h['n_pulses']}")
+
+
+def _check_geometry_attrs(h: dict[str, Any], fail: Callable[[str, str], NoReturn]) -> None:
     if not math.isfinite(h["height_m"]):
         fail("/geometry@height_m", f"must be finite, got {h['height_m']}")
     angle = h["rotation_table_angle_deg"]
@@ -636,8 +667,8 @@ def _check_echo_finite(path: Any, echo: np.ndarray) -> None:
 
 
 def _resolve(f: h5py.File, name: str, path: Any):
-    """The object at `name`, reached through hard links only: a soft link (which may loop or point anywhere in
-    the file) or an external link (another file, anywhere on the machine) is refused by name."""
+    """The object at `name`, reached through hard links only: a soft link (which may loop or point anywhere
+    in the file) or an external link (another file, anywhere on the machine) is refused by name."""
     obj, here = f, ""
     for part in name.strip("/").split("/"):
         here = f"{here}/{part}"
@@ -648,8 +679,8 @@ def _resolve(f: h5py.File, name: str, path: Any):
         if link is None:
             return None
         if isinstance(link, h5py.ExternalLink):
-            raise ArchiveError(path, here, f"an external link to {link.filename!r}:{link.path!r}; only objects "
-                               "stored in the file itself are read")
+            raise ArchiveError(path, here, f"an external link to {link.filename!r}:{link.path!r}; only "
+                               "objects stored in the file itself are read")
         if isinstance(link, h5py.SoftLink):
             raise ArchiveError(path, here, f"a soft link to {link.path!r}; only hard links are read")
         if not isinstance(link, h5py.HardLink):
@@ -686,7 +717,8 @@ def _raw_attr(obj: h5py.HLObject, name: str, path: Any) -> Any:
     try:
         n_elements = obj.attrs.get_id(name).shape
         if n_elements and math.prod(n_elements) > _MAX_ATTRIBUTE_ELEMENTS:
-            raise ArchiveError(path, field, f"shape {n_elements} is far larger than any attribute of the format")
+            raise ArchiveError(path, field,
+                               f"shape {n_elements} is far larger than any attribute of the format")
         return obj.attrs[name]
     except (OSError, TypeError, ValueError) as e:  # e.g. a datatype h5py cannot map to numpy
         raise ArchiveError(path, field, f"unreadable: {e}") from e

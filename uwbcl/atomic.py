@@ -1,6 +1,6 @@
 """Atomic output files: write next to the final name, fsync, rename, fsync the directory. A reader, or a
-restarted run, never sees half a file, and a failed write leaves the previous version in place. Every file uwbcl
-writes goes through `atomic_path` (CSV, HDF5, PNG, JSON cache entries, archives)."""
+restarted run, never sees half a file, and a failed write leaves the previous version in place. Every file
+uwbcl writes goes through `atomic_path` (CSV, HDF5, PNG, JSON cache entries, archives)."""
 
 from __future__ import annotations
 
@@ -35,6 +35,9 @@ def fsync_directory(directory: Path) -> None:
             os.close(fd)
 
 
+_APPEARED = "file appeared while writing; not overwritten"
+
+
 def _publish(tmp: Path, path: Path, overwrite: bool) -> None:
     if overwrite:
         os.replace(tmp, path)
@@ -43,10 +46,10 @@ def _publish(tmp: Path, path: Path, overwrite: bool) -> None:
     try:
         os.link(tmp, path)
     except FileExistsError:
-        raise FileExistsError(errno.EEXIST, "file appeared while writing; not overwritten", str(path)) from None
+        raise FileExistsError(errno.EEXIST, _APPEARED, str(path)) from None
     except OSError:  # a filesystem without hard links: best-effort check, then rename
         if path.exists():
-            raise FileExistsError(errno.EEXIST, "file appeared while writing; not overwritten", str(path)) from None
+            raise FileExistsError(errno.EEXIST, _APPEARED, str(path)) from None
         os.replace(tmp, path)
         return
     tmp.unlink()

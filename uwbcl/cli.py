@@ -1,4 +1,5 @@
-"""Command line: `uwbcl simulate` writes archives of a simulated shift, `uwbcl process` measures the advance."""
+"""Command line: `uwbcl simulate` writes archives of a simulated shift, `uwbcl process` measures the
+advance."""
 
 from __future__ import annotations
 
@@ -45,7 +46,8 @@ def _simulate(args: argparse.Namespace) -> int:
         written.append(str(path.relative_to(out)))
     cycles = range(len(scenario.rig_positions_m))
     truth = {
-        "scenario": scenario.name, "seed": args.seed, "snr_db": args.snr_db, "speed_jitter": args.speed_jitter,
+        "scenario": scenario.name, "seed": args.seed, "snr_db": args.snr_db,
+        "speed_jitter": args.speed_jitter,
         "rig_id": args.rig_id, "heights_m": list(heights or scenario.heights_m),
         "target_names": list(scenario.target_names),
         "targets_roadway_m": scenario.targets_roadway_m.tolist(),
@@ -155,7 +157,8 @@ def _signals_as_interrupts():
 
 
 def _engine_ready(device: str | None, profile: bool = False) -> bool:
-    """Start the OpenCL engine before any work, so a missing runtime is one clear message, not a failure per pass."""
+    """Start the OpenCL engine before any work, so a missing runtime is one clear message, not a failure
+    per pass."""
     from . import opencl
     from .focus.engine import shared_engine
 
@@ -301,7 +304,8 @@ def _add_import_commands(sub) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="uwbcl", description="UWB SAR measurement of longwall retreat and creep.")
+    p = argparse.ArgumentParser(prog="uwbcl",
+                                description="UWB SAR measurement of longwall retreat and creep.")
     p.add_argument("--version", action="version", version=f"uwbcl {__version__}")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     sub = p.add_subparsers(dest="command", required=True)
@@ -343,7 +347,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="nominal advance per cycle in metres: the prior that resolves look-alike plates")
     q.add_argument("--prior-window", type=float, nargs=3, metavar=("X", "Y", "Z"),
                    help="half-widths of the prior window in metres (default 0.4 0.3 0.5)")
-    q.add_argument("--heights", nargs="+", help="expected rail heights in metres; passes at others are errors")
+    q.add_argument("--heights", nargs="+",
+                   help="expected rail heights in metres; passes at others are errors")
     q.add_argument("--plots", action="store_true", help="write plots/timeseries_<rig>.png (needs matplotlib)")
     q.add_argument("--cycle-images", action="store_true",
                    help="write a focused image per pass with the detections marked (slow: refocuses)")
@@ -371,7 +376,7 @@ def main(argv=None) -> int:
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(message)s")
     try:
         return args.func(args)
-    except ConfigError as exc:  # a flag value no subcommand caught itself: still a usage error, not a traceback
+    except ConfigError as exc:  # a flag value no subcommand caught: still a usage error, not a traceback
         print(f"uwbcl {args.command}: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

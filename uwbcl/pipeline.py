@@ -36,8 +36,9 @@ BP_RANGE_MARGIN_M = 0.1
 
 def check_plan(scan: ScanPass, settings: ProcessingSettings) -> None:
     """LimitExceeded when focusing or detecting this pass would allocate more cells than
-    settings.limits.max_focus_cells: the arrays are sized from the pass's metadata (rail length, pulse spacing,
-    range window), so a pass whose positions are off by orders of magnitude is refused before any allocation."""
+    settings.limits.max_focus_cells: the arrays are sized from the pass's metadata (rail length, pulse
+    spacing, range window), so a pass whose positions are off by orders of magnitude is refused before any
+    allocation."""
     limit = settings.limits.max_focus_cells
     grid = nlcs.focus_grid(scan)
     range_bin_m = grid.range_bins_m[1] - grid.range_bins_m[0] if grid.n_range > 1 else 1.0
@@ -45,15 +46,18 @@ def check_plan(scan: ScanPass, settings: ProcessingSettings) -> None:
         u, r = backprojection.image_axes(grid, BP_PIXEL_M, BP_RANGE_MARGIN_M)
         cells, what, pixel_m = u.size * r.size, "backprojection image", (BP_PIXEL_M, BP_PIXEL_M)
     else:
-        cells, what, pixel_m = grid.n_azimuth * grid.n_range, "NLCS focus grid", (grid.track_spacing_m, range_bin_m)
+        cells, what = grid.n_azimuth * grid.n_range, "NLCS focus grid"
+        pixel_m = (grid.track_spacing_m, range_bin_m)
     if cells > limit:
-        raise LimitExceeded(f"the {what} would have {cells} cells (limit {limit}, limits.max_focus_cells): rail "
-                            f"{grid.n_track} pulses {grid.track_spacing_m:.3g} m apart, {grid.n_range} range bins")
+        raise LimitExceeded(f"the {what} would have {cells} cells (limit {limit}, limits.max_focus_cells): "
+                            f"rail {grid.n_track} pulses {grid.track_spacing_m:.3g} m apart, "
+                            f"{grid.n_range} range bins")
     d = settings.detection
-    footprint = (2 * int(d.separation_m / pixel_m[0]) + 1) * (2 * int(d.range_separation_m / pixel_m[1]) + 1)
+    footprint = ((2 * int(d.separation_m / pixel_m[0]) + 1)
+                 * (2 * int(d.range_separation_m / pixel_m[1]) + 1))
     if footprint > limit:
-        raise LimitExceeded(f"detection's separation ellipse would span {footprint} cells (limit {limit}): pulses "
-                            f"{grid.track_spacing_m:.3g} m apart for a {d.separation_m} m separation")
+        raise LimitExceeded(f"detection's separation ellipse would span {footprint} cells (limit {limit}): "
+                            f"pulses {grid.track_spacing_m:.3g} m apart for a {d.separation_m} m separation")
 
 
 def detect_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSettings()) -> list[Detection]:

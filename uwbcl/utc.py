@@ -1,4 +1,5 @@
-"""ISO 8601 UTC times, the one parser and formatter every layer uses (archive attributes, outputs, Modbus TIME)."""
+"""ISO 8601 UTC times, the one parser and formatter every layer uses (archive attributes, outputs,
+Modbus TIME)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,8 @@ import datetime as dt
 
 
 def parse_utc(text: str) -> dt.datetime:
-    """An aware UTC datetime from ISO 8601 text ending in 'Z' or '+00:00'; ValueError naming the text otherwise."""
+    """An aware UTC datetime from ISO 8601 text ending in 'Z' or '+00:00'; ValueError naming the text
+    otherwise."""
     # Python 3.10's fromisoformat does not take "Z"; spell it as an offset first.
     s = text[:-1] + "+00:00" if text.endswith(("Z", "z")) else text
     try:
