@@ -344,6 +344,13 @@ def _children(pid: int) -> list[int]:
     return out
 
 
+def _cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_text().replace("\0", " ")
+    except OSError:  # the process ended meanwhile
+        return ""
+
+
 def _alive(pid: int) -> bool:
     try:
         state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
@@ -361,8 +368,8 @@ def test_a_signal_stops_the_run_cleanly_and_no_worker_outlives_it(archive_dir, t
     deadline = time.monotonic() + 60
     workers: list[int] = []
     while time.monotonic() < deadline and len(workers) < 2:
-        workers = [c for c in _children(proc.pid) if "spawn_main" in Path(f"/proc/{c}/cmdline").read_text()
-                   .replace("\0", " ")] if proc.poll() is None else []
+        running = proc.poll() is None
+        workers = [c for c in _children(proc.pid) if "spawn_main" in _cmdline(c)] if running else []
         time.sleep(0.05)
     assert len(workers) == 2, "the workers never started"
     proc.send_signal(sig)
