@@ -422,6 +422,16 @@ class AcquisitionReport:
         return not (self.passes_failed or self.error)
 
 
+@dataclasses.dataclass
+class _DrainState:
+    """The bookkeeping of one AcquisitionSession._drain loop."""
+    last_progress: float
+    last_status: float
+    seen_state: tuple | None = None
+    corrupt_in_a_row: int = 0
+    empty_after_end: int = 0
+
+
 class AcquisitionSession:
     """Runs `uwbcl acquire` against one rig; `run()` returns an AcquisitionReport (docs/modbus-register-map.md s. 8)."""
 
@@ -697,80 +707,101 @@ class AcquisitionSession:
         watchdog (no new pulse and no change of STATE, STATUS_WORD, FAULT_WORD or PASS for stall_timeout_s)
         ABORTs the pass; every pass through the loop that stores nothing waits poll_s, so it cannot spin."""
         window_regs = int(self.radar["WINDOW_REGS"])
-        hdr = R.WINDOW_HEADER.length
-        last_progress = last_status = time.monotonic()
-        seen_state = None
-        corrupt_in_a_row = empty_after_end = 0
+        now = time.monotonic()
+        d = _DrainState(last_progress=now, last_status=now)
         while True:
             if self.stop.is_set():
                 raise Interrupted()
-            now = time.monotonic()
-            if now - last_progress > self.settings.stall_timeout_s:
-                self.link.counts.no_progress += 1
-                log.warning("fault: pass token %d: no new pulse and no state change for %g s (watchdog); aborting",
-                            asm.token, self.settings.stall_timeout_s)
-                raise PassIncomplete(f"no progress for {self.settings.stall_timeout_s:g} s (watchdog)")
+            self._check_watchdog(asm, d)
             first = self.link.read(R.Table.INPUT, R.WINDOW_ADDRESS, min(R.MAX_REGISTERS_PER_READ, window_regs))
             try:
-                head = R.WINDOW_HEADER.decode(first[:hdr])
-                n, rec_regs = head["RECORDS"], head["RECORD_REGS"]
-                if n:
-                    if head["TOKEN"] != asm.token:
-                        raise PassIncomplete(f"the window holds pulses of pass token {head['TOKEN']}")
-                    if rec_regs != R.record_regs(asm.samples_per_pulse) or hdr + n * rec_regs > window_regs:
-                        raise PassIncomplete(f"window header claims {n} records of {rec_regs} registers")
-                    regs = first + self._read_rest(len(first), hdr + n * rec_regs)
-                    seq, t, x, flags, iq, bad = R.decode_records(regs[hdr:], n, asm.samples_per_pulse)
-                    if bad:
-                        raise R.RegisterError(f"pulse window: CRC mismatch in record(s) {bad[:5]} "
-                                              f"(seq {R.seq_add(head['OLDEST_SEQ'], bad[0])})")
+                head, records = self._decode_window(asm, first, window_regs)
             except R.RegisterError as exc:
                 self.link.counts.corrupt += 1
-                corrupt_in_a_row += 1
+                d.corrupt_in_a_row += 1
                 log.warning("fault: %s; re-reading the window", exc)
-                if corrupt_in_a_row > RigLink.MAX_CRC_RETRIES:
-                    raise PassIncomplete(f"pulse window corrupted {corrupt_in_a_row} times in a row") from None
+                if d.corrupt_in_a_row > RigLink.MAX_CRC_RETRIES:
+                    raise PassIncomplete(f"pulse window corrupted {d.corrupt_in_a_row} times in a row") from None
                 continue
-            corrupt_in_a_row = 0
+            d.corrupt_in_a_row = 0
             now = time.monotonic()
             self.report.max_backlog_pulses = max(self.report.max_backlog_pulses,
                                                  R.seq_diff(head["NEWEST_SEQ"], asm.last_seq))
             stored = 0
-            if n:
-                # Modulo 2^32 (map 6): records at or before the last one stored are ours already (a lost ACK).
-                stale = min(max(R.seq_diff(asm.next_seq, head["OLDEST_SEQ"]), 0), n)
-                if stale:
-                    seq, t, x, flags, iq = seq[stale:], t[stale:], x[stale:], flags[stale:], iq[stale:]
-                before = asm.count
-                asm.add(seq, t, x, flags, iq)
-                stored = asm.count - before
-                self.link.write_block(R.ACK, {"ACK_SEQ": asm.last_seq})
+            if records is not None:
+                stored = self._store(asm, head, records)
                 if stored:
-                    last_progress = now
+                    d.last_progress = now
                 if asm.last_seen:
                     return
-            if not stored or now - last_status > 0.5:
-                last_status = now
-                status = self._status()
-                state = (status["STATE"], status["STATUS_WORD"], status["FAULT_WORD"])
-                if state != seen_state:  # a state change counts as progress for the watchdog
-                    if seen_state is not None:
-                        last_progress = now
-                    seen_state = state
-                if status["STATUS_WORD"] & R.Status.OVERFLOW:
-                    raise PassIncomplete("device buffer overflowed: pulses were dropped")
-                if not n and not status["STATUS_WORD"] & R.Status.PASS_ACTIVE:
-                    d = self.link.read_block(R.PASS)
-                    if d["TOKEN"] != asm.token or d["PASS_STATE"] != R.PassState.COMPLETE:
-                        state = R.PassState(d["PASS_STATE"]).name if d["PASS_STATE"] < 4 else d["PASS_STATE"]
-                        raise PassIncomplete(f"pass ended ({state}) before its LAST pulse arrived")
-                    # The last pulses may have arrived after our window read: look once more, then give up.
-                    empty_after_end += 1
-                    if empty_after_end > 1:
-                        raise PassIncomplete(f"pass complete but pulses after seq {asm.last_seq} never arrived")
-                    continue
+            if not stored or now - d.last_status > 0.5:
+                if self._poll_status(asm, d, now, window_empty=records is None):
+                    continue  # the pass is over: look at the window once more, at once
             if not stored:
                 self.link.sleep(self.settings.poll_s)
+
+    def _check_watchdog(self, asm: PassAssembler, d: _DrainState) -> None:
+        if time.monotonic() - d.last_progress > self.settings.stall_timeout_s:
+            self.link.counts.no_progress += 1
+            log.warning("fault: pass token %d: no new pulse and no state change for %g s (watchdog); "
+                        "aborting", asm.token, self.settings.stall_timeout_s)
+            raise PassIncomplete(f"no progress for {self.settings.stall_timeout_s:g} s (watchdog)")
+
+    def _decode_window(self, asm: PassAssembler, first: list[int], window_regs: int):
+        """The window header and its decoded records (None when it holds none), reading the rest of the
+        window after `first`; R.RegisterError when a record fails its CRC, PassIncomplete when the window
+        cannot belong to this pass."""
+        hdr = R.WINDOW_HEADER.length
+        head = R.WINDOW_HEADER.decode(first[:hdr])
+        n, rec_regs = head["RECORDS"], head["RECORD_REGS"]
+        if not n:
+            return head, None
+        if head["TOKEN"] != asm.token:
+            raise PassIncomplete(f"the window holds pulses of pass token {head['TOKEN']}")
+        if rec_regs != R.record_regs(asm.samples_per_pulse) or hdr + n * rec_regs > window_regs:
+            raise PassIncomplete(f"window header claims {n} records of {rec_regs} registers")
+        regs = first + self._read_rest(len(first), hdr + n * rec_regs)
+        seq, t, x, flags, iq, bad = R.decode_records(regs[hdr:], n, asm.samples_per_pulse)
+        if bad:
+            raise R.RegisterError(f"pulse window: CRC mismatch in record(s) {bad[:5]} "
+                                  f"(seq {R.seq_add(head['OLDEST_SEQ'], bad[0])})")
+        return head, (seq, t, x, flags, iq)
+
+    def _store(self, asm: PassAssembler, head: dict, records: tuple) -> int:
+        """Store the records not stored yet and acknowledge; how many were new."""
+        seq, t, x, flags, iq = records
+        # Modulo 2^32 (map 6): records at or before the last one stored are ours already (a lost ACK).
+        stale = min(max(R.seq_diff(asm.next_seq, head["OLDEST_SEQ"]), 0), head["RECORDS"])
+        if stale:
+            seq, t, x, flags, iq = seq[stale:], t[stale:], x[stale:], flags[stale:], iq[stale:]
+        before = asm.count
+        asm.add(seq, t, x, flags, iq)
+        self.link.write_block(R.ACK, {"ACK_SEQ": asm.last_seq})
+        return asm.count - before
+
+    def _poll_status(self, asm: PassAssembler, d: _DrainState, now: float, window_empty: bool) -> bool:
+        """Read STATUS: feed the watchdog, stop on an overflow or a pass that ended early; True when the
+        pass is complete and the window should be read once more at once."""
+        d.last_status = now
+        status = self._status()
+        state = (status["STATE"], status["STATUS_WORD"], status["FAULT_WORD"])
+        if state != d.seen_state:  # a state change counts as progress for the watchdog
+            if d.seen_state is not None:
+                d.last_progress = now
+            d.seen_state = state
+        if status["STATUS_WORD"] & R.Status.OVERFLOW:
+            raise PassIncomplete("device buffer overflowed: pulses were dropped")
+        if not window_empty or status["STATUS_WORD"] & R.Status.PASS_ACTIVE:
+            return False
+        p = self.link.read_block(R.PASS)
+        if p["TOKEN"] != asm.token or p["PASS_STATE"] != R.PassState.COMPLETE:
+            state = R.PassState(p["PASS_STATE"]).name if p["PASS_STATE"] < 4 else p["PASS_STATE"]
+            raise PassIncomplete(f"pass ended ({state}) before its LAST pulse arrived")
+        # The last pulses may have arrived after our window read: look once more, then give up.
+        d.empty_after_end += 1
+        if d.empty_after_end > 1:
+            raise PassIncomplete(f"pass complete but pulses after seq {asm.last_seq} never arrived")
+        return True
 
     def _read_rest(self, have: int, total: int) -> list[int]:
         out = []

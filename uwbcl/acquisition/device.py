@@ -39,6 +39,7 @@ log = logging.getLogger("uwbcl.device")
 
 DEVICE_EPOCH = dt.datetime(2026, 11, 2, 6, 0, tzinfo=dt.timezone.utc)
 HEARTBEAT_PERIOD_S = 0.1
+_SERVE = object()  # RigServer._answer_fault: no fault reply, serve the request
 INT16_FULL_SCALE = 32767
 
 
@@ -746,9 +747,7 @@ class RigServer:
             now = self.now()
             c = self.controller
             if c.booting(now):  # a rebooting controller does not talk
-                self._swallow = True
-                self._loop.call_soon(self._drop_connections)
-                return None
+                return self._go_silent()
             running = c.pass_ is not None and c.pass_.state is R.PassState.RUNNING
             if values is None or func_code != 23:
                 fault = self.faults.next_request(running, now, c.pass_.token if running else None)
@@ -757,53 +756,81 @@ class RigServer:
             self.requests_served += 1
             if fault is not None:
                 log.info("device: injecting %s at request %d", fault, self.faults.requests)
-            if fault == "drop":
-                self._swallow = True
-                self._loop.call_soon(self._drop_connections)
-                return None
-            if fault == "exception":
-                self._exception_turn += 1
-                return ExcCodes.DEVICE_BUSY if self._exception_turn % 2 else ExcCodes.DEVICE_FAILURE
-            if fault in ("exception02", "exception03", "exception04"):
-                return ExcCodes(int(fault[-2:]))
-            if fault in ("reboot", "reconfigure"):
-                c.reboot(now, reconfigure=True) if fault == "reconfigure" else c.reboot(now)
-                self._swallow = True
-                self._loop.call_soon(self._drop_connections)
-                return None
-            if fault == "absurd":
-                self._absurd_pending = True
-            if fault == "short":
-                c.cut_short(now)
-            if fault == "stall" and c.pass_ is not None:
-                c.pass_.stalled = True
-            if fault in ("counter_back", "counter_jump"):
-                c.set_cycle_counter(now, R.seq_add(c.cycle_counter, -1 if fault == "counter_back" else 3))
-            if fault == "overflow":
-                c.inject_overflow(self.faults.plan.overflow_pulses)
-            if fault == "missing":
-                self._swallow = True
-            if fault == "corrupt":
-                self._corrupt = True
-            table = R.Table.INPUT if func_code == 4 else R.Table.HOLDING
-            if self._corrupt and values is None:  # damage a register the client relies on, not unused window
-                self._corrupt_span = c.meaningful(table, address, count)
-            try:
-                if values is not None:
-                    c.write(now, address, list(values))
-                    registers[address - start_address:address - start_address + len(values)] = list(values)
-                else:
-                    regs = c.read(now, table, address, count)
-                    if self._absurd_pending and table is R.Table.INPUT and address <= R.PASS.address \
-                            and address + count >= R.PASS.address + R.PASS.length:
-                        regs = self._absurd(regs, R.PASS.address - address)
-                    registers[address - start_address:address - start_address + count] = regs
-            except ModbusFault as exc:
-                log.debug("device: exception %d: %s", exc.code, exc)
-                self._swallow = False if fault != "missing" else self._swallow
-                return ExcCodes(exc.code)
+            answer = self._answer_fault(fault, now)
+            if answer is not _SERVE:
+                return answer
+            self._arm_fault(fault, now)
+            answer = self._serve(func_code, start_address, address, count, registers, values, now, fault)
+            if answer is not None:
+                return answer
         if fault == "slow":
             await asyncio.sleep(self.faults.plan.slow_s)
+        return None
+
+    def _go_silent(self) -> None:
+        """Send nothing back and drop the connections (a dead or rebooting controller)."""
+        self._swallow = True
+        self._loop.call_soon(self._drop_connections)
+        return None
+
+    def _answer_fault(self, fault, now: float):
+        """The reply of a fault that replaces the request's (a dropped connection, an exception, a reboot);
+        _SERVE when the request is to be served."""
+        from pymodbus.constants import ExcCodes
+
+        if fault == "drop":
+            return self._go_silent()
+        if fault == "exception":
+            self._exception_turn += 1
+            return ExcCodes.DEVICE_BUSY if self._exception_turn % 2 else ExcCodes.DEVICE_FAILURE
+        if fault in ("exception02", "exception03", "exception04"):
+            return ExcCodes(int(fault[-2:]))
+        if fault in ("reboot", "reconfigure"):
+            c = self.controller
+            c.reboot(now, reconfigure=True) if fault == "reconfigure" else c.reboot(now)
+            return self._go_silent()
+        return _SERVE
+
+    def _arm_fault(self, fault, now: float) -> None:
+        """Set up a fault that damages the request being served or the controller behind it."""
+        c = self.controller
+        if fault == "absurd":
+            self._absurd_pending = True
+        if fault == "short":
+            c.cut_short(now)
+        if fault == "stall" and c.pass_ is not None:
+            c.pass_.stalled = True
+        if fault in ("counter_back", "counter_jump"):
+            c.set_cycle_counter(now, R.seq_add(c.cycle_counter, -1 if fault == "counter_back" else 3))
+        if fault == "overflow":
+            c.inject_overflow(self.faults.plan.overflow_pulses)
+        if fault == "missing":
+            self._swallow = True
+        if fault == "corrupt":
+            self._corrupt = True
+
+    def _serve(self, func_code, start_address, address, count, registers, values, now: float, fault):
+        """Read or write the controller's registers; the Modbus exception code, or None."""
+        from pymodbus.constants import ExcCodes
+
+        c = self.controller
+        table = R.Table.INPUT if func_code == 4 else R.Table.HOLDING
+        if self._corrupt and values is None:  # damage a register the client relies on, not unused window
+            self._corrupt_span = c.meaningful(table, address, count)
+        try:
+            if values is not None:
+                c.write(now, address, list(values))
+                registers[address - start_address:address - start_address + len(values)] = list(values)
+            else:
+                regs = c.read(now, table, address, count)
+                if self._absurd_pending and table is R.Table.INPUT and address <= R.PASS.address \
+                        and address + count >= R.PASS.address + R.PASS.length:
+                    regs = self._absurd(regs, R.PASS.address - address)
+                registers[address - start_address:address - start_address + count] = regs
+        except ModbusFault as exc:
+            log.debug("device: exception %d: %s", exc.code, exc)
+            self._swallow = False if fault != "missing" else self._swallow
+            return ExcCodes(exc.code)
         return None
 
     def _absurd(self, regs: list[int], offset: int) -> list[int]:
