@@ -1,19 +1,21 @@
 """Measure the acquisition front end against the simulated rig on 127.0.0.1 (issue 5's acceptance).
 
-A. accuracy: N cycles x 2 heights acquired over Modbus and processed live, against the simulator's truth, beside
-   the same passes generated directly and processed from archive files (same seed, geometry and processing).
-B. faults: a run with F injected faults of every kind; every archive written is checked pulse for pulse against
-   what the simulated controller produced; counts of passes completed, incomplete-and-re-run, failed, lost.
-C. keep-up: a controller in its own process streaming at the UWB module's 612 kbit/s (957 complex int16 samples
-   per pulse at 20 Hz, real time) with a 2-second buffer; overflow, buffer backlog and the client's CPU use.
-D. issue 12's campaign: a seeded schedule of faults of every kind of uwbcl/acquisition/faults.py (lost, late and
-   dropped replies, 04/06, spurious 02/03/04, damaged replies, reboots, reboots with a new SAMPLE_RATE and
+A. accuracy: N cycles x 2 heights acquired over Modbus and processed live, against the simulator's truth,
+   beside the same passes generated directly and processed from archive files (same seed, geometry and
+   processing).
+B. faults: a run with F injected faults of every kind; every archive written is checked pulse for pulse
+   against what the simulated controller produced; counts of passes completed, incomplete-and-re-run, failed,
+   lost.
+C. keep-up: a controller in its own process streaming at the UWB module's 612 kbit/s (957 complex int16
+   samples per pulse at 20 Hz, real time) with a 2-second buffer; overflow, buffer backlog and the client's
+   CPU use.
+D. issue 12's campaign: a seeded schedule of faults of every kind of uwbcl/acquisition/faults.py (lost, late
+   and dropped replies, 04/06, spurious 02/03/04, damaged replies, reboots, reboots with a new SAMPLE_RATE and
    RIG_ID, overflows, absurd PASS values, passes cut short (PULSES_PRODUCED < PULSES_PLANNED), a stalled radar
-   (the no-progress watchdog), a cycle counter
-   that goes back or jumps), with pulse sequence numbers that wrap 2^32 - 1 -> 0 after every boot and a cycle
-   counter that wraps too. Checks: no stop of the service, no whole pass lost, every archive's metadata and data
-   what the controller used for that pass, every incomplete pass re-run (or its cycle left because the face
-   moved on), counts by fault kind.
+   (the no-progress watchdog), a cycle counter that goes back or jumps), with pulse sequence numbers that
+   wrap 2^32 - 1 -> 0 after every boot and a cycle counter that wraps too. Checks: no stop of the service, no whole pass lost, every archive's metadata and
+   data what the controller used for that pass, every incomplete pass re-run (or its cycle left because the
+   face moved on), counts by fault kind.
 
     python scripts/acquisition_study.py [--cycles 10] [--faults 100] [--campaign-faults 165] [--skip A,B,C,D]
 
@@ -92,7 +94,8 @@ def run_acquisition(server: RigServer, settings: AcquireSettings, processor=None
 
 
 def audit_archives(report, server: RigServer) -> tuple[int, list[str]]:
-    """Archives that hold exactly what the controller produced for their pass; the list of those that do not."""
+    """Archives that hold exactly what the controller produced for their pass; the list of those
+    that do not."""
     audits = {a["token"]: a for a in server.snapshot()["completed_passes"]}
     bad = []
     for path in report.passes_written:
@@ -355,7 +358,8 @@ def study_campaign(args, out: Path) -> bool:
               (re.search(r"c(\d+) h(\d+)", f) for f in report.passes_failed) if m}
     lost = scanned - written - failed
     dropped_for_name = [f for f in report.passes_failed if "exists" in f]
-    # Every incomplete attempt: followed by another attempt of the same pass, or its cycle left (face moved on).
+    # Every incomplete attempt: followed by another attempt of the same pass, or its cycle left
+    # (face moved on).
     attempts: dict[tuple[int, int], list[int]] = {}
     for line in report.passes_incomplete:
         m = re.search(r"c(\d+) h(\d+) attempt (\d+):", line)

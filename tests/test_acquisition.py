@@ -1,7 +1,7 @@
 """The acquisition front end: register map, simulated rig controller, `uwbcl acquire` over loopback.
 
-Every test talks to 127.0.0.1 only (a guard below fails any other connect) and is bounded in time: sessions run
-in a thread joined with a deadline, subprocesses with a timeout.
+Every test talks to 127.0.0.1 only (a guard below fails any other connect) and is bounded in time: sessions
+run in a thread joined with a deadline, subprocesses with a timeout.
 """
 
 from __future__ import annotations
@@ -175,7 +175,7 @@ def test_fault_rotation_is_deterministic_and_pass_faults_wait_for_a_pass():
     assert inj.next_request(False, 0.0) is None and inj.next_request(True, 0.0) == "reboot"
 
 
-# ============================================================================================== the controller
+# ============================================================================================= the controller
 
 
 def command(c: RigController, now, seq, code, arg=0):
@@ -372,7 +372,8 @@ def test_live_processing_publishes_retreat_and_creep_in_the_result_registers(tmp
 
     from uwbcl.acquisition.live import LiveProcessor, processing_settings
 
-    # The second cycle signal comes as soon as the first cycle's two passes are done, however loaded the machine.
+    # The second cycle signal comes as soon as the first cycle's two passes are done, however
+    # loaded the machine.
     device = RigController(DeviceConfig(time_scale=80.0, first_cycle_after_s=30.0, cycle_interval_s=1e9))
     processor = LiveProcessor(processing_settings("numpy", device.campaign.nominal_web_m))
     with RigServer(device, LOOPBACK, 0) as server:

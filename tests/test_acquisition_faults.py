@@ -273,7 +273,8 @@ def test_a_decreasing_cycle_counter_is_logged_and_its_passes_written_beside_the_
 
 
 class _ShortPassOnce(RigController):
-    """The first pass announces 7000 pulses, produces its 61 and reports COMPLETE (a controller that stops early)."""
+    """The first pass announces 7000 pulses, produces its 61 and reports COMPLETE (a controller
+    that stops early)."""
 
     def read(self, now, table, address, count):
         regs = super().read(now, table, address, count)
@@ -300,7 +301,8 @@ def test_pulses_produced_short_of_pulses_planned_is_an_incomplete_pass_re_run(tm
 
 @pytest.mark.slow  # ~12 s; run by default (no marker is deselected in pyproject.toml)
 def test_a_short_seeded_fault_campaign_of_every_kind_loses_and_misreports_nothing(tmp_path):
-    """scripts/acquisition_study.py D, cut to 45 faults (the full campaign is in the closing note of issue 12)."""
+    """scripts/acquisition_study.py D, cut to 45 faults (the full campaign is in the closing note
+    of issue 12)."""
     script = Path(__file__).resolve().parents[1] / "scripts" / "acquisition_study.py"
     run = subprocess.run([sys.executable, str(script), "--skip", "A,B,C", "--campaign-faults", "45", "--seed", "3",
                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=180, check=False)

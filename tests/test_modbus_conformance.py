@@ -1,7 +1,8 @@
-"""Conformance of `uwbcl simulate-device` to docs/modbus-register-map.md, checked by a client that knows only the
-map: a plain pymodbus client (and raw Modbus TCP frames where pymodbus refuses to build an illegal request),
-register numbers written out from the document, CRC-16/CCITT-FALSE from binascii. Nothing of uwbcl.acquisition
-is imported here on purpose: if the map and the simulator disagree, this test, not the shared code, says so.
+"""Conformance of `uwbcl simulate-device` to docs/modbus-register-map.md, checked by a client that knows
+only the map: a plain pymodbus client (and raw Modbus TCP frames where pymodbus refuses to build an illegal
+request), register numbers written out from the document, CRC-16/CCITT-FALSE from binascii. Nothing of
+uwbcl.acquisition is imported here on purpose: if the map and the simulator disagree, this test, not the
+shared code, says so.
 """
 
 from __future__ import annotations

@@ -163,7 +163,8 @@ def _simulate_device(args: argparse.Namespace) -> int:
 
 @contextlib.contextmanager
 def _stop_on_signals(stop: threading.Event):
-    """SIGINT/SIGTERM set `stop` (the session finishes cleanly) while inside; the old handlers come back after."""
+    """SIGINT/SIGTERM set `stop` (the session finishes cleanly) while inside; the old handlers
+    come back after."""
     def handler(signum, _frame):
         logging.getLogger("uwbcl.acquire").warning("%s received: finishing cleanly",
                                                   signal.Signals(signum).name)

@@ -1,4 +1,5 @@
-"""`uwbcl acquire`: drive the rig over Modbus TCP, drain its pulse buffer, archive every pass whole or not at all.
+"""`uwbcl acquire`: drive the rig over Modbus TCP, drain its pulse buffer, archive every pass whole or
+not at all.
 
 `RigLink` owns the Modbus connection: every request is retried through exception replies, lost replies and
 dropped connections, reconnecting with exponential backoff, under a request-rate bound; CRC-checked blocks are
@@ -43,8 +44,8 @@ class Interrupted(Exception):
 
 
 class LinkDown(Exception):
-    """A request failed (fault REFUSED: exception 01/02/03 repeated, 04/06 or damaged replies too many times in a
-    row): the step it belongs to fails; inside a pass the pass is re-run. Never stops acquisition."""
+    """A request failed (fault REFUSED: exception 01/02/03 repeated, 04/06 or damaged replies too many times
+    in a row): the step it belongs to fails; inside a pass the pass is re-run. Never stops acquisition."""
 
 
 class DescriptionChanged(PassIncomplete):
@@ -96,7 +97,8 @@ class AcquireSettings:
         return Limits(self.max_samples_per_pulse, self.max_pulses_per_pass, self.max_pass_bytes)
 
     def reference_point_m(self, boresight_y_sign: int) -> tuple[float, float, float]:
-        """Scene centre T: the point of the rib on boresight (tan theta = x_T / W), at the plate row height."""
+        """Scene centre T: the point of the rib on boresight (tan theta = x_T / W), at the plate
+        row height."""
         w = self.rib_distance_m
         return (w * math.tan(math.radians(self.rotation_table_angle_deg)), boresight_y_sign * w,
                 self.reference_height_m)
@@ -119,7 +121,8 @@ class AcquireSettings:
 
 
 def load_settings(path: str | Path | None, **overrides) -> AcquireSettings:
-    """Settings from the `[acquire]` table of a TOML file, then the non-None overrides (command-line flags)."""
+    """Settings from the `[acquire]` table of a TOML file, then the non-None overrides
+    (command-line flags)."""
     values: dict = {}
     if path is not None:
         table = read_toml(path).get("acquire", {})  # the one site file and its checks (uwbcl.config)
@@ -233,8 +236,8 @@ class RigLink:
     # ------------------------------------------------------------------------------------------ connection
 
     def ensure_connected(self) -> None:
-        """Connect (again) with exponential backoff; read STATUS, IDENTITY and RADAR on every new connection (map
-        4.1, 4.3); DeviceRebooted if BOOT_ID changed since the last connection."""
+        """Connect (again) with exponential backoff; read STATUS, IDENTITY and RADAR on every new
+        connection (map 4.1, 4.3); DeviceRebooted if BOOT_ID changed since the last connection."""
         delay = 0.05
         while not self.client.connected:
             if self.stop.is_set():
@@ -433,7 +436,8 @@ class _DrainState:
 
 
 class AcquisitionSession:
-    """Runs `uwbcl acquire` against one rig; `run()` returns an AcquisitionReport (docs/modbus-register-map.md s. 8)."""
+    """Runs `uwbcl acquire` against one rig; `run()` returns an AcquisitionReport
+    (docs/modbus-register-map.md s. 8)."""
 
     def __init__(self, settings: AcquireSettings, stop: threading.Event | None = None, processor=None):
         settings.validate()
@@ -484,7 +488,8 @@ class AcquisitionSession:
 
     def _adopt_description(self) -> None:
         """Take IDENTITY and RADAR as the link last read them (this connection, this boot) for the next pass;
-        log a new rig id; AbsurdValue if RADAR is unusable, DeviceRefused if the configuration does not fit."""
+        log a new rig id; AbsurdValue if RADAR is unusable, DeviceRefused if the configuration does
+        not fit."""
         if self.link.identity is None or self.link.radar is None:  # a reboot whose re-read failed: read now
             self.link.describe()
         identity, radar = self.link.identity, self.link.radar
@@ -518,7 +523,8 @@ class AcquisitionSession:
                 radar["CARRIER_FREQUENCY"] / 1e9, radar["SAMPLE_RATE"] / 1e9, radar["PRF"], radar["BUFFER_CAPACITY"])
 
     def _check_configuration(self, radar: dict) -> None:
-        """Fault CONFIGURATION: configured heights and angle the rig cannot reach (when RADAR gives its limits)."""
+        """Fault CONFIGURATION: configured heights and angle the rig cannot reach (when RADAR gives
+        its limits)."""
         lo, hi = radar["HEIGHT_MIN"], radar["HEIGHT_MAX"]
         if math.isfinite(lo) and math.isfinite(hi) and hi > lo:
             for h in self.settings.heights_m:
@@ -664,8 +670,9 @@ class AcquisitionSession:
     # ------------------------------------------------------------------------------------------ one pass
 
     def _run_pass(self, cycle: int, height_m: float):
-        """One attempt: returns (scan, token, boot id), the scan carrying the IDENTITY and RADAR the controller
-        had for the whole pass; PassIncomplete (or a subclass), DeviceRebooted or LinkDown otherwise."""
+        """One attempt: returns (scan, token, boot id), the scan carrying the IDENTITY and RADAR the
+        controller had for the whole pass; PassIncomplete (or a subclass), DeviceRebooted or LinkDown
+        otherwise."""
         status = self._status()
         if status["CYCLE_COUNTER"] != cycle:
             raise CycleSuperseded(status["CYCLE_COUNTER"])
@@ -866,8 +873,8 @@ class AcquisitionSession:
             status = self._status()
 
     def _abort_quietly(self) -> None:
-        """Best effort: stop a pass we are walking away from, so the rig does not scan on for nothing (the next
-        attempt's _make_idle ABORTs with confirmation if this one does not arrive)."""
+        """Best effort: stop a pass we are walking away from, so the rig does not scan on for nothing (the
+        next attempt's _make_idle ABORTs with confirmation if this one does not arrive)."""
         if self._active_token is None:
             return
         self._active_token = None

@@ -7,8 +7,8 @@ Modbus TCP (pymodbus `ModbusTcpServer` with a `SimDevice` whose access hook call
 background thread, and applies the faults a `FaultInjector` draws.
 
 Persistence: with a state file (`DeviceConfig.state_file`, `uwbcl simulate-device --state`), CYCLE_COUNTER
-and the last BOOT_ID survive a restart of the simulator, as the map requires of a controller (the counter lives
-in the longwall control system; BOOT_ID must differ from the previous boot's).
+and the last BOOT_ID survive a restart of the simulator, as the map requires of a controller (the counter
+lives in the longwall control system; BOOT_ID must differ from the previous boot's).
 
 Time: device time runs `time_scale` times faster than the host's monotonic clock, so a 45-minute cycle or a
 13-second pass can be compressed for tests and the demo; every rate in the registers stays in device time.
@@ -210,7 +210,8 @@ class RigController:
         os.replace(tmp, path)
 
     def reboot(self, now: float, reconfigure: bool = False) -> None:
-        """Controller restart: the pass, the buffer and the holding registers are lost; the drives keep position.
+        """Controller restart: the pass, the buffer and the holding registers are lost; the drives
+        keep position.
         reconfigure: the controller comes back with another SAMPLE_RATE (x0.75, or back) and RIG_ID (fault
         injection: a firmware update or a swapped radar head; the map allows RADAR and IDENTITY to change at a
         reboot only)."""
@@ -316,8 +317,8 @@ class RigController:
         self.next_cycle_due = min(self.next_cycle_due, now)
 
     def cycle_index(self, counter: int) -> int:
-        """Campaign cycle index of a counter value: the first signal raised is cycle index 1 (the latest signal
-        that set this value; a value set from outside counts on from the start value, modulo 2^32)."""
+        """Campaign cycle index of a counter value: the first signal raised is cycle index 1 (the latest
+        signal that set this value; a value set from outside counts on from the start value, modulo 2^32)."""
         k = self._k_of_counter.get(counter)
         if k is None:
             start = next(iter(self._k_of_counter))
@@ -456,7 +457,8 @@ class RigController:
         newest = R.seq_add(self.next_seq, -1)
         if R.seq_diff(seq, newest) > 0:  # modulo 2^32: 0 follows 2^32 - 1 (map 6)
             raise ModbusFault(ILLEGAL_VALUE, f"ACK_SEQ {seq} beyond the newest pulse {newest}")
-        # "At or below" the acknowledgement (modulo 2^32) frees nothing more: the buffer holds only later pulses.
+        # "At or below" the acknowledgement (modulo 2^32) frees nothing more: the buffer holds only
+        # later pulses.
         self.ack_seq = seq
         p = self.pass_
         while self.buffer and p is not None and R.seq_at_or_before(R.seq_add(p.first_seq, self.buffer[0]), seq):
@@ -854,8 +856,8 @@ class RigServer:
     def _trace_pdu(self, sending: bool, pdu):
         if sending and getattr(pdu, "exception_code", None) == 1 and pdu.function_code == 0x80 \
                 and self._last_rx_function in (3, 4, 6, 16, 23):
-            # pymodbus answers a request it cannot decode (a read of 126 registers, a write of 124) with 01 and
-            # function code 0; the map (and the Modbus spec) say 03 for an illegal quantity of a supported
+            # pymodbus answers a request it cannot decode (a read of 126 registers, a write of 124) with 01
+            # and function code 0; the map (and the Modbus spec) say 03 for an illegal quantity of a supported
             # function. The request is the packet just received: the reply is sent from the same call.
             pdu.function_code = self._last_rx_function | 0x80
             pdu.exception_code = 3
@@ -882,9 +884,10 @@ class RigServer:
 
 
 class LongwallFollower(threading.Thread):
-    """A longwall control system that pushes as soon as the rig is done: raises the next cycle signal each time
-    `cycles_done()` reaches the number of signals raised, once `listening()` is true. For the demo and the study,
-    which own both ends and should not wait out a fixed interval (or lose cycles to one) when faults slow a scan.
+    """A longwall control system that pushes as soon as the rig is done: raises the next cycle signal each
+    time `cycles_done()` reaches the number of signals raised, once `listening()` is true. For the demo and
+    the study, which own both ends and should not wait out a fixed interval (or lose cycles to one) when
+    faults slow a scan.
     """
 
     def __init__(self, server: RigServer, cycles_done, listening=lambda: True, period_s: float = 0.05):

@@ -1,6 +1,6 @@
-"""Drained pulse records -> a validated ScanPass -> an archive file (docs/archive-format.md), or a clear reason
-why the pass is incomplete. Memory is bounded before anything is allocated: a device claiming absurd sizes is
-refused, and a pass that delivers more pulses than it announced is cut off.
+"""Drained pulse records -> a validated ScanPass -> an archive file (docs/archive-format.md), or a clear
+reason why the pass is incomplete. Memory is bounded before anything is allocated: a device claiming absurd
+sizes is refused, and a pass that delivers more pulses than it announced is cut off.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ class PassIncomplete(Exception):
 
 
 class AbsurdValue(PassIncomplete):
-    """A PASS or RADAR value this client will not use (sizes over its limits, ...): the pass fails and is re-run
-    (fault ABSURD_VALUE); one absurd reply never stops acquisition."""
+    """A PASS or RADAR value this client will not use (sizes over its limits, ...): the pass fails and is
+    re-run (fault ABSURD_VALUE); one absurd reply never stops acquisition."""
 
 
 class DeviceRefused(Exception):
@@ -61,7 +61,8 @@ def radar_parameters(radar: dict) -> RadarParameters:
 
 
 class PassAssembler:
-    """Collects the records of one pass in order; any gap, repeat, foreign or damaged pulse ends it incomplete."""
+    """Collects the records of one pass in order; any gap, repeat, foreign or damaged pulse ends
+    it incomplete."""
 
     def __init__(self, descriptor: dict, radar: dict, limits: Limits):
         m, n = int(descriptor["SAMPLES_PER_PULSE"]), int(descriptor["PULSES_PLANNED"])
@@ -147,9 +148,9 @@ class PassAssembler:
 
 
 def write_scan(out_dir: Path, scan: ScanPass, pass_id: str, unique: str) -> Path:
-    """Write the pass atomically under its archive path. If that name is taken (a cycle counter that went back,
-    a pass acquired twice), the name gets `_<unique>` (the controller's boot id and pass token), then `_2`, `_3`,
-    ...: a whole pass is never dropped for its name, and never overwrites another."""
+    """Write the pass atomically under its archive path. If that name is taken (a cycle counter that went
+    back, a pass acquired twice), the name gets `_<unique>` (the controller's boot id and pass token), then
+    `_2`, `_3`, ...: a whole pass is never dropped for its name, and never overwrites another."""
     path = Path(out_dir) / archive.default_relative_path(scan)
     candidates = [path, path.with_name(f"{path.stem}_{unique}{path.suffix}")]
     candidates += [path.with_name(f"{path.stem}_{unique}_{k}{path.suffix}") for k in range(2, 1000)]

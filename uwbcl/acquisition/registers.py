@@ -1,10 +1,10 @@
-"""The rig controller's Modbus register map (version 1.0) as data: one source for the client, the simulator and
-docs/modbus-register-map.md (whose tables `markdown_tables()` renders; a test holds the document to it).
+"""The rig controller's Modbus register map (version 1.0) as data: one source for the client, the simulator
+and docs/modbus-register-map.md (whose tables `markdown_tables()` renders; a test holds the document to it).
 
-Conventions (docs/modbus-register-map.md section 2): 0-based protocol addresses; 32/64-bit values high word first;
-float32 is IEEE 754 binary32 in the same word order; strings ASCII, two characters per register, high byte first;
-every block ends in a CRC-16/CCITT-FALSE register over the block's preceding registers (big-endian bytes), the
-value `binascii.crc_hqx(data, 0xFFFF)` computes.
+Conventions (docs/modbus-register-map.md section 2): 0-based protocol addresses; 32/64-bit values high word
+first; float32 is IEEE 754 binary32 in the same word order; strings ASCII, two characters per register, high
+byte first; every block ends in a CRC-16/CCITT-FALSE register over the block's preceding registers (big-endian
+bytes), the value `binascii.crc_hqx(data, 0xFFFF)` computes.
 """
 
 from __future__ import annotations
@@ -62,7 +62,8 @@ class Field:
 
 
 def crc16(registers: Iterable[int]) -> int:
-    """CRC-16/CCITT-FALSE of the registers' big-endian bytes (poly 0x1021, init 0xFFFF; '123456789' -> 0x29B1)."""
+    """CRC-16/CCITT-FALSE of the registers' big-endian bytes (poly 0x1021, init 0xFFFF;
+    '123456789' -> 0x29B1)."""
     regs = list(registers)
     return binascii.crc_hqx(struct.pack(f">{len(regs)}H", *regs), 0xFFFF)
 
@@ -165,7 +166,7 @@ class Block:
         return {f.name: _value_from_raw(f, regs[f.offset:f.offset + f.size]) for f in self.fields}
 
 
-# --------------------------------------------------------------------------------------------- wrapping counters
+# ------------------------------------------------------------------------------------------ wrapping counters
 # Serial-number arithmetic (RFC 1982 style) for the u32 counters of the map: a is "before" b when b is less
 # than half the number space ahead of a. Buffers and cycle gaps are far below 2^31, so this is unambiguous.
 

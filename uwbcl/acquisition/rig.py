@@ -1,14 +1,15 @@
 """The world the simulated rig scans: a rib of bolt plates and a face that advances once per cutting cycle.
 
-A paper scenario (`uwbcl.scenarios`) gives the plate pattern, the radar, the rail speed and aperture, the first
-rig position and the nominal advance. A production run needs many cycles, so the plate group is repeated along
-the roadway (X) with an irregular pitch, and the rig advances by the scenario's web with +-`web_jitter`
+A paper scenario (`uwbcl.scenarios`) gives the plate pattern, the radar, the rail speed and aperture, the
+first rig position and the nominal advance. A production run needs many cycles, so the plate group is repeated
+along the roadway (X) with an irregular pitch, and the rig advances by the scenario's web with +-`web_jitter`
 variation, a creep that drifts a few millimetres per cycle, and a little vertical noise. Cycle k of a campaign
-is the same whatever else is asked of it (each cycle's draws come from a generator seeded by (seed, k)), so the
-device, a test and `scripts/acquisition_study.py` agree on the truth.
+is the same whatever else is asked of it (each cycle's draws come from a generator seeded by (seed, k)), so
+the device, a test and `scripts/acquisition_study.py` agree on the truth.
 
-The echo of a pass comes from `uwbcl.simulate` (eq. 2 with the beam pattern and the rail's speed wander) for the
-height and rotation-table angle the client commanded, so the client's steering decides what the radar sees.
+The echo of a pass comes from `uwbcl.simulate` (eq. 2 with the beam pattern and the rail's speed wander) for
+the height and rotation-table angle the client commanded, so the client's steering decides what the radar
+sees.
 """
 
 from __future__ import annotations
@@ -75,7 +76,8 @@ class Campaign:
     # ------------------------------------------------------------------------------------------ the rib
 
     def plates_roadway_m(self, x_max_m: float) -> np.ndarray:
-        """Plates with roadway X below x_max_m: the scenario's group repeated along X at an irregular pitch."""
+        """Plates with roadway X below x_max_m: the scenario's group repeated along X at an
+        irregular pitch."""
         if len(self._plates) and self._plates[:, 0].max() >= x_max_m:
             return self._plates
         group = np.asarray(self.base.targets_roadway_m, dtype=float)
@@ -136,7 +138,8 @@ class Campaign:
         return PassData(times, positions, echo, t0, targets)
 
     def _range_gate(self, positions_m, targets_m, geometry: PassGeometry) -> tuple[float, int]:
-        """Gate from the nearest plate in the beam less the margin; picosecond-exact, as the register holds it."""
+        """Gate from the nearest plate in the beam less the margin; picosecond-exact, as the register
+        holds it."""
         ranges = seen_ranges_m(self.radar, positions_m, targets_m, geometry.height_m,
                                geometry.rotation_table_angle_rad, geometry.boresight_y_sign)
         if np.isfinite(ranges).any():
