@@ -34,8 +34,8 @@ ROOT = Path(__file__).resolve().parents[1]
 LOOPBACK = "127.0.0.1"
 # A short pass (61 pulses x 32 samples, 3 s of device time) on a clock 50x faster than real time.
 FAST_WORLD = WorldConfig(aperture_length_m=0.45, range_samples=32)
-FAST_DEVICE = DeviceConfig(world=FAST_WORLD, time_scale=50.0, first_cycle_after_s=25.0, cycle_interval_s=100.0,
-                           reboot_s=5.0)
+FAST_DEVICE = DeviceConfig(world=FAST_WORLD, time_scale=50.0, first_cycle_after_s=25.0,
+                           cycle_interval_s=100.0, reboot_s=5.0)
 
 
 @pytest.fixture(autouse=True)
@@ -110,9 +110,10 @@ def test_32_bit_values_are_high_word_first_and_floats_are_ieee_binary32():
 
 
 def test_every_block_round_trips_in_si_units_and_a_flipped_bit_fails_its_crc():
-    values = {"TOKEN": 7, "CYCLE": 1001, "FIRST_SEQ": 1, "PULSES_PLANNED": 267, "RANGE_WINDOW_START": 9.387e-9,
-              "SAMPLES_PER_PULSE": 128, "DIRECTION": -1, "AMPLITUDE_SCALE": 2.5e-5, "HEIGHT": 0.15,
-              "TABLE_ANGLE": 30.0, "START_TIME": 1793599210.25, "PASS_STATE": 2}
+    values = {"TOKEN": 7, "CYCLE": 1001, "FIRST_SEQ": 1, "PULSES_PLANNED": 267,
+              "RANGE_WINDOW_START": 9.387e-9, "SAMPLES_PER_PULSE": 128, "DIRECTION": -1,
+              "AMPLITUDE_SCALE": 2.5e-5, "HEIGHT": 0.15, "TABLE_ANGLE": 30.0, "START_TIME": 1793599210.25,
+              "PASS_STATE": 2}
     regs = R.PASS.encode(values)
     decoded = R.PASS.decode(regs)
     for name, v in values.items():
@@ -146,7 +147,8 @@ def test_the_document_holds_the_register_tables_of_the_code():
 
 def test_pulse_records_round_trip_and_a_damaged_record_is_named():
     iq = np.array([[[1, -2], [32767, -32767]], [[0, 5], [-7, 8]]], dtype=np.int16)
-    regs = R.encode_record(41, 2.05, -0.75, R.RecordFlag.FIRST, iq[0]) + R.encode_record(42, 2.1, -0.7425, 0, iq[1])
+    regs = R.encode_record(41, 2.05, -0.75, R.RecordFlag.FIRST, iq[0]) + R.encode_record(42, 2.1, -0.7425, 0,
+                                                                                         iq[1])
     seq, t, x, _flags, out, bad = R.decode_records(regs, 2, 2)
     assert seq.tolist() == [41, 42] and t.tolist() == [2.05, 2.1] and x.tolist() == [-0.75, -0.7425]
     np.testing.assert_array_equal(out, iq)
@@ -260,9 +262,9 @@ def test_the_cycle_signal_waits_for_a_pass_to_finish():
 
 
 def descriptor(**kw):
-    d = {"TOKEN": 3, "CYCLE": 1, "FIRST_SEQ": 10, "PULSES_PLANNED": 3, "PULSES_PRODUCED": 3, "OVERFLOW_COUNT": 0,
-         "RANGE_WINDOW_START": 1e-8, "SAMPLES_PER_PULSE": 2, "DIRECTION": 1, "AMPLITUDE_SCALE": 1.0,
-         "HEIGHT": 0.15, "TABLE_ANGLE": 30.0, "START_TIME": 1.7e9, "PASS_STATE": 2}
+    d = {"TOKEN": 3, "CYCLE": 1, "FIRST_SEQ": 10, "PULSES_PLANNED": 3, "PULSES_PRODUCED": 3,
+         "OVERFLOW_COUNT": 0, "RANGE_WINDOW_START": 1e-8, "SAMPLES_PER_PULSE": 2, "DIRECTION": 1,
+         "AMPLITUDE_SCALE": 1.0, "HEIGHT": 0.15, "TABLE_ANGLE": 30.0, "START_TIME": 1.7e9, "PASS_STATE": 2}
     d.update(kw)
     return d
 
@@ -276,7 +278,8 @@ def test_absurd_pass_sizes_fail_the_pass_before_anything_is_allocated():
     with pytest.raises(AbsurdValue, match="SAMPLES_PER_PULSE"):
         PassAssembler(descriptor(SAMPLES_PER_PULSE=60000), RADAR_OK, Limits())
     with pytest.raises(AbsurdValue, match="MiB"):
-        PassAssembler(descriptor(PULSES_PLANNED=90_000, SAMPLES_PER_PULSE=4000), {**RADAR_OK, "WINDOW_REGS": 60000},
+        PassAssembler(descriptor(PULSES_PLANNED=90_000, SAMPLES_PER_PULSE=4000), {**RADAR_OK,
+                                                                                  "WINDOW_REGS": 60000},
                       Limits())
 
 
@@ -337,9 +340,9 @@ def test_happy_path_two_cycles_two_heights_archived_whole(tmp_path):
     assert first.geometry.reference_point_m == pytest.approx((2.4 * math.tan(math.radians(30)), -2.4, 0.3))
 
 
-EXPECTED_COUNTER = {"drop": "disconnects", "missing": "no_reply", "exception": "exceptions", "corrupt": "corrupt",
-                    "reboot": "reboots", "reconfigure": "reboots", "exception02": "exceptions",
-                    "exception03": "exceptions", "exception04": "exceptions"}
+EXPECTED_COUNTER = {"drop": "disconnects", "missing": "no_reply", "exception": "exceptions",
+                    "corrupt": "corrupt", "reboot": "reboots", "reconfigure": "reboots",
+                    "exception02": "exceptions", "exception03": "exceptions", "exception04": "exceptions"}
 
 
 @pytest.mark.parametrize("kind", [k for k in KINDS if k not in CYCLE_KINDS])  # those leave the cycle: the campaign
@@ -355,7 +358,8 @@ def test_each_fault_kind_is_survived_and_nothing_incomplete_is_written(kind, tmp
     assert_archives_match_device(report, server)
     if EXPECTED_COUNTER.get(kind):
         assert getattr(report.faults, EXPECTED_COUNTER[kind]) >= 1
-    if kind in ("reboot", "overflow", "reconfigure", "absurd", "short", "stall"):  # these always cost the pass: it is marked incomplete and run again
+    if kind in ("reboot", "overflow", "reconfigure", "absurd", "short",
+                "stall"):  # these always cost the pass: it is marked incomplete and run again
         assert len(report.passes_incomplete) >= 1
 
 
@@ -399,7 +403,8 @@ def test_sigint_mid_pass_stops_cleanly_without_a_partial_archive(tmp_path):
         proc = subprocess.Popen(
             [sys.executable, "-m", "uwbcl.cli", "acquire", "--host", LOOPBACK, "--port", str(server.port),
              "--out", str(tmp_path), "--cycles", "3", "--timeout", "0.5"],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ,
+                                                                              "PYTHONUNBUFFERED": "1"})
         try:
             deadline = time.monotonic() + 30.0
             while server.faults.requests < 3 and time.monotonic() < deadline:  # the client is waiting
@@ -433,7 +438,8 @@ def test_simulate_device_and_acquire_work_from_the_command_line(tmp_path):
         [sys.executable, "-m", "uwbcl.cli", "simulate-device", "--port", "0", "--time-scale", "50",
          "--state", str(tmp_path / "rig-state.json"),
          "--first-cycle-after", "100", "--cycle-interval", "50", "--range-samples", "32"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ,
+                                                                          "PYTHONUNBUFFERED": "1"})
     try:
         line = dev.stdout.readline()
         port = int(re.search(r"listening on 127\.0\.0\.1:(\d+)", line).group(1))
@@ -480,9 +486,11 @@ def test_a_controller_with_an_unknown_map_version_or_out_of_range_heights_is_ref
 def test_the_demo_measures_retreat_and_creep_next_to_the_truth(tmp_path, capsys):
     from uwbcl.cli import main
 
-    assert main(["demo", "--cycles", "2", "--out", str(tmp_path), "--backend", "numpy", "--time-scale", "40"]) == 0
+    assert main(["demo", "--cycles", "2", "--out", str(tmp_path), "--backend", "numpy", "--time-scale",
+                 "40"]) == 0
     out = capsys.readouterr().out
-    row = re.search(r"^\s+1002 \|\s+(\S+)\s+(\S+)\s+(\S+) \|\s+(\S+)\s+(\S+)\s+(\S+) \| ok$", out, re.MULTILINE)
+    row = re.search(r"^\s+1002 \|\s+(\S+)\s+(\S+)\s+(\S+) \|\s+(\S+)\s+(\S+)\s+(\S+) \| ok$", out,
+                    re.MULTILINE)
     assert row, out
     assert abs(float(row.group(3))) < 5.0 and abs(float(row.group(6))) < 5.0  # mm
     assert len(archive.find_pass_files(tmp_path)) == 4 and (tmp_path / "truth.csv").exists()

@@ -45,7 +45,8 @@ class _NewRadarAndRigIdAfterReboot(RigController):
 
     def reboot(self, now):
         super().reboot(now)
-        radar = dataclasses.replace(self.campaign.radar, sample_rate_hz=0.75 * self.campaign.radar.sample_rate_hz)
+        radar = dataclasses.replace(self.campaign.radar,
+                                    sample_rate_hz=0.75 * self.campaign.radar.sample_rate_hz)
         self.campaign.radar = self.radar = radar
         self.config = dataclasses.replace(self.config, rig_id="sim-rig-2")
         self.rig_id = "sim-rig-2"  # (the simulator serves RIG_ID from here since map 1.1)
@@ -304,8 +305,9 @@ def test_a_short_seeded_fault_campaign_of_every_kind_loses_and_misreports_nothin
     """scripts/acquisition_study.py D, cut to 45 faults (the full campaign is in the closing note
     of issue 12)."""
     script = Path(__file__).resolve().parents[1] / "scripts" / "acquisition_study.py"
-    run = subprocess.run([sys.executable, str(script), "--skip", "A,B,C", "--campaign-faults", "45", "--seed", "3",
-                          "--out", str(tmp_path)], capture_output=True, text=True, timeout=180, check=False)
+    run = subprocess.run([sys.executable, str(script), "--skip", "A,B,C", "--campaign-faults", "45", "--seed",
+                          "3", "--out", str(tmp_path)], capture_output=True, text=True, timeout=180,
+                          check=False)
     out = run.stdout + run.stderr
     assert run.returncode == 0 and "D: PASS" in out, out
     assert "whole passes lost: 0" in out and "differ from what the controller used: 0" in out

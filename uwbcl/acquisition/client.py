@@ -113,9 +113,11 @@ class AcquireSettings:
         for name in ("timeout_s", "reconnect_max_s", "stall_timeout_s", "command_timeout_s", "poll_s",
                      "rib_distance_m", "max_request_rate_hz"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
-                raise ConfigError(None, f"acquire.{name}", f"must be finite and > 0, got {getattr(self, name)}")
+                raise ConfigError(None, f"acquire.{name}",
+                                  f"must be finite and > 0, got {getattr(self, name)}")
         if self.max_attempts < 1 or self.cycles < 0:
-            raise ConfigError(None, "acquire.max_attempts/cycles", "max_attempts must be >= 1 and cycles >= 0")
+            raise ConfigError(None, "acquire.max_attempts/cycles",
+                              "max_attempts must be >= 1 and cycles >= 0")
         if not 0 < self.port < 65536 or not 0 <= self.unit_id <= 255:
             raise ConfigError(None, "acquire.port/unit_id", "port must be in 1..65535 and unit_id in 0..255")
 
@@ -131,7 +133,8 @@ def load_settings(path: str | Path | None, **overrides) -> AcquireSettings:
         fields = {f.name: f for f in dataclasses.fields(AcquireSettings)}
         for key, value in table.items():
             if key not in fields:
-                raise ConfigError(path, f"[acquire] {key}", f"unknown setting; expected one of {', '.join(fields)}")
+                raise ConfigError(path, f"[acquire] {key}",
+                                  f"unknown setting; expected one of {', '.join(fields)}")
             values[key] = _coerce(path, key, value, fields[key].type)
     values.update({k: v for k, v in overrides.items() if v is not None})
     if "heights_m" in values:
@@ -227,7 +230,8 @@ class RigLink:
             self.counts.rate_limited += 1
             if now - self._rate_logged > 60.0:
                 self._rate_logged = now
-                log.warning("fault: request rate bound (%g/s) reached; requests are being delayed", self._rate_hz)
+                log.warning("fault: request rate bound (%g/s) reached; requests are being delayed",
+                            self._rate_hz)
             self.sleep((1.0 - self._tokens) / self._rate_hz)
             self._tokens = 1.0
             self._tokens_t = time.monotonic()
@@ -310,7 +314,8 @@ class RigLink:
                 self.client.close()  # a fresh connection: a late reply can never be taken for the next one
                 lost += 1
                 if lost > 1:  # the first one reconnects at once; a controller that keeps dropping us is paced
-                    self.sleep(min(0.05 * 2 ** (lost - 2), self.reconnect_max_s) * (0.8 + 0.4 * self._jitter.random()))
+                    self.sleep(min(0.05 * 2 ** (lost - 2),
+                                   self.reconnect_max_s) * (0.8 + 0.4 * self._jitter.random()))
                 continue
             if reply.isError():
                 code = getattr(reply, "exception_code", None)
@@ -338,7 +343,8 @@ class RigLink:
             fn = lambda: self.client.read_input_registers(address, count=count, device_id=self.unit_id)
         else:
             fn = lambda: self.client.read_holding_registers(address, count=count, device_id=self.unit_id)
-        regs = self._request(f"read {'IR' if table is R.Table.INPUT else 'HR'} {address}+{count}", fn).registers
+        regs = self._request(f"read {'IR' if table is R.Table.INPUT else 'HR'} {address}+{count}",
+                             fn).registers
         if len(regs) != count:
             self.counts.corrupt += 1
             raise _Corrupt(f"read {address}+{count}: {len(regs)} registers came back")
@@ -443,9 +449,9 @@ class AcquisitionSession:
         settings.validate()
         self.settings = settings
         self.stop = stop or threading.Event()
-        self.link = RigLink(settings.host, settings.port, unit_id=settings.unit_id, timeout_s=settings.timeout_s,
-                            reconnect_max_s=settings.reconnect_max_s, stop=self.stop,
-                            max_request_rate_hz=settings.max_request_rate_hz)
+        self.link = RigLink(settings.host, settings.port, unit_id=settings.unit_id,
+                            timeout_s=settings.timeout_s, reconnect_max_s=settings.reconnect_max_s,
+                            stop=self.stop, max_request_rate_hz=settings.max_request_rate_hz)
         self.report = AcquisitionReport(faults=self.link.counts)
         self.processor = processor
         self.out = Path(settings.out)
@@ -504,8 +510,8 @@ class AcquisitionSession:
         rig_id = self.settings.rig_id or identity["RIG_ID"] or "rig"
         if self.rig_id and rig_id != self.rig_id:
             self.link.counts.rig_id_changes += 1
-            log.warning("fault: controller RIG_ID changed from %r to %r; archives carry the new id", self.rig_id,
-                        rig_id)
+            log.warning("fault: controller RIG_ID changed from %r to %r; archives carry the new id",
+                        self.rig_id, rig_id)
         if self.radar is not None and radar != self.radar:
             changed = sorted(k for k in radar if radar[k] != self.radar.get(k))
             log.warning("controller RADAR changed (%s); passes from now on use the new values",
@@ -517,10 +523,11 @@ class AcquisitionSession:
         if self.processor is not None and (not self.processor.rig_id or not self.settings.rig_id):
             self.processor.rig_id = rig_id
         log.log(logging.INFO if first else logging.WARNING,
-                "rig %s (%s, serial %d, firmware 0x%08X, map %d.%d) at %s:%d: f_c %.3f GHz, fs %.3f GHz, PRF %g Hz, "
-                "buffer %d pulses", rig_id, identity["VENDOR"], identity["SERIAL"], identity["FIRMWARE"],
-                identity["MAP_MAJOR"], identity["MAP_MINOR"], self.settings.host, self.settings.port,
-                radar["CARRIER_FREQUENCY"] / 1e9, radar["SAMPLE_RATE"] / 1e9, radar["PRF"], radar["BUFFER_CAPACITY"])
+                "rig %s (%s, serial %d, firmware 0x%08X, map %d.%d) at %s:%d: f_c %.3f GHz, fs %.3f GHz, PRF "
+                "%g Hz, buffer %d pulses", rig_id, identity["VENDOR"], identity["SERIAL"],
+                identity["FIRMWARE"], identity["MAP_MAJOR"], identity["MAP_MINOR"], self.settings.host,
+                self.settings.port, radar["CARRIER_FREQUENCY"] / 1e9, radar["SAMPLE_RATE"] / 1e9,
+                radar["PRF"], radar["BUFFER_CAPACITY"])
 
     def _check_configuration(self, radar: dict) -> None:
         """Fault CONFIGURATION: configured heights and angle the rig cannot reach (when RADAR gives
@@ -529,12 +536,13 @@ class AcquisitionSession:
         if math.isfinite(lo) and math.isfinite(hi) and hi > lo:
             for h in self.settings.heights_m:
                 if not lo - 1e-6 <= h <= hi + 1e-6:
-                    raise DeviceRefused(f"MOVE_HEIGHT {round(h * 1e6)}: outside the rig's range (height {h:g} m, "
-                                        f"RADAR HEIGHT_MIN..HEIGHT_MAX {lo:g}..{hi:g} m; check heights)")
+                    raise DeviceRefused(f"MOVE_HEIGHT {round(h * 1e6)}: outside the rig's range (height "
+                                        f"{h:g} m, RADAR HEIGHT_MIN..HEIGHT_MAX {lo:g}..{hi:g} m; check "
+                                        f"heights)")
         table_max = radar["TABLE_MAX"]
         if math.isfinite(table_max) and table_max > 0 and abs(self.settings.rotation_table_angle_deg) > table_max:
-            raise DeviceRefused(f"SET_TABLE_ANGLE {self.settings.rotation_table_angle_deg:g} deg: outside the rig's "
-                                f"range (RADAR TABLE_MAX {table_max:g} deg; check the angle)")
+            raise DeviceRefused(f"SET_TABLE_ANGLE {self.settings.rotation_table_angle_deg:g} deg: outside "
+                                f"the rig's range (RADAR TABLE_MAX {table_max:g} deg; check the angle)")
 
     def _status(self) -> dict:
         status = self.link.read_block(R.STATUS)
@@ -592,8 +600,9 @@ class AcquisitionSession:
                                 R.seq_add(last, 1), R.seq_add(cycle, -1), last, cycle)
                 elif step < 0:
                     self.link.counts.counter_decreases += 1
-                    log.warning("fault: cycle counter decreased from %d to %d; scanning %d as a new cycle (its "
-                                "archives are named so that they cannot replace earlier ones)", last, cycle, cycle)
+                    log.warning("fault: cycle counter decreased from %d to %d; scanning %d as a new cycle "
+                                "(its archives are named so that they cannot replace earlier ones)", last,
+                                cycle, cycle)
                 last = cycle
                 pending = self._scan_cycle(cycle)
                 done += 1
@@ -601,7 +610,8 @@ class AcquisitionSession:
                 if pending is not None and pending == last:
                     pending = None
             except (LinkDown, DeviceRebooted, PassIncomplete) as exc:
-                log.warning("fault: %s; waiting %.1f s before going on", exc or "controller rebooted", pause_s)
+                log.warning("fault: %s; waiting %.1f s before going on", exc or "controller rebooted",
+                            pause_s)
                 self.link.sleep(pause_s)
                 pause_s = min(2.0 * pause_s, self.settings.reconnect_max_s)
 
@@ -650,8 +660,8 @@ class AcquisitionSession:
                     break
                 if not path.name.endswith(f"_h{round(height * 1000):04d}.h5"):
                     self.link.counts.names_taken += 1
-                    log.warning("pass %s: the usual archive name was taken (cycle %d acquired before); written "
-                                "as %s", name, cycle, path.name)
+                    log.warning("pass %s: the usual archive name was taken (cycle %d acquired before); "
+                                "written as %s", name, cycle, path.name)
                 self.report.passes_written.append(str(path))
                 passes.append(scan)
                 start_time = start_time or scan.pass_start_time
@@ -660,8 +670,8 @@ class AcquisitionSession:
                 break
             else:
                 self.report.passes_failed.append(f"{name}: incomplete {self.settings.max_attempts} times")
-                log.error("pass %s failed %d times; cycle %d stays incomplete", name, self.settings.max_attempts,
-                          cycle)
+                log.error("pass %s failed %d times; cycle %d stays incomplete", name,
+                          self.settings.max_attempts, cycle)
         complete = len(passes) == len(self.settings.heights_m)
         (self.report.cycles_complete if complete else self.report.cycles_incomplete).append(cycle)
         self._submit(cycle, passes, complete=complete, start_time=start_time)
@@ -704,9 +714,10 @@ class AcquisitionSession:
             raise DeviceRebooted()
         if self.link.identity != identity or self.link.radar != radar:
             self.link.counts.description_changes += 1
-            raise DescriptionChanged("IDENTITY or RADAR changed during the pass; running it again with the new "
-                                     "values")
-        scan = assembler.scan_pass(radar, rig_id=rig_id, reference_point_m=self.reference_point_m, cycle=cycle)
+            raise DescriptionChanged("IDENTITY or RADAR changed during the pass; running it again with the "
+                                     "new values")
+        scan = assembler.scan_pass(radar, rig_id=rig_id, reference_point_m=self.reference_point_m,
+                                   cycle=cycle)
         return scan, token, boot
 
     def _drain(self, asm: PassAssembler) -> None:
@@ -720,7 +731,8 @@ class AcquisitionSession:
             if self.stop.is_set():
                 raise Interrupted()
             self._check_watchdog(asm, d)
-            first = self.link.read(R.Table.INPUT, R.WINDOW_ADDRESS, min(R.MAX_REGISTERS_PER_READ, window_regs))
+            first = self.link.read(R.Table.INPUT, R.WINDOW_ADDRESS, min(R.MAX_REGISTERS_PER_READ,
+                                                                        window_regs))
             try:
                 head, records = self._decode_window(asm, first, window_regs)
             except R.RegisterError as exc:
@@ -913,8 +925,9 @@ class AcquisitionSession:
                       "TIME": result["time_s"]}
             self._last_result = values
             if self._write_result(values, final):
-                log.info("cycle %d: published retreat %.4f m, creep %.4f m (%s) as result %d", result["cycle"],
-                         result["retreat_m"], result["creep_m"], result["status"], self._result_seq)
+                log.info("cycle %d: published retreat %.4f m, creep %.4f m (%s) as result %d",
+                         result["cycle"], result["retreat_m"], result["creep_m"], result["status"],
+                         self._result_seq)
 
     def _write_result(self, values: dict, final: bool) -> bool:
         try:

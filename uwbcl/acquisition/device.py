@@ -193,7 +193,8 @@ class RigController:
             with open(path, encoding="utf-8") as f:
                 return json.load(f)
         except (OSError, ValueError) as exc:
-            log.warning("device: state file %s unreadable (%s); starting from the configured counter", path, exc)
+            log.warning("device: state file %s unreadable (%s); starting from the configured counter", path,
+                        exc)
             return None
 
     def _save_state(self) -> None:
@@ -204,7 +205,8 @@ class RigController:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         tmp = f"{path}.tmp{os.getpid()}"
         with open(tmp, "w", encoding="utf-8") as f:
-            json.dump({"cycle_counter": self.cycle_counter, "boot_id": self.boot_id, "rig_id": self.rig_id}, f)
+            json.dump({"cycle_counter": self.cycle_counter, "boot_id": self.boot_id, "rig_id": self.rig_id},
+                      f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -440,11 +442,11 @@ class RigController:
 
     def _audit(self, p: _Pass) -> dict:
         """What a faithful archive of this pass must hold (scripts/acquisition_study.py checks every file)."""
-        return {"token": p.token, "cycle": p.cycle, "k": p.k, "direction": p.direction, "angle_deg": p.angle_deg,
-                "height_m": p.height_m, "n_pulses": len(p.times), "first_seq": p.first_seq, "radar": p.radar,
-                "rig_id": p.rig_id, "boot_id": p.boot_id, "range_window_start_s": p.range_window_start_s,
-                "overflow": p.overflow, "scale": p.scale, "iq": p.iq,
-                "positions_um": np.rint(p.positions * 1e6).astype(np.int64),
+        return {"token": p.token, "cycle": p.cycle, "k": p.k, "direction": p.direction,
+                "angle_deg": p.angle_deg, "height_m": p.height_m, "n_pulses": len(p.times),
+                "first_seq": p.first_seq, "radar": p.radar, "rig_id": p.rig_id, "boot_id": p.boot_id,
+                "range_window_start_s": p.range_window_start_s, "overflow": p.overflow, "scale": p.scale,
+                "iq": p.iq, "positions_um": np.rint(p.positions * 1e6).astype(np.int64),
                 "times_us": np.rint(p.times * 1e6).astype(np.int64)}
 
     # ------------------------------------------------------------------------------------------ acknowledge
@@ -461,7 +463,8 @@ class RigController:
         # later pulses.
         self.ack_seq = seq
         p = self.pass_
-        while self.buffer and p is not None and R.seq_at_or_before(R.seq_add(p.first_seq, self.buffer[0]), seq):
+        while self.buffer and p is not None and R.seq_at_or_before(R.seq_add(p.first_seq, self.buffer[0]),
+                                                                   seq):
             self.buffer.popleft()
         self._window_cache = None
 
@@ -507,8 +510,9 @@ class RigController:
         """IR 0-127: IDENTITY, STATUS, RADAR, PASS."""
         cfg, radar = self.config, self.campaign.radar
         identity = R.IDENTITY.encode({
-            "MAGIC": R.MAP_MAGIC, "MAP_MAJOR": R.MAP_VERSION[0], "MAP_MINOR": R.MAP_VERSION[1], "DEVICE_TYPE": 1,
-            "SERIAL": cfg.serial, "FIRMWARE": 0x00010000, "RIG_ID": self.rig_id, "VENDOR": "uwbcl-sim"})
+            "MAGIC": R.MAP_MAGIC, "MAP_MAJOR": R.MAP_VERSION[0], "MAP_MINOR": R.MAP_VERSION[1],
+            "DEVICE_TYPE": 1, "SERIAL": cfg.serial, "FIRMWARE": 0x00010000, "RIG_ID": self.rig_id,
+            "VENDOR": "uwbcl-sim"})
         status = R.STATUS.encode({
             "HEARTBEAT": int((now - self.boot_time) / HEARTBEAT_PERIOD_S) & 0xFFFF,
             "STATUS_WORD": int(self.status_word(now)), "FAULT_WORD": int(self.fault_word),
@@ -539,7 +543,8 @@ class RigController:
                 "PULSES_PRODUCED": p.produced, "OVERFLOW_COUNT": p.overflow,
                 "RANGE_WINDOW_START": p.range_window_start_s, "SAMPLES_PER_PULSE": p.samples_per_pulse,
                 "DIRECTION": p.direction, "AMPLITUDE_SCALE": p.scale, "HEIGHT": p.height_m,
-                "TABLE_ANGLE": p.angle_deg, "START_TIME": p.start_time_ms / 1000.0, "PASS_STATE": int(p.state)})
+                "TABLE_ANGLE": p.angle_deg, "START_TIME": p.start_time_ms / 1000.0,
+                "PASS_STATE": int(p.state)})
         return identity + status + radar_block + pass_block
 
     def _window_capacity(self, p: _Pass) -> int:
@@ -561,7 +566,8 @@ class RigController:
         else:
             head = R.WINDOW_HEADER.encode({
                 "OLDEST_SEQ": R.seq_add(p.first_seq, idx[0]) if idx else 0, "RECORDS": len(idx),
-                "RECORD_REGS": p.records.shape[1], "NEWEST_SEQ": R.seq_add(self.next_seq, -1), "TOKEN": p.token})
+                "RECORD_REGS": p.records.shape[1], "NEWEST_SEQ": R.seq_add(self.next_seq, -1),
+                "TOKEN": p.token})
         out[:R.WINDOW_HEADER.length] = head
         return out
 
@@ -610,8 +616,10 @@ class RigController:
         # address error (02) and takes precedence; one inside the blocks that is not exactly one block is 03.
         mapped = {a for b in R.HOLDING_BLOCKS for a in range(b.address, b.address + b.length)}
         if any(a not in mapped for a in range(address, address + len(values))):
-            raise ModbusFault(ILLEGAL_ADDRESS, f"HR {address}+{len(values)}: reaches a reserved or unmapped register")
-        raise ModbusFault(ILLEGAL_VALUE, f"HR {address}+{len(values)}: writes must cover exactly one holding block")
+            raise ModbusFault(ILLEGAL_ADDRESS,
+                              f"HR {address}+{len(values)}: reaches a reserved or unmapped register")
+        raise ModbusFault(ILLEGAL_VALUE,
+                          f"HR {address}+{len(values)}: writes must cover exactly one holding block")
 
 
 def _encode_records(first_seq: int, times_s, positions_m, flags, iq: np.ndarray) -> np.ndarray:
@@ -701,8 +709,8 @@ class RigServer:
                      [SimData(0, count=n_ir, values=0, datatype=DataType.REGISTERS)]),
             action=self._action)
         self._loop = asyncio.get_running_loop()
-        self._server = ModbusTcpServer(device, address=(self.host, self.port), trace_packet=self._trace_packet,
-                                       trace_pdu=self._trace_pdu)
+        self._server = ModbusTcpServer(device, address=(self.host, self.port),
+                                       trace_packet=self._trace_packet, trace_pdu=self._trace_pdu)
         await self._server.serve_forever(background=True)
         self.port = self._server.transport.sockets[0].getsockname()[1]
         log.info("device: serving rig %s on %s:%d", self.controller.config.rig_id, self.host, self.port)

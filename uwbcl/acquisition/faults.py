@@ -36,9 +36,11 @@ import dataclasses
 
 import numpy as np
 
-KINDS = ("drop", "missing", "slow", "exception", "corrupt", "reboot", "overflow", "exception02", "exception03",
-         "exception04", "absurd", "short", "stall", "reconfigure", "counter_back", "counter_jump")
-PASS_KINDS = ("reboot", "overflow", "absurd", "short", "stall", "reconfigure")  # only meaningful while a pass runs
+KINDS = ("drop", "missing", "slow", "exception", "corrupt", "reboot", "overflow", "exception02",
+         "exception03", "exception04", "absurd", "short", "stall", "reconfigure", "counter_back",
+         "counter_jump")
+PASS_KINDS = ("reboot", "overflow", "absurd", "short", "stall",
+              "reconfigure")  # only meaningful while a pass runs
 CYCLE_KINDS = ("counter_back", "counter_jump")  # change the cycle counter: the cycle being scanned is left
 
 
@@ -127,7 +129,8 @@ class FaultInjector:
         self._at = dict(plan.at)
         self._hit_pass: int | None = None  # the pass the last pass-only fault was applied to
 
-    def next_request(self, pass_running: bool, device_time_s: float, pass_token: int | None = None) -> str | None:
+    def next_request(self, pass_running: bool, device_time_s: float,
+                     pass_token: int | None = None) -> str | None:
         """Count a request; return the fault kind to apply to it, or None. With `pass_token`, pass-only faults
         waiting for a pass hit one pass each (two on one pass would count as two faults but act as one)."""
         self.requests += 1

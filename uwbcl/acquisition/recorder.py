@@ -42,7 +42,8 @@ def check_radar(radar: dict, limits: Limits) -> None:
     """Refuse a RADAR block this client cannot use safely: DeviceRefused for a map it does not speak,
     AbsurdValue for values no pass can be run with (re-read and re-tried, never a stop on one reply)."""
     if radar["WINDOW_ADDRESS"] != R.WINDOW_ADDRESS:
-        raise DeviceRefused(f"RADAR.WINDOW_ADDRESS = {radar['WINDOW_ADDRESS']}: map 1.x puts it at {R.WINDOW_ADDRESS}")
+        raise DeviceRefused(f"RADAR.WINDOW_ADDRESS = {radar['WINDOW_ADDRESS']}: map 1.x puts it at "
+                            f"{R.WINDOW_ADDRESS}")
     for name in ("CARRIER_FREQUENCY", "BANDWIDTH", "SAMPLE_RATE", "PRF", "ANTENNA_APERTURE", "NOMINAL_SPEED"):
         if not radar[name] > 0:
             raise AbsurdValue(f"RADAR.{name} = {radar[name]}: must be > 0")
@@ -73,7 +74,8 @@ class PassAssembler:
         if not 2 <= n <= limits.max_pulses_per_pass:
             raise AbsurdValue(f"PASS.PULSES_PLANNED = {n}: outside 2..{limits.max_pulses_per_pass}")
         if n * m * 4 > limits.max_pass_bytes:
-            raise AbsurdValue(f"PASS: {n} pulses x {m} samples need {n * m * 4 / 2**20:.0f} MiB, more than the "
+            raise AbsurdValue(f"PASS: {n} pulses x {m} samples need {n * m * 4 / 2**20:.0f} MiB, more than "
+                              f"the "
                                 f"{limits.max_pass_bytes / 2**20:.0f} MiB limit")
         scale = descriptor["AMPLITUDE_SCALE"]
         if not (math.isfinite(scale) and scale > 0):
@@ -106,10 +108,12 @@ class PassAssembler:
             if self.count >= self.planned:
                 raise PassIncomplete(f"more pulses than the {self.planned} the device planned")
             if (self.count == 0) != bool(flags[i] & R.RecordFlag.FIRST):
-                raise PassIncomplete(f"pulse seq {seq[i]}: FIRST flag {'missing' if self.count == 0 else 'repeated'}")
+                raise PassIncomplete(f"pulse seq {seq[i]}: FIRST flag "
+                                     f"{'missing' if self.count == 0 else 'repeated'}")
             k = self.count
             if k and not time_s[i] > self.time_s[k - 1]:
-                raise PassIncomplete(f"pulse seq {seq[i]}: time {time_s[i]:.6f} s not after the previous pulse")
+                raise PassIncomplete(f"pulse seq {seq[i]}: time {time_s[i]:.6f} s not after the previous "
+                                     f"pulse")
             self.time_s[k], self.position_m[k], self.iq[k] = time_s[i], position_m[i], iq[i]
             self.count += 1
             self.next_seq = R.seq_add(self.next_seq, 1)
@@ -118,8 +122,9 @@ class PassAssembler:
     def finish(self, descriptor: dict) -> None:
         """The pass as the device reports it at the end must match what arrived, pulse for pulse."""
         d0 = self.descriptor
-        for name in ("TOKEN", "CYCLE", "FIRST_SEQ", "PULSES_PLANNED", "RANGE_WINDOW_START", "SAMPLES_PER_PULSE",
-                     "AMPLITUDE_SCALE", "HEIGHT", "TABLE_ANGLE", "START_TIME", "DIRECTION"):
+        for name in ("TOKEN", "CYCLE", "FIRST_SEQ", "PULSES_PLANNED", "RANGE_WINDOW_START",
+                     "SAMPLES_PER_PULSE", "AMPLITUDE_SCALE", "HEIGHT", "TABLE_ANGLE", "START_TIME",
+                     "DIRECTION"):
             if descriptor[name] != d0[name]:
                 raise PassIncomplete(f"PASS.{name} changed during the pass ({d0[name]} -> {descriptor[name]})")
         if descriptor["PASS_STATE"] != R.PassState.COMPLETE:
@@ -127,7 +132,8 @@ class PassAssembler:
         if descriptor["OVERFLOW_COUNT"]:
             raise PassIncomplete(f"device buffer overflowed: {descriptor['OVERFLOW_COUNT']} pulses dropped")
         if descriptor["PULSES_PRODUCED"] != self.count or not self.last_seen:
-            raise PassIncomplete(f"{self.count} pulses received, device produced {descriptor['PULSES_PRODUCED']}")
+            raise PassIncomplete(f"{self.count} pulses received, device produced "
+                                 f"{descriptor['PULSES_PRODUCED']}")
         if self.count != self.planned:  # map 1.1, 4.4: a COMPLETE pass produced every pulse it planned
             raise PassIncomplete(f"PULSES_PRODUCED {self.count} != PULSES_PLANNED {self.planned}: incomplete")
         steps = np.diff(self.position_m[:self.count])
@@ -156,7 +162,8 @@ def write_scan(out_dir: Path, scan: ScanPass, pass_id: str, unique: str) -> Path
     candidates += [path.with_name(f"{path.stem}_{unique}_{k}{path.suffix}") for k in range(2, 1000)]
     for candidate in candidates:
         try:
-            return archive.write_pass(candidate, scan, pass_id=pass_id, created_by=f"uwbcl {__version__} acquire")
+            return archive.write_pass(candidate, scan, pass_id=pass_id,
+                                      created_by=f"uwbcl {__version__} acquire")
         except FileExistsError:
             continue
     raise FileExistsError(f"{path}: 1000 passes under this name")

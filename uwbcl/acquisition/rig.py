@@ -55,7 +55,8 @@ class Campaign:
 
     def __init__(self, config: WorldConfig = WorldConfig()):
         if config.scenario not in SCENARIOS:
-            raise ValueError(f"unknown scenario {config.scenario!r}; available: {', '.join(sorted(SCENARIOS))}")
+            raise ValueError(f"unknown scenario {config.scenario!r}; available: "
+                             f"{', '.join(sorted(SCENARIOS))}")
         self.config = config
         self.base: Scenario = SCENARIOS[config.scenario]
         radar = self.base.radar
@@ -128,8 +129,8 @@ class Campaign:
                                      1 if direction > 0 else 0])
         prf = self.radar.pulse_repetition_frequency_hz
         start = -direction * self.rail_half_travel_m
-        times, positions = rail_motion(self.pulses_per_pass, prf, self.speed_m_s, start, self.config.speed_jitter,
-                                       rng, direction)
+        times, positions = rail_motion(self.pulses_per_pass, prf, self.speed_m_s, start,
+                                       self.config.speed_jitter, rng, direction)
         targets = self.targets_radar_m(k)
         geometry = PassGeometry(height_m=height_m, rotation_table_angle_deg=table_angle_deg,
                                 reference_point_m=(0.0, -1.0, 0.0))  # not used by the echo model
