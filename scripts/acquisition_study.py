@@ -113,8 +113,8 @@ def audit_archives(report, server: RigServer) -> tuple[int, list[str]]:
             same, path = False, f"{path} ({exc})"
         if not same:
             bad.append(str(path))
-    partial = [str(p) for p in Path(report.passes_written[0]).parents[2].rglob(".*")] if report.passes_written \
-        else []
+    partial = ([str(p) for p in Path(report.passes_written[0]).parents[2].rglob(".*")]
+               if report.passes_written else [])
     return len(report.passes_written) - len(bad), bad + partial
 
 
@@ -180,7 +180,8 @@ def study_accuracy(args, out: Path) -> bool:
         rms = lambda e: 1e3 * np.sqrt(np.nanmean(e ** 2, axis=0))
         print(f"RMS (mm) retreat/creep/vertical: live {np.round(rms(live), 2)}, files "
               f"{np.round(rms(filed), 2)}; max |live - files| {1e3 * np.nanmax(np.abs(live - filed)):.2f} mm")
-        ok = np.all(np.isfinite(live)) and rms(live)[0] <= rms(filed)[0] + 1.0 and rms(live)[1] <= rms(filed)[1] + 1.0
+        ok = (np.all(np.isfinite(live)) and rms(live)[0] <= rms(filed)[0] + 1.0
+              and rms(live)[1] <= rms(filed)[1] + 1.0)
     ok = ok and len(rows) == args.cycles - 1 and not bad and report.ok
     print(f"A: {'PASS' if ok else 'FAIL'} ({len(rows)} displacements)")
     return bool(ok)
@@ -321,7 +322,8 @@ def study_campaign(args, out: Path) -> bool:
     # Drawn at random per request (seeded), not in a fixed rotation: a rotation would hit every kind at the
     # same phase of the cycle each time (e.g. a counter going back always while waiting).
     p_kind = 1.0 / (every * len(KINDS))
-    spec = ",".join(f"{k}={p_kind:.6f}" for k in KINDS) + f",limit={n},seed={args.seed},slow_s=0.3,overflow_pulses=4"
+    spec = (",".join(f"{k}={p_kind:.6f}" for k in KINDS)
+            + f",limit={n},seed={args.seed},slow_s=0.3,overflow_pulses=4")
     print(f"\n== D. issue 12 campaign: {n} faults, each request a fault with probability 1/{every}, kinds "
           f"{', '.join(KINDS)} equally likely ==")
     print(f"   (uwbcl simulate-device --faults '{spec}' --first-seq {SEQ_MODULUS - 100} --initial-cycle "
@@ -413,8 +415,9 @@ def study_campaign(args, out: Path) -> bool:
           f"service stops: {1 if report.error else 0}{' (' + report.error + ')' if report.error else ''}")
     for line in bad_meta[:10]:
         print(f"   BAD: {line}")
-    ok = (sum(injected.values()) >= n and not bad_meta and not lost and not dropped_for_name and not report.error
-          and not not_rerun and (n < 10 * len(KINDS) or all(v > 0 for v in injected.values())))
+    ok = (sum(injected.values()) >= n and not bad_meta and not lost and not dropped_for_name
+          and not report.error and not not_rerun
+          and (n < 10 * len(KINDS) or all(v > 0 for v in injected.values())))
     print(f"D: {'PASS' if ok else 'FAIL'}")
     return ok
 

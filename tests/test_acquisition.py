@@ -94,7 +94,8 @@ def assert_archives_match_device(report, server: RigServer) -> None:
         np.testing.assert_array_equal(np.rint(scan.pulse_time_s * 1e6), audit["times_us"])
         iq = np.stack([scan.echo.real, scan.echo.imag], axis=-1) / audit["scale"]
         np.testing.assert_array_equal(np.rint(iq), audit["iq"])
-    leftovers = [p for p in Path(report.passes_written[0]).parents[2].rglob(".*")] if report.passes_written else []
+    leftovers = ([p for p in Path(report.passes_written[0]).parents[2].rglob(".*")]
+                 if report.passes_written else [])
     assert leftovers == [], f"partial files left: {leftovers}"
 
 
@@ -142,13 +143,14 @@ def test_values_that_do_not_fit_are_refused_with_the_field_named():
 def test_the_document_holds_the_register_tables_of_the_code():
     doc = (ROOT / "docs" / "modbus-register-map.md").read_text()
     for name, table in R.markdown_tables().items():
-        assert table in doc, f"docs/modbus-register-map.md: table {name} differs from uwbcl.acquisition.registers"
+        assert table in doc, (f"docs/modbus-register-map.md: table {name} differs from "
+                              f"uwbcl.acquisition.registers")
 
 
 def test_pulse_records_round_trip_and_a_damaged_record_is_named():
     iq = np.array([[[1, -2], [32767, -32767]], [[0, 5], [-7, 8]]], dtype=np.int16)
-    regs = R.encode_record(41, 2.05, -0.75, R.RecordFlag.FIRST, iq[0]) + R.encode_record(42, 2.1, -0.7425, 0,
-                                                                                         iq[1])
+    regs = (R.encode_record(41, 2.05, -0.75, R.RecordFlag.FIRST, iq[0])
+            + R.encode_record(42, 2.1, -0.7425, 0, iq[1]))
     seq, t, x, _flags, out, bad = R.decode_records(regs, 2, 2)
     assert seq.tolist() == [41, 42] and t.tolist() == [2.05, 2.1] and x.tolist() == [-0.75, -0.7425]
     np.testing.assert_array_equal(out, iq)
@@ -345,7 +347,8 @@ EXPECTED_COUNTER = {"drop": "disconnects", "missing": "no_reply", "exception": "
                     "exception02": "exceptions", "exception03": "exceptions", "exception04": "exceptions"}
 
 
-@pytest.mark.parametrize("kind", [k for k in KINDS if k not in CYCLE_KINDS])  # those leave the cycle: the campaign
+# The CYCLE_KINDS left out leave the cycle: the campaign has them
+@pytest.mark.parametrize("kind", [k for k in KINDS if k not in CYCLE_KINDS])
 def test_each_fault_kind_is_survived_and_nothing_incomplete_is_written(kind, tmp_path):
     # One stall only: each costs the watchdog's second, and the face moves on after 2 s.
     plan = parse_faults(f"every=11,kinds={kind},limit={1 if kind == 'stall' else 3},slow_s=0.05")
@@ -358,8 +361,8 @@ def test_each_fault_kind_is_survived_and_nothing_incomplete_is_written(kind, tmp
     assert_archives_match_device(report, server)
     if EXPECTED_COUNTER.get(kind):
         assert getattr(report.faults, EXPECTED_COUNTER[kind]) >= 1
-    if kind in ("reboot", "overflow", "reconfigure", "absurd", "short",
-                "stall"):  # these always cost the pass: it is marked incomplete and run again
+    # These always cost the pass: it is marked incomplete and run again.
+    if kind in ("reboot", "overflow", "reconfigure", "absurd", "short", "stall"):
         assert len(report.passes_incomplete) >= 1
 
 

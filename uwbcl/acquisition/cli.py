@@ -59,7 +59,8 @@ def add_acquisition_commands(sub) -> None:
                                    "(time-scaled), processes them and prints the measured retreat and creep "
                                    "beside the truth.")
     m.add_argument("--cycles", type=int, default=4, help="cycles to acquire (default 4: 3 displacements)")
-    m.add_argument("--out", help="directory for the archives and results (default: a new temporary directory)")
+    m.add_argument("--out",
+                   help="directory for the archives and results (default: a new temporary directory)")
     m.add_argument("--time-scale", type=float, default=20.0, help="device time / real time (default 20)")
     m.add_argument("--faults", default="", help="inject faults, e.g. every=300 (see simulate-device --help)")
     m.add_argument("--backend", help="processing backend (default: the pipeline's, numpy if unavailable)")
@@ -281,7 +282,8 @@ def _demo(args: argparse.Namespace) -> int:
         settings = AcquireSettings(host="127.0.0.1", port=server.port, out=str(out), cycles=args.cycles,
                                    heights_m=(0.15, 0.30), rotation_table_angle_deg=30.0, rib_distance_m=2.4,
                                    reference_height_m=0.3, timeout_s=1.0, process=True)
-        session = AcquisitionSession(settings, stop=stop, processor=LiveProcessor(proc, max_pending=args.cycles))
+        session = AcquisitionSession(settings, stop=stop,
+                                     processor=LiveProcessor(proc, max_pending=args.cycles))
         longwall = LongwallFollower(
             server, lambda: len(session.report.cycles_complete) + len(session.report.cycles_incomplete),
             listening=lambda: session.link.requests > 3)

@@ -305,7 +305,8 @@ class RigLink:
             try:
                 reply = fn()
             except (ModbusException, OSError) as exc:
-                kind = "connection lost" if "onnection" in str(exc) or isinstance(exc, OSError) else "no reply"
+                lost_link = "onnection" in str(exc) or isinstance(exc, OSError)
+                kind = "connection lost" if lost_link else "no reply"
                 if kind == "no reply":
                     self.counts.no_reply += 1
                 else:
@@ -314,13 +315,14 @@ class RigLink:
                 self.client.close()  # a fresh connection: a late reply can never be taken for the next one
                 lost += 1
                 if lost > 1:  # the first one reconnects at once; a controller that keeps dropping us is paced
-                    self.sleep(min(0.05 * 2 ** (lost - 2),
-                                   self.reconnect_max_s) * (0.8 + 0.4 * self._jitter.random()))
+                    self.sleep(min(0.05 * 2 ** (lost - 2), self.reconnect_max_s)
+                               * (0.8 + 0.4 * self._jitter.random()))
                 continue
             if reply.isError():
                 code = getattr(reply, "exception_code", None)
                 self.counts.exceptions += 1
-                if code in (1, 2, 3):  # REFUSED: a damaged request gets one; a request this device refuses, all
+                # REFUSED: a damaged request gets one; a request this device refuses, all
+                if code in (1, 2, 3):
                     self.counts.refused += 1
                     refused += 1
                     if refused > self.MAX_REFUSED_RETRIES:
@@ -540,7 +542,8 @@ class AcquisitionSession:
                                         f"{h:g} m, RADAR HEIGHT_MIN..HEIGHT_MAX {lo:g}..{hi:g} m; check "
                                         f"heights)")
         table_max = radar["TABLE_MAX"]
-        if math.isfinite(table_max) and table_max > 0 and abs(self.settings.rotation_table_angle_deg) > table_max:
+        if math.isfinite(table_max) and table_max > 0 \
+                and abs(self.settings.rotation_table_angle_deg) > table_max:
             raise DeviceRefused(f"SET_TABLE_ANGLE {self.settings.rotation_table_angle_deg:g} deg: outside "
                                 f"the rig's range (RADAR TABLE_MAX {table_max:g} deg; check the angle)")
 
@@ -731,8 +734,8 @@ class AcquisitionSession:
             if self.stop.is_set():
                 raise Interrupted()
             self._check_watchdog(asm, d)
-            first = self.link.read(R.Table.INPUT, R.WINDOW_ADDRESS, min(R.MAX_REGISTERS_PER_READ,
-                                                                        window_regs))
+            first = self.link.read(R.Table.INPUT, R.WINDOW_ADDRESS,
+                                   min(R.MAX_REGISTERS_PER_READ, window_regs))
             try:
                 head, records = self._decode_window(asm, first, window_regs)
             except R.RegisterError as exc:
@@ -740,7 +743,8 @@ class AcquisitionSession:
                 d.corrupt_in_a_row += 1
                 log.warning("fault: %s; re-reading the window", exc)
                 if d.corrupt_in_a_row > RigLink.MAX_CRC_RETRIES:
-                    raise PassIncomplete(f"pulse window corrupted {d.corrupt_in_a_row} times in a row") from None
+                    raise PassIncomplete(f"pulse window corrupted {d.corrupt_in_a_row} times "
+                                         f"in a row") from None
                 continue
             d.corrupt_in_a_row = 0
             now = time.monotonic()
@@ -846,8 +850,8 @@ class AcquisitionSession:
         self.link.write_block(R.COMMAND, values)
         while True:
             st = self._status()
-            result = R.CommandResult(st["CMD_RESULT"]) if st["CMD_RESULT"] in R.CommandResult._value2member_map_ \
-                else None
+            known = st["CMD_RESULT"] in R.CommandResult._value2member_map_
+            result = R.CommandResult(st["CMD_RESULT"]) if known else None
             if st["CMD_ACK_SEQ"] != seq:  # not recorded (a controller off the map): the same CMD_SEQ again
                 if time.monotonic() > deadline:
                     raise PassIncomplete(f"{code.name}: never acknowledged (CMD_ACK_SEQ {st['CMD_ACK_SEQ']})")
@@ -857,7 +861,8 @@ class AcquisitionSession:
             if result is R.CommandResult.DONE or (result is R.CommandResult.ACCEPTED and not wait):
                 return
             if result is R.CommandResult.FAILED:
-                raise PassIncomplete(f"{code.name} failed on the device (FAULT_WORD 0x{st['FAULT_WORD']:04X})")
+                raise PassIncomplete(f"{code.name} failed on the device "
+                                     f"(FAULT_WORD 0x{st['FAULT_WORD']:04X})")
             if result is not R.CommandResult.ACCEPTED:
                 name = result.name if result is not None else st["CMD_RESULT"]
                 raise PassIncomplete(f"{code.name} {arg} rejected: {name}")
@@ -938,7 +943,8 @@ class AcquisitionSession:
         except (LinkDown, DeviceRebooted, Interrupted) as exc:
             if isinstance(exc, Interrupted) and not final:
                 raise
-            self._published_boot = None  # written again at the next chance (a failed step never loses a result)
+            # Written again at the next chance (a failed step never loses a result).
+            self._published_boot = None
             log.warning("cycle %d: result not published%s: %s", values["CYCLE"], "" if final else " yet",
                         exc or "interrupted")
             return False

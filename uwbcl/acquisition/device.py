@@ -227,7 +227,8 @@ class RigController:
             base = self.radar.sample_rate_hz
             rate = 0.75 * base if self.campaign.radar.sample_rate_hz == base else base
             self.campaign.radar = dataclasses.replace(self.campaign.radar, sample_rate_hz=rate)
-            self.rig_id = f"{self.config.rig_id}-b" if self.rig_id == self.config.rig_id else self.config.rig_id
+            own_id = self.config.rig_id
+            self.rig_id = f"{own_id}-b" if self.rig_id == own_id else own_id
         self._boot(now)
 
     def cut_short(self, now: float) -> None:
@@ -419,7 +420,8 @@ class RigController:
             data = dataclasses.replace(data, echo=data.echo[:, :self.config.max_samples])
         m = data.echo.shape[1]
         peak = float(max(np.abs(data.echo.real).max(), np.abs(data.echo.imag).max(), 1e-30))
-        scale = float(np.float32(peak / (0.9 * INT16_FULL_SCALE)))  # 10 % headroom, as an ADC gain would leave
+        # 10 % headroom, as an ADC gain would leave
+        scale = float(np.float32(peak / (0.9 * INT16_FULL_SCALE)))
         iq = np.stack([data.echo.real, data.echo.imag], axis=-1) / scale
         iq = np.clip(np.rint(iq), -INT16_FULL_SCALE, INT16_FULL_SCALE).astype(np.int16)
         first_seq = self.next_seq
@@ -463,8 +465,8 @@ class RigController:
         # later pulses.
         self.ack_seq = seq
         p = self.pass_
-        while self.buffer and p is not None and R.seq_at_or_before(R.seq_add(p.first_seq, self.buffer[0]),
-                                                                   seq):
+        while self.buffer and p is not None \
+                and R.seq_at_or_before(R.seq_add(p.first_seq, self.buffer[0]), seq):
             self.buffer.popleft()
         self._window_cache = None
 
@@ -476,7 +478,8 @@ class RigController:
     def status_word(self, now: float) -> R.Status:
         s = R.Status.CYCLE_LINK_OK
         p = self.pass_
-        if not self.booting(now) and not (self.fault_word & ~(R.Fault.BUFFER_OVERFLOW | R.Fault.PASS_ABORTED)):
+        if not self.booting(now) \
+                and not (self.fault_word & ~(R.Fault.BUFFER_OVERFLOW | R.Fault.PASS_ABORTED)):
             s |= R.Status.READY
         if self._busy():
             s |= R.Status.BUSY
@@ -632,7 +635,8 @@ def _encode_records(first_seq: int, times_s, positions_m, flags, iq: np.ndarray)
     head["x"] = np.rint(np.asarray(positions_m) * 1e6)  # micrometres (R.RECORD_POSITION_SCALE_M)
     head["flags"] = flags
     regs = np.zeros((n, R.record_regs(m)), dtype=np.uint16)
-    regs[:, :R.RECORD_HEADER_REGS] = np.frombuffer(head.tobytes(), dtype=">u2").reshape(n, R.RECORD_HEADER_REGS)
+    regs[:, :R.RECORD_HEADER_REGS] = np.frombuffer(head.tobytes(), dtype=">u2").reshape(n,
+                                                                                        R.RECORD_HEADER_REGS)
     regs[:, R.RECORD_HEADER_REGS:-1] = iq.reshape(n, 2 * m).view(np.uint16)
     big = regs[:, :-1].astype(">u2")
     regs[:, -1] = [binascii.crc_hqx(big[i].tobytes(), 0xFFFF) for i in range(n)]
@@ -900,7 +904,8 @@ class LongwallFollower(threading.Thread):
 
     def __init__(self, server: RigServer, cycles_done, listening=lambda: True, period_s: float = 0.05):
         super().__init__(name="uwbcl-longwall", daemon=True)
-        self.server, self.cycles_done, self.listening, self.period_s = server, cycles_done, listening, period_s
+        self.server, self.cycles_done = server, cycles_done
+        self.listening, self.period_s = listening, period_s
         self.done = threading.Event()
 
     def run(self) -> None:

@@ -39,8 +39,8 @@ import numpy as np
 KINDS = ("drop", "missing", "slow", "exception", "corrupt", "reboot", "overflow", "exception02",
          "exception03", "exception04", "absurd", "short", "stall", "reconfigure", "counter_back",
          "counter_jump")
-PASS_KINDS = ("reboot", "overflow", "absurd", "short", "stall",
-              "reconfigure")  # only meaningful while a pass runs
+# Only meaningful while a pass runs.
+PASS_KINDS = ("reboot", "overflow", "absurd", "short", "stall", "reconfigure")
 CYCLE_KINDS = ("counter_back", "counter_jump")  # change the cycle counter: the cycle being scanned is left
 
 

@@ -129,7 +129,8 @@ class LiveProcessor:
         rows = []
         for r in results:
             rows.append({k: (f"{r[k]:.6f}" if isinstance(r[k], float) and math.isfinite(r[k]) else
-                             ("" if isinstance(r[k], float) or r[k] is None else r[k])) for k in RESULT_COLUMNS})
+                             ("" if isinstance(r[k], float) or r[k] is None else r[k]))
+                         for k in RESULT_COLUMNS})
         path = Path(out_dir) / RESULTS_FILE
         write_csv_atomic(path, RESULT_COLUMNS, rows)
         return path

@@ -126,7 +126,8 @@ class PassAssembler:
                      "SAMPLES_PER_PULSE", "AMPLITUDE_SCALE", "HEIGHT", "TABLE_ANGLE", "START_TIME",
                      "DIRECTION"):
             if descriptor[name] != d0[name]:
-                raise PassIncomplete(f"PASS.{name} changed during the pass ({d0[name]} -> {descriptor[name]})")
+                raise PassIncomplete(f"PASS.{name} changed during the pass "
+                                     f"({d0[name]} -> {descriptor[name]})")
         if descriptor["PASS_STATE"] != R.PassState.COMPLETE:
             raise PassIncomplete(f"pass ended in state {R.PassState(descriptor['PASS_STATE']).name}")
         if descriptor["OVERFLOW_COUNT"]:

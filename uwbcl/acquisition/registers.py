@@ -37,7 +37,8 @@ class Table(str, enum.Enum):
 # --------------------------------------------------------------------------------------------- value types
 
 _TYPES = {  # name: (registers, struct format)
-    "u16": (1, ">H"), "s16": (1, ">h"), "u32": (2, ">I"), "s32": (2, ">i"), "f32": (2, ">f"), "u64": (4, ">Q"),
+    "u16": (1, ">H"), "s16": (1, ">h"), "u32": (2, ">I"), "s32": (2, ">i"), "f32": (2, ">f"),
+    "u64": (4, ">Q"),
 }
 
 
@@ -89,7 +90,8 @@ def _raw_from_value(block: str, f: Field, value) -> list[int]:
         try:
             raw_bytes = struct.pack(_TYPES[f.kind][1], raw)
         except struct.error:
-            raise RegisterError(f"{block}.{f.name}: {value!r} does not fit {f.kind} at scale {f.scale:g}") from None
+            raise RegisterError(f"{block}.{f.name}: {value!r} does not fit {f.kind} "
+                                f"at scale {f.scale:g}") from None
     return list(struct.unpack(f">{f.size}H", raw_bytes))
 
 
@@ -562,14 +564,17 @@ def decode_records(regs: Sequence[int], n_records: int, samples_per_pulse: int):
 
     n_regs = record_regs(samples_per_pulse)
     if len(regs) < n_records * n_regs:
-        raise RegisterError(f"pulse window: {len(regs)} registers cannot hold {n_records} records of {n_regs}")
+        raise RegisterError(f"pulse window: {len(regs)} registers cannot hold {n_records} records "
+                            f"of {n_regs}")
     block = np.asarray(regs[:n_records * n_regs], dtype=np.uint16).reshape(n_records, n_regs)
     as_bytes = block.astype(">u2")
-    bad = [i for i in range(n_records) if binascii.crc_hqx(as_bytes[i, :-1].tobytes(), 0xFFFF) != block[i, -1]]
+    bad = [i for i in range(n_records)
+           if binascii.crc_hqx(as_bytes[i, :-1].tobytes(), 0xFFFF) != block[i, -1]]
     head = as_bytes[:, :RECORD_HEADER_REGS].tobytes()
     fields = np.frombuffer(head, dtype=np.dtype([("seq", ">u4"), ("t", ">u4"), ("x", ">i4"), ("flags", ">u2"),
                                                   ("res", ">u2")]), count=n_records)
-    iq = block[:, RECORD_HEADER_REGS:-1].astype(np.uint16).view(np.int16).reshape(n_records, samples_per_pulse, 2)
+    iq = block[:, RECORD_HEADER_REGS:-1].astype(np.uint16).view(np.int16).reshape(n_records,
+                                                                                  samples_per_pulse, 2)
     return (fields["seq"].astype(np.int64), fields["t"].astype(np.float64) / _inverse(RECORD_TIME_SCALE_S),
             fields["x"].astype(np.float64) / _inverse(RECORD_POSITION_SCALE_M),
             fields["flags"].astype(np.int64), iq, bad)

@@ -65,7 +65,8 @@ class Campaign:
         self.radar: RadarParameters = radar
         self.speed_m_s = float(config.speed_m_s or self.base.speed_m_s)
         self.aperture_length_m = float(config.aperture_length_m or self.base.aperture_length_m)
-        n_intervals = 2 * round(0.5 * self.aperture_length_m / self.speed_m_s * radar.pulse_repetition_frequency_hz)
+        n_intervals = 2 * round(0.5 * self.aperture_length_m / self.speed_m_s
+                                * radar.pulse_repetition_frequency_hz)
         self.pulses_per_pass = n_intervals + 1
         self.rail_half_travel_m = 0.5 * n_intervals * self.speed_m_s / radar.pulse_repetition_frequency_hz
         advance = self.base.rig_positions_m[1] - self.base.rig_positions_m[0]
