@@ -280,9 +280,8 @@ def test_absurd_pass_sizes_fail_the_pass_before_anything_is_allocated():
     with pytest.raises(AbsurdValue, match="SAMPLES_PER_PULSE"):
         PassAssembler(descriptor(SAMPLES_PER_PULSE=60000), RADAR_OK, Limits())
     with pytest.raises(AbsurdValue, match="MiB"):
-        PassAssembler(descriptor(PULSES_PLANNED=90_000, SAMPLES_PER_PULSE=4000), {**RADAR_OK,
-                                                                                  "WINDOW_REGS": 60000},
-                      Limits())
+        PassAssembler(descriptor(PULSES_PLANNED=90_000, SAMPLES_PER_PULSE=4000),
+                      {**RADAR_OK, "WINDOW_REGS": 60000}, Limits())
 
 
 def test_gaps_repeats_and_extra_pulses_make_the_pass_incomplete():
@@ -406,8 +405,8 @@ def test_sigint_mid_pass_stops_cleanly_without_a_partial_archive(tmp_path):
         proc = subprocess.Popen(
             [sys.executable, "-m", "uwbcl.cli", "acquire", "--host", LOOPBACK, "--port", str(server.port),
              "--out", str(tmp_path), "--cycles", "3", "--timeout", "0.5"],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ,
-                                                                              "PYTHONUNBUFFERED": "1"})
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"})
         try:
             deadline = time.monotonic() + 30.0
             while server.faults.requests < 3 and time.monotonic() < deadline:  # the client is waiting
@@ -441,8 +440,8 @@ def test_simulate_device_and_acquire_work_from_the_command_line(tmp_path):
         [sys.executable, "-m", "uwbcl.cli", "simulate-device", "--port", "0", "--time-scale", "50",
          "--state", str(tmp_path / "rig-state.json"),
          "--first-cycle-after", "100", "--cycle-interval", "50", "--range-samples", "32"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ,
-                                                                          "PYTHONUNBUFFERED": "1"})
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
         line = dev.stdout.readline()
         port = int(re.search(r"listening on 127\.0\.0\.1:(\d+)", line).group(1))

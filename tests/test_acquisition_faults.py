@@ -252,8 +252,8 @@ def test_the_cycle_counter_and_cmd_seq_wrap_at_the_boundary(tmp_path):
 # ============================================================================================== item 4
 
 
-def test_a_decreasing_cycle_counter_is_logged_and_its_passes_written_beside_the_earlier_ones(tmp_path,
-                                                                                            caplog):
+def test_a_decreasing_cycle_counter_is_logged_and_its_passes_written_beside_the_earlier_ones(
+        tmp_path, caplog):
     device = RigController(dataclasses.replace(FAST_DEVICE, cycle_interval_s=1e9))
 
     def longwall(server):  # 1001 -> 1002 -> back to 1001 (a reset of the longwall control system)

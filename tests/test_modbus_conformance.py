@@ -74,8 +74,7 @@ def raw_exception(port, function, address, count) -> int:
 def start_device(*args) -> tuple[subprocess.Popen, int]:
     proc = subprocess.Popen([sys.executable, "-m", "uwbcl.cli", "simulate-device", "--port", "0",
                              "--range-samples", "8", *args], stdout=subprocess.PIPE,
-                             stderr=subprocess.DEVNULL,
-                            text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                            stderr=subprocess.DEVNULL, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     line = proc.stdout.readline()
     m = re.search(r"listening on 127\.0\.0\.1:(\d+)", line)
     if not m:

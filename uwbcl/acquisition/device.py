@@ -635,8 +635,8 @@ def _encode_records(first_seq: int, times_s, positions_m, flags, iq: np.ndarray)
     head["x"] = np.rint(np.asarray(positions_m) * 1e6)  # micrometres (R.RECORD_POSITION_SCALE_M)
     head["flags"] = flags
     regs = np.zeros((n, R.record_regs(m)), dtype=np.uint16)
-    regs[:, :R.RECORD_HEADER_REGS] = np.frombuffer(head.tobytes(), dtype=">u2").reshape(n,
-                                                                                        R.RECORD_HEADER_REGS)
+    header_regs = np.frombuffer(head.tobytes(), dtype=">u2").reshape(n, R.RECORD_HEADER_REGS)
+    regs[:, :R.RECORD_HEADER_REGS] = header_regs
     regs[:, R.RECORD_HEADER_REGS:-1] = iq.reshape(n, 2 * m).view(np.uint16)
     big = regs[:, :-1].astype(">u2")
     regs[:, -1] = [binascii.crc_hqx(big[i].tobytes(), 0xFFFF) for i in range(n)]

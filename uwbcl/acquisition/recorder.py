@@ -75,8 +75,7 @@ class PassAssembler:
             raise AbsurdValue(f"PASS.PULSES_PLANNED = {n}: outside 2..{limits.max_pulses_per_pass}")
         if n * m * 4 > limits.max_pass_bytes:
             raise AbsurdValue(f"PASS: {n} pulses x {m} samples need {n * m * 4 / 2**20:.0f} MiB, more than "
-                              f"the "
-                                f"{limits.max_pass_bytes / 2**20:.0f} MiB limit")
+                              f"the {limits.max_pass_bytes / 2**20:.0f} MiB limit")
         scale = descriptor["AMPLITUDE_SCALE"]
         if not (math.isfinite(scale) and scale > 0):
             raise AbsurdValue(f"PASS.AMPLITUDE_SCALE = {scale}: must be a finite number > 0")

@@ -573,8 +573,8 @@ def decode_records(regs: Sequence[int], n_records: int, samples_per_pulse: int):
     head = as_bytes[:, :RECORD_HEADER_REGS].tobytes()
     fields = np.frombuffer(head, dtype=np.dtype([("seq", ">u4"), ("t", ">u4"), ("x", ">i4"), ("flags", ">u2"),
                                                   ("res", ">u2")]), count=n_records)
-    iq = block[:, RECORD_HEADER_REGS:-1].astype(np.uint16).view(np.int16).reshape(n_records,
-                                                                                  samples_per_pulse, 2)
+    iq = block[:, RECORD_HEADER_REGS:-1].astype(np.uint16).view(np.int16)
+    iq = iq.reshape(n_records, samples_per_pulse, 2)
     return (fields["seq"].astype(np.int64), fields["t"].astype(np.float64) / _inverse(RECORD_TIME_SCALE_S),
             fields["x"].astype(np.float64) / _inverse(RECORD_POSITION_SCALE_M),
             fields["flags"].astype(np.int64), iq, bad)
