@@ -1,19 +1,21 @@
 """Measure the acquisition front end against the simulated rig on 127.0.0.1 (issue 5's acceptance).
 
-A. accuracy: N cycles x 2 heights acquired over Modbus and processed live, against the simulator's truth, beside
-   the same passes generated directly and processed from archive files (same seed, geometry and processing).
-B. faults: a run with F injected faults of every kind; every archive written is checked pulse for pulse against
-   what the simulated controller produced; counts of passes completed, incomplete-and-re-run, failed, lost.
-C. keep-up: a controller in its own process streaming at the UWB module's 612 kbit/s (957 complex int16 samples
-   per pulse at 20 Hz, real time) with a 2-second buffer; overflow, buffer backlog and the client's CPU use.
-D. issue 12's campaign: a seeded schedule of faults of every kind of uwbcl/acquisition/faults.py (lost, late and
-   dropped replies, 04/06, spurious 02/03/04, damaged replies, reboots, reboots with a new SAMPLE_RATE and
+A. accuracy: N cycles x 2 heights acquired over Modbus and processed live, against the simulator's truth,
+   beside the same passes generated directly and processed from archive files (same seed, geometry and
+   processing).
+B. faults: a run with F injected faults of every kind; every archive written is checked pulse for pulse
+   against what the simulated controller produced; counts of passes completed, incomplete-and-re-run, failed,
+   lost.
+C. keep-up: a controller in its own process streaming at the UWB module's 612 kbit/s (957 complex int16
+   samples per pulse at 20 Hz, real time) with a 2-second buffer; overflow, buffer backlog and the client's
+   CPU use.
+D. issue 12's campaign: a seeded schedule of faults of every kind of uwbcl/acquisition/faults.py (lost, late
+   and dropped replies, 04/06, spurious 02/03/04, damaged replies, reboots, reboots with a new SAMPLE_RATE and
    RIG_ID, overflows, absurd PASS values, passes cut short (PULSES_PRODUCED < PULSES_PLANNED), a stalled radar
-   (the no-progress watchdog), a cycle counter
-   that goes back or jumps), with pulse sequence numbers that wrap 2^32 - 1 -> 0 after every boot and a cycle
-   counter that wraps too. Checks: no stop of the service, no whole pass lost, every archive's metadata and data
-   what the controller used for that pass, every incomplete pass re-run (or its cycle left because the face
-   moved on), counts by fault kind.
+   (the no-progress watchdog), a cycle counter that goes back or jumps), with pulse sequence numbers that
+   wrap 2^32 - 1 -> 0 after every boot and a cycle counter that wraps too. Checks: no stop of the service,
+   no whole pass lost, every archive's metadata and data what the controller used for that pass, every
+   incomplete pass re-run (or its cycle left because the face moved on), counts by fault kind.
 
     python scripts/acquisition_study.py [--cycles 10] [--faults 100] [--campaign-faults 165] [--skip A,B,C,D]
 
@@ -53,7 +55,8 @@ def finished_cycles(session: AcquisitionSession) -> int:
     return len(session.report.cycles_complete) + len(session.report.cycles_incomplete)
 
 
-def run_acquisition(server: RigServer, settings: AcquireSettings, processor=None, enough=None, by_value=False):
+def run_acquisition(server: RigServer, settings: AcquireSettings, processor=None, enough=None,
+                    by_value=False):
     """The session against `server`, the next cycle signalled as soon as the last one is scanned; with
     `enough(session)`, no more signals once it holds, and the session is stopped while it waits. by_value: the
     last one is scanned when the session's last finished cycle is the counter's value (a counter that faults
@@ -92,7 +95,8 @@ def run_acquisition(server: RigServer, settings: AcquireSettings, processor=None
 
 
 def audit_archives(report, server: RigServer) -> tuple[int, list[str]]:
-    """Archives that hold exactly what the controller produced for their pass; the list of those that do not."""
+    """Archives that hold exactly what the controller produced for their pass; the list of those
+    that do not."""
     audits = {a["token"]: a for a in server.snapshot()["completed_passes"]}
     bad = []
     for path in report.passes_written:
@@ -109,8 +113,8 @@ def audit_archives(report, server: RigServer) -> tuple[int, list[str]]:
             same, path = False, f"{path} ({exc})"
         if not same:
             bad.append(str(path))
-    partial = [str(p) for p in Path(report.passes_written[0]).parents[2].rglob(".*")] if report.passes_written \
-        else []
+    partial = ([str(p) for p in Path(report.passes_written[0]).parents[2].rglob(".*")]
+               if report.passes_written else [])
     return len(report.passes_written) - len(bad), bad + partial
 
 
@@ -118,8 +122,10 @@ def audit_archives(report, server: RigServer) -> tuple[int, list[str]]:
 
 
 def study_accuracy(args, out: Path) -> bool:
-    print(f"\n== A. {args.cycles} cycles x 2 heights over Modbus, processed live, vs the same passes from files ==")
-    world = WorldConfig(scenario="paper-sim1", seed=args.seed, snr_db=args.snr_db, speed_jitter=args.speed_jitter)
+    print(f"\n== A. {args.cycles} cycles x 2 heights over Modbus, processed live, vs the same passes from "
+          f"files ==")
+    world = WorldConfig(scenario="paper-sim1", seed=args.seed, snr_db=args.snr_db,
+                        speed_jitter=args.speed_jitter)
     device = RigController(DeviceConfig(world=world, time_scale=args.time_scale, first_cycle_after_s=1e9,
                                         cycle_interval_s=1e9))
     proc = processing_settings(args.backend, device.campaign.nominal_web_m)
@@ -132,8 +138,8 @@ def study_accuracy(args, out: Path) -> bool:
         audits = server.snapshot()["completed_passes"]
     n_ok, bad = audit_archives(report, server)
     print(f"acquired {len(report.passes_written)} passes ({n_ok} verified pulse for pulse) in {wall:.1f} s "
-          f"(time x{args.time_scale:g}, SNR {args.snr_db} dB, speed jitter {args.speed_jitter:g}; CPU {cpu:.0f} s for rig, "
-          f"acquisition and processing in one process); backend "
+          f"(time x{args.time_scale:g}, SNR {args.snr_db} dB, speed jitter {args.speed_jitter:g}; CPU "
+          f"{cpu:.0f} s for rig, acquisition and processing in one process); backend "
           f"{proc.backend}; incomplete {len(report.passes_incomplete)}, failed {len(report.passes_failed)}")
 
     # The same passes, generated directly by the echo simulator (no Modbus, no int16), archived and processed.
@@ -162,7 +168,8 @@ def study_accuracy(args, out: Path) -> bool:
         f = chain.rig_series([located[c0], located[c]], proc.association)[0].displacement
         rows.append((c, np.array([r["retreat_m"], r["creep_m"], r["vertical_m"]]) - true,
                      np.asarray(f.advance_m) - true, r["status"], f.status))
-    print(" cycle | live - truth (mm): retreat  creep  vert | files - truth (mm): retreat  creep  vert | status")
+    print(" cycle | live - truth (mm): retreat  creep  vert | files - truth (mm): retreat  creep  vert | "
+          "status")
     for c, e_live, e_file, s_live, s_file in rows:
         print(f" {c:5d} | {1e3 * e_live[0]:+8.2f} {1e3 * e_live[1]:+6.2f} {1e3 * e_live[2]:+6.1f}          "
               f"| {1e3 * e_file[0]:+8.2f} {1e3 * e_file[1]:+6.2f} {1e3 * e_file[2]:+6.1f}           | "
@@ -171,9 +178,10 @@ def study_accuracy(args, out: Path) -> bool:
         live = np.array([r[1] for r in rows])
         filed = np.array([r[2] for r in rows])
         rms = lambda e: 1e3 * np.sqrt(np.nanmean(e ** 2, axis=0))
-        print(f"RMS (mm) retreat/creep/vertical: live {np.round(rms(live), 2)}, files {np.round(rms(filed), 2)}; "
-              f"max |live - files| {1e3 * np.nanmax(np.abs(live - filed)):.2f} mm")
-        ok = np.all(np.isfinite(live)) and rms(live)[0] <= rms(filed)[0] + 1.0 and rms(live)[1] <= rms(filed)[1] + 1.0
+        print(f"RMS (mm) retreat/creep/vertical: live {np.round(rms(live), 2)}, files "
+              f"{np.round(rms(filed), 2)}; max |live - files| {1e3 * np.nanmax(np.abs(live - filed)):.2f} mm")
+        ok = (np.all(np.isfinite(live)) and rms(live)[0] <= rms(filed)[0] + 1.0
+              and rms(live)[1] <= rms(filed)[1] + 1.0)
     ok = ok and len(rows) == args.cycles - 1 and not bad and report.ok
     print(f"A: {'PASS' if ok else 'FAIL'} ({len(rows)} displacements)")
     return bool(ok)
@@ -187,12 +195,14 @@ def study_faults(args, out: Path) -> bool:
     print(f"\n== B. {n} injected faults of the kinds {', '.join(KINDS[:7])} ==")
     plan = parse_faults(f"every={args.fault_every},limit={n},seed={args.seed},reboot_s=10,slow_s=0.2,"
                         f"kinds={'+'.join(KINDS[:7])}")  # the kinds of issue 5; D has them all
-    world = WorldConfig(scenario="paper-sim1", seed=args.seed, snr_db=args.snr_db, speed_jitter=args.speed_jitter)
+    world = WorldConfig(scenario="paper-sim1", seed=args.seed, snr_db=args.snr_db,
+                        speed_jitter=args.speed_jitter)
     device = RigController(DeviceConfig(world=world, time_scale=args.time_scale, first_cycle_after_s=1e9,
                                         cycle_interval_s=1e9, reboot_s=10.0))
     with RigServer(device, LOOPBACK, 0, faults=plan) as server:
         settings = AcquireSettings(host=LOOPBACK, port=server.port, out=str(out / "B-faults"), cycles=0,
-                                   heights_m=(0.15, 0.30), timeout_s=0.5, reconnect_max_s=1.0, max_attempts=10)
+                                   heights_m=(0.15, 0.30), timeout_s=0.5, reconnect_max_s=1.0,
+                                   max_attempts=10)
         marks = {}
 
         def enough(session):  # one more cycle after the last fault, then stop while waiting for the next
@@ -210,12 +220,13 @@ def study_faults(args, out: Path) -> bool:
               (re.search(r"c(\d+) h(\d+)", f) for f in report.passes_failed) if m}
     lost = scanned - written - failed
     f = report.faults
-    print(f"injected: {sum(injected.values())} ({', '.join(f'{k} {v}' for k, v in injected.items())}) in {wall:.0f} s")
-    print(f"client saw: {f.no_reply} lost replies, {f.disconnects} dropped connections, {f.exceptions} exception "
-          f"replies, {f.corrupt} corrupted replies, {f.reboots} reboots, {f.reconnects} reconnects")
-    print(f"passes completed and written: {len(report.passes_written)} ({n_ok} identical to what the controller "
-          f"produced, {len(bad)} not); incomplete and re-run: {len(report.passes_incomplete)}; failed after "
-          f"{settings.max_attempts} attempts: {len(report.passes_failed)}; lost: {len(lost)}")
+    print(f"injected: {sum(injected.values())} ({', '.join(f'{k} {v}' for k, v in injected.items())}) in "
+          f"{wall:.0f} s")
+    print(f"client saw: {f.no_reply} lost replies, {f.disconnects} dropped connections, {f.exceptions} "
+          f"exception replies, {f.corrupt} corrupted replies, {f.reboots} reboots, {f.reconnects} reconnects")
+    print(f"passes completed and written: {len(report.passes_written)} ({n_ok} identical to what the "
+          f"controller produced, {len(bad)} not); incomplete and re-run: {len(report.passes_incomplete)}; "
+          f"failed after {settings.max_attempts} attempts: {len(report.passes_failed)}; lost: {len(lost)}")
     reasons: dict[str, int] = {}
     for line in report.passes_incomplete:
         key = re.sub(r"\d+", "N", line.split(": ", 1)[1])
@@ -237,9 +248,9 @@ def study_keepup(args, out: Path) -> bool:
     ok = True
     for scale in args.keepup_scales:
         rate = 957 * 32 * 20 * scale / 1e3
-        cmd = [sys.executable, "-m", "uwbcl.cli", "simulate-device", "--port", "0", "--range-samples", "957", "--state", "",
-               "--buffer", "40", "--window-regs", "8192", "--time-scale", f"{scale:g}", "--first-cycle-after",
-               f"{3 * scale:g}", "--max-cycles", "1", "--seed", str(args.seed)]
+        cmd = [sys.executable, "-m", "uwbcl.cli", "simulate-device", "--port", "0", "--range-samples", "957",
+               "--state", "", "--buffer", "40", "--window-regs", "8192", "--time-scale", f"{scale:g}",
+               "--first-cycle-after", f"{3 * scale:g}", "--max-cycles", "1", "--seed", str(args.seed)]
         dev = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                env={**os.environ, "PYTHONUNBUFFERED": "1", "OPENBLAS_NUM_THREADS": "1"})
         try:
@@ -262,11 +273,12 @@ def study_keepup(args, out: Path) -> bool:
         scans = [archive.read_pass_header(p) for p in report.passes_written]
         pulses = sum(s["n_pulses"] for s in scans)
         stream_s = pulses / 20.0 / scale
-        print(f"x{scale:g} ({rate:.0f} kbit/s): {len(scans)} passes, {pulses} pulses x 957 samples in {wall:.1f} s; "
-              f"incomplete {len(report.passes_incomplete)}; most pulses waiting in the 40-pulse buffer: "
-              f"{report.max_backlog_pulses}; client CPU {cpu:.1f} s = {100 * cpu / wall:.0f} % of one core over the "
-              f"run ({100 * cpu / max(stream_s, 1e-9):.0f} % of the {stream_s:.0f} s of streaming); max RSS "
-              f"{r1.ru_maxrss / 1024:.0f} MiB; rig simulator (its own process) CPU {device_cpu:.1f} s")
+        print(f"x{scale:g} ({rate:.0f} kbit/s): {len(scans)} passes, {pulses} pulses x 957 samples in "
+              f"{wall:.1f} s; incomplete {len(report.passes_incomplete)}; most pulses waiting in the "
+              f"40-pulse buffer: {report.max_backlog_pulses}; client CPU {cpu:.1f} s = "
+              f"{100 * cpu / wall:.0f} % of one core over the run ({100 * cpu / max(stream_s, 1e-9):.0f} % "
+              f"of the {stream_s:.0f} s of streaming); max RSS {r1.ru_maxrss / 1024:.0f} MiB; rig simulator "
+              f"(its own process) CPU {device_cpu:.1f} s")
         ok = ok and report.ok and len(scans) == 2 and not report.passes_incomplete
     print(f"C: {'PASS' if ok else 'FAIL'}")
     return ok
@@ -310,20 +322,22 @@ def study_campaign(args, out: Path) -> bool:
     # Drawn at random per request (seeded), not in a fixed rotation: a rotation would hit every kind at the
     # same phase of the cycle each time (e.g. a counter going back always while waiting).
     p_kind = 1.0 / (every * len(KINDS))
-    spec = ",".join(f"{k}={p_kind:.6f}" for k in KINDS) + f",limit={n},seed={args.seed},slow_s=0.3,overflow_pulses=4"
+    spec = (",".join(f"{k}={p_kind:.6f}" for k in KINDS)
+            + f",limit={n},seed={args.seed},slow_s=0.3,overflow_pulses=4")
     print(f"\n== D. issue 12 campaign: {n} faults, each request a fault with probability 1/{every}, kinds "
           f"{', '.join(KINDS)} equally likely ==")
     print(f"   (uwbcl simulate-device --faults '{spec}' --first-seq {SEQ_MODULUS - 100} --initial-cycle "
           f"{SEQ_MODULUS - 3} --time-scale 50, FAST world: 61 pulses x 32 samples per pass)")
     world = WorldConfig(scenario="paper-sim1", seed=args.seed, aperture_length_m=0.45, range_samples=32)
-    device = RigController(DeviceConfig(world=world, time_scale=50.0, first_cycle_after_s=1e9, cycle_interval_s=1e9,
-                                        reboot_s=10.0, first_seq=SEQ_MODULUS - 100, initial_cycle=SEQ_MODULUS - 3))
+    device = RigController(DeviceConfig(world=world, time_scale=50.0, first_cycle_after_s=1e9,
+                                        cycle_interval_s=1e9, reboot_s=10.0, first_seq=SEQ_MODULUS - 100,
+                                        initial_cycle=SEQ_MODULUS - 3))
     device.completed_passes = collections.deque()  # audit every pass, not the last 200 (8 KiB each here)
     plan = parse_faults(spec)
     with RigServer(device, LOOPBACK, 0, faults=plan) as server:
         settings = AcquireSettings(host=LOOPBACK, port=server.port, out=str(out / "D-campaign"), cycles=0,
-                                   heights_m=(0.15, 0.30), timeout_s=0.25, reconnect_max_s=0.5, max_attempts=10,
-                                   stall_timeout_s=1.5, command_timeout_s=20.0)
+                                   heights_m=(0.15, 0.30), timeout_s=0.25, reconnect_max_s=0.5,
+                                   max_attempts=10, stall_timeout_s=1.5, command_timeout_s=20.0)
         marks = {}
 
         def enough(session):  # one more cycle after the last fault, then stop while waiting for the next
@@ -355,7 +369,8 @@ def study_campaign(args, out: Path) -> bool:
               (re.search(r"c(\d+) h(\d+)", f) for f in report.passes_failed) if m}
     lost = scanned - written - failed
     dropped_for_name = [f for f in report.passes_failed if "exists" in f]
-    # Every incomplete attempt: followed by another attempt of the same pass, or its cycle left (face moved on).
+    # Every incomplete attempt: followed by another attempt of the same pass, or its cycle left
+    # (face moved on).
     attempts: dict[tuple[int, int], list[int]] = {}
     for line in report.passes_incomplete:
         m = re.search(r"c(\d+) h(\d+) attempt (\d+):", line)
@@ -377,28 +392,32 @@ def study_campaign(args, out: Path) -> bool:
     print(f"injected: {sum(injected.values())} faults in {requests} requests, {wall:.0f} s "
           f"({requests / wall:.0f} requests/s on average, CPU {cpu:.0f} s):")
     print("   " + ", ".join(f"{k} {v}" for k, v in injected.items()))
-    print(f"wraps: {seq_wraps} whole passes ran across sequence 2^32-1 -> 0 (every boot starts 100 pulses before "
-          f"it); cycle counter values {cycle_log[:3]}... ({sum(1 for a, b in itertools.pairwise(cycle_log) if b < a)}"
-          f" decreases or wraps among {len(cycle_log)} changes)")
-    print(f"client saw: {f.no_reply} lost replies, {f.disconnects} dropped connections, {f.exceptions} exception "
-          f"replies ({f.refused} refused 01/02/03), {f.corrupt} damaged replies, {f.reboots} reboots, "
-          f"{f.reconnects} reconnects, {f.description_changes} IDENTITY/RADAR changes under a pass, "
-          f"{f.rig_id_changes} RIG_ID changes, {f.absurd_values} absurd values, {f.no_progress} watchdog aborts, "
-          f"{f.counter_decreases} counter decreases, {report.cycles_missed} cycles missed, {f.names_taken} "
-          f"archives under a unique name, {f.requests_failed} requests given up, {f.rate_limited} rate-bounded")
-    print(f"passes written: {len(report.passes_written)}; archives whose metadata or data differ from what the "
-          f"controller used: {len(bad_meta)}; whole passes lost: {len(lost)} (dropped for a taken name: "
-          f"{len(dropped_for_name)}); failed after {settings.max_attempts} attempts: {len(report.passes_failed)}")
-    print(f"incomplete attempts: {len(report.passes_incomplete)}: re-run {rerun}, cycle left because the face "
-          f"moved on {left}, neither {not_rerun}")
+    print(f"wraps: {seq_wraps} whole passes ran across sequence 2^32-1 -> 0 (every boot starts 100 pulses "
+          f"before it); cycle counter values {cycle_log[:3]}... "
+          f"({sum(1 for a, b in itertools.pairwise(cycle_log) if b < a)} decreases or wraps among "
+          f"{len(cycle_log)} changes)")
+    print(f"client saw: {f.no_reply} lost replies, {f.disconnects} dropped connections, {f.exceptions} "
+          f"exception replies ({f.refused} refused 01/02/03), {f.corrupt} damaged replies, {f.reboots} "
+          f"reboots, {f.reconnects} reconnects, {f.description_changes} IDENTITY/RADAR changes under a pass, "
+          f"{f.rig_id_changes} RIG_ID changes, {f.absurd_values} absurd values, {f.no_progress} watchdog "
+          f"aborts, {f.counter_decreases} counter decreases, {report.cycles_missed} cycles missed, "
+          f"{f.names_taken} archives under a unique name, {f.requests_failed} requests given up, "
+          f"{f.rate_limited} rate-bounded")
+    print(f"passes written: {len(report.passes_written)}; archives whose metadata or data differ from what "
+          f"the controller used: {len(bad_meta)}; whole passes lost: {len(lost)} (dropped for a taken name: "
+          f"{len(dropped_for_name)}); failed after {settings.max_attempts} attempts: "
+          f"{len(report.passes_failed)}")
+    print(f"incomplete attempts: {len(report.passes_incomplete)}: re-run {rerun}, cycle left because the "
+          f"face moved on {left}, neither {not_rerun}")
     for k, v in sorted(reasons.items(), key=lambda kv: -kv[1]):
         print(f"   {v:3d} x {k}")
-    print(f"cycles: {len(report.cycles_complete)} complete, {len(report.cycles_incomplete)} incomplete; service "
-          f"stops: {1 if report.error else 0}{' (' + report.error + ')' if report.error else ''}")
+    print(f"cycles: {len(report.cycles_complete)} complete, {len(report.cycles_incomplete)} incomplete; "
+          f"service stops: {1 if report.error else 0}{' (' + report.error + ')' if report.error else ''}")
     for line in bad_meta[:10]:
         print(f"   BAD: {line}")
-    ok = (sum(injected.values()) >= n and not bad_meta and not lost and not dropped_for_name and not report.error
-          and not not_rerun and (n < 10 * len(KINDS) or all(v > 0 for v in injected.values())))
+    ok = (sum(injected.values()) >= n and not bad_meta and not lost and not dropped_for_name
+          and not report.error and not not_rerun
+          and (n < 10 * len(KINDS) or all(v > 0 for v in injected.values())))
     print(f"D: {'PASS' if ok else 'FAIL'}")
     return ok
 
@@ -408,7 +427,8 @@ def main() -> int:
     p.add_argument("--cycles", type=int, default=10)
     p.add_argument("--faults", type=int, default=100)
     p.add_argument("--fault-every", type=int, default=250, help="requests between faults in study B")
-    p.add_argument("--campaign-faults", type=int, default=180, help="faults in study D (12 of each kind on average)")
+    p.add_argument("--campaign-faults", type=int, default=180,
+                   help="faults in study D (12 of each kind on average)")
     p.add_argument("--campaign-every", type=int, default=40, help="requests between faults in study D")
     p.add_argument("--time-scale", type=float, default=20.0, help="device time / real time in A and B")
     p.add_argument("--keepup-scales", type=lambda s: [float(v) for v in s.split(",")], default=[1.0, 4.0],
@@ -416,7 +436,8 @@ def main() -> int:
     p.add_argument("--snr-db", type=float, default=10.0)
     p.add_argument("--speed-jitter", type=float, default=0.1)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--backend", default="", help="processing backend for A (default: the pipeline's, else numpy)")
+    p.add_argument("--backend", default="",
+                   help="processing backend for A (default: the pipeline's, else numpy)")
     p.add_argument("--skip", default="", help="comma-separated studies to skip (A, B, C, D)")
     p.add_argument("--out", help="work directory (default: a temporary one)")
     args = p.parse_args()

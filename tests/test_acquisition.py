@@ -1,7 +1,7 @@
 """The acquisition front end: register map, simulated rig controller, `uwbcl acquire` over loopback.
 
-Every test talks to 127.0.0.1 only (a guard below fails any other connect) and is bounded in time: sessions run
-in a thread joined with a deadline, subprocesses with a timeout.
+Every test talks to 127.0.0.1 only (a guard below fails any other connect) and is bounded in time: sessions
+run in a thread joined with a deadline, subprocesses with a timeout.
 """
 
 from __future__ import annotations
@@ -34,8 +34,8 @@ ROOT = Path(__file__).resolve().parents[1]
 LOOPBACK = "127.0.0.1"
 # A short pass (61 pulses x 32 samples, 3 s of device time) on a clock 50x faster than real time.
 FAST_WORLD = WorldConfig(aperture_length_m=0.45, range_samples=32)
-FAST_DEVICE = DeviceConfig(world=FAST_WORLD, time_scale=50.0, first_cycle_after_s=25.0, cycle_interval_s=100.0,
-                           reboot_s=5.0)
+FAST_DEVICE = DeviceConfig(world=FAST_WORLD, time_scale=50.0, first_cycle_after_s=25.0,
+                           cycle_interval_s=100.0, reboot_s=5.0)
 
 
 @pytest.fixture(autouse=True)
@@ -94,7 +94,8 @@ def assert_archives_match_device(report, server: RigServer) -> None:
         np.testing.assert_array_equal(np.rint(scan.pulse_time_s * 1e6), audit["times_us"])
         iq = np.stack([scan.echo.real, scan.echo.imag], axis=-1) / audit["scale"]
         np.testing.assert_array_equal(np.rint(iq), audit["iq"])
-    leftovers = [p for p in Path(report.passes_written[0]).parents[2].rglob(".*")] if report.passes_written else []
+    leftovers = ([p for p in Path(report.passes_written[0]).parents[2].rglob(".*")]
+                 if report.passes_written else [])
     assert leftovers == [], f"partial files left: {leftovers}"
 
 
@@ -110,9 +111,10 @@ def test_32_bit_values_are_high_word_first_and_floats_are_ieee_binary32():
 
 
 def test_every_block_round_trips_in_si_units_and_a_flipped_bit_fails_its_crc():
-    values = {"TOKEN": 7, "CYCLE": 1001, "FIRST_SEQ": 1, "PULSES_PLANNED": 267, "RANGE_WINDOW_START": 9.387e-9,
-              "SAMPLES_PER_PULSE": 128, "DIRECTION": -1, "AMPLITUDE_SCALE": 2.5e-5, "HEIGHT": 0.15,
-              "TABLE_ANGLE": 30.0, "START_TIME": 1793599210.25, "PASS_STATE": 2}
+    values = {"TOKEN": 7, "CYCLE": 1001, "FIRST_SEQ": 1, "PULSES_PLANNED": 267,
+              "RANGE_WINDOW_START": 9.387e-9, "SAMPLES_PER_PULSE": 128, "DIRECTION": -1,
+              "AMPLITUDE_SCALE": 2.5e-5, "HEIGHT": 0.15, "TABLE_ANGLE": 30.0, "START_TIME": 1793599210.25,
+              "PASS_STATE": 2}
     regs = R.PASS.encode(values)
     decoded = R.PASS.decode(regs)
     for name, v in values.items():
@@ -141,12 +143,14 @@ def test_values_that_do_not_fit_are_refused_with_the_field_named():
 def test_the_document_holds_the_register_tables_of_the_code():
     doc = (ROOT / "docs" / "modbus-register-map.md").read_text()
     for name, table in R.markdown_tables().items():
-        assert table in doc, f"docs/modbus-register-map.md: table {name} differs from uwbcl.acquisition.registers"
+        assert table in doc, (f"docs/modbus-register-map.md: table {name} differs from "
+                              f"uwbcl.acquisition.registers")
 
 
 def test_pulse_records_round_trip_and_a_damaged_record_is_named():
     iq = np.array([[[1, -2], [32767, -32767]], [[0, 5], [-7, 8]]], dtype=np.int16)
-    regs = R.encode_record(41, 2.05, -0.75, R.RecordFlag.FIRST, iq[0]) + R.encode_record(42, 2.1, -0.7425, 0, iq[1])
+    regs = (R.encode_record(41, 2.05, -0.75, R.RecordFlag.FIRST, iq[0])
+            + R.encode_record(42, 2.1, -0.7425, 0, iq[1]))
     seq, t, x, _flags, out, bad = R.decode_records(regs, 2, 2)
     assert seq.tolist() == [41, 42] and t.tolist() == [2.05, 2.1] and x.tolist() == [-0.75, -0.7425]
     np.testing.assert_array_equal(out, iq)
@@ -175,7 +179,7 @@ def test_fault_rotation_is_deterministic_and_pass_faults_wait_for_a_pass():
     assert inj.next_request(False, 0.0) is None and inj.next_request(True, 0.0) == "reboot"
 
 
-# ============================================================================================== the controller
+# ============================================================================================= the controller
 
 
 def command(c: RigController, now, seq, code, arg=0):
@@ -260,9 +264,9 @@ def test_the_cycle_signal_waits_for_a_pass_to_finish():
 
 
 def descriptor(**kw):
-    d = {"TOKEN": 3, "CYCLE": 1, "FIRST_SEQ": 10, "PULSES_PLANNED": 3, "PULSES_PRODUCED": 3, "OVERFLOW_COUNT": 0,
-         "RANGE_WINDOW_START": 1e-8, "SAMPLES_PER_PULSE": 2, "DIRECTION": 1, "AMPLITUDE_SCALE": 1.0,
-         "HEIGHT": 0.15, "TABLE_ANGLE": 30.0, "START_TIME": 1.7e9, "PASS_STATE": 2}
+    d = {"TOKEN": 3, "CYCLE": 1, "FIRST_SEQ": 10, "PULSES_PLANNED": 3, "PULSES_PRODUCED": 3,
+         "OVERFLOW_COUNT": 0, "RANGE_WINDOW_START": 1e-8, "SAMPLES_PER_PULSE": 2, "DIRECTION": 1,
+         "AMPLITUDE_SCALE": 1.0, "HEIGHT": 0.15, "TABLE_ANGLE": 30.0, "START_TIME": 1.7e9, "PASS_STATE": 2}
     d.update(kw)
     return d
 
@@ -276,8 +280,8 @@ def test_absurd_pass_sizes_fail_the_pass_before_anything_is_allocated():
     with pytest.raises(AbsurdValue, match="SAMPLES_PER_PULSE"):
         PassAssembler(descriptor(SAMPLES_PER_PULSE=60000), RADAR_OK, Limits())
     with pytest.raises(AbsurdValue, match="MiB"):
-        PassAssembler(descriptor(PULSES_PLANNED=90_000, SAMPLES_PER_PULSE=4000), {**RADAR_OK, "WINDOW_REGS": 60000},
-                      Limits())
+        PassAssembler(descriptor(PULSES_PLANNED=90_000, SAMPLES_PER_PULSE=4000),
+                      {**RADAR_OK, "WINDOW_REGS": 60000}, Limits())
 
 
 def test_gaps_repeats_and_extra_pulses_make_the_pass_incomplete():
@@ -337,12 +341,13 @@ def test_happy_path_two_cycles_two_heights_archived_whole(tmp_path):
     assert first.geometry.reference_point_m == pytest.approx((2.4 * math.tan(math.radians(30)), -2.4, 0.3))
 
 
-EXPECTED_COUNTER = {"drop": "disconnects", "missing": "no_reply", "exception": "exceptions", "corrupt": "corrupt",
-                    "reboot": "reboots", "reconfigure": "reboots", "exception02": "exceptions",
-                    "exception03": "exceptions", "exception04": "exceptions"}
+EXPECTED_COUNTER = {"drop": "disconnects", "missing": "no_reply", "exception": "exceptions",
+                    "corrupt": "corrupt", "reboot": "reboots", "reconfigure": "reboots",
+                    "exception02": "exceptions", "exception03": "exceptions", "exception04": "exceptions"}
 
 
-@pytest.mark.parametrize("kind", [k for k in KINDS if k not in CYCLE_KINDS])  # those leave the cycle: the campaign
+# The CYCLE_KINDS left out leave the cycle: the campaign has them
+@pytest.mark.parametrize("kind", [k for k in KINDS if k not in CYCLE_KINDS])
 def test_each_fault_kind_is_survived_and_nothing_incomplete_is_written(kind, tmp_path):
     # One stall only: each costs the watchdog's second, and the face moves on after 2 s.
     plan = parse_faults(f"every=11,kinds={kind},limit={1 if kind == 'stall' else 3},slow_s=0.05")
@@ -355,7 +360,8 @@ def test_each_fault_kind_is_survived_and_nothing_incomplete_is_written(kind, tmp
     assert_archives_match_device(report, server)
     if EXPECTED_COUNTER.get(kind):
         assert getattr(report.faults, EXPECTED_COUNTER[kind]) >= 1
-    if kind in ("reboot", "overflow", "reconfigure", "absurd", "short", "stall"):  # these always cost the pass: it is marked incomplete and run again
+    # These always cost the pass: it is marked incomplete and run again.
+    if kind in ("reboot", "overflow", "reconfigure", "absurd", "short", "stall"):
         assert len(report.passes_incomplete) >= 1
 
 
@@ -372,7 +378,8 @@ def test_live_processing_publishes_retreat_and_creep_in_the_result_registers(tmp
 
     from uwbcl.acquisition.live import LiveProcessor, processing_settings
 
-    # The second cycle signal comes as soon as the first cycle's two passes are done, however loaded the machine.
+    # The second cycle signal comes as soon as the first cycle's two passes are done, however
+    # loaded the machine.
     device = RigController(DeviceConfig(time_scale=80.0, first_cycle_after_s=30.0, cycle_interval_s=1e9))
     processor = LiveProcessor(processing_settings("numpy", device.campaign.nominal_web_m))
     with RigServer(device, LOOPBACK, 0) as server:
@@ -398,7 +405,8 @@ def test_sigint_mid_pass_stops_cleanly_without_a_partial_archive(tmp_path):
         proc = subprocess.Popen(
             [sys.executable, "-m", "uwbcl.cli", "acquire", "--host", LOOPBACK, "--port", str(server.port),
              "--out", str(tmp_path), "--cycles", "3", "--timeout", "0.5"],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"})
         try:
             deadline = time.monotonic() + 30.0
             while server.faults.requests < 3 and time.monotonic() < deadline:  # the client is waiting
@@ -432,7 +440,8 @@ def test_simulate_device_and_acquire_work_from_the_command_line(tmp_path):
         [sys.executable, "-m", "uwbcl.cli", "simulate-device", "--port", "0", "--time-scale", "50",
          "--state", str(tmp_path / "rig-state.json"),
          "--first-cycle-after", "100", "--cycle-interval", "50", "--range-samples", "32"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
         line = dev.stdout.readline()
         port = int(re.search(r"listening on 127\.0\.0\.1:(\d+)", line).group(1))
@@ -479,9 +488,11 @@ def test_a_controller_with_an_unknown_map_version_or_out_of_range_heights_is_ref
 def test_the_demo_measures_retreat_and_creep_next_to_the_truth(tmp_path, capsys):
     from uwbcl.cli import main
 
-    assert main(["demo", "--cycles", "2", "--out", str(tmp_path), "--backend", "numpy", "--time-scale", "40"]) == 0
+    assert main(["demo", "--cycles", "2", "--out", str(tmp_path), "--backend", "numpy", "--time-scale",
+                 "40"]) == 0
     out = capsys.readouterr().out
-    row = re.search(r"^\s+1002 \|\s+(\S+)\s+(\S+)\s+(\S+) \|\s+(\S+)\s+(\S+)\s+(\S+) \| ok$", out, re.MULTILINE)
+    row = re.search(r"^\s+1002 \|\s+(\S+)\s+(\S+)\s+(\S+) \|\s+(\S+)\s+(\S+)\s+(\S+) \| ok$", out,
+                    re.MULTILINE)
     assert row, out
     assert abs(float(row.group(3))) < 5.0 and abs(float(row.group(6))) < 5.0  # mm
     assert len(archive.find_pass_files(tmp_path)) == 4 and (tmp_path / "truth.csv").exists()

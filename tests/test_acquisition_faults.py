@@ -45,7 +45,8 @@ class _NewRadarAndRigIdAfterReboot(RigController):
 
     def reboot(self, now):
         super().reboot(now)
-        radar = dataclasses.replace(self.campaign.radar, sample_rate_hz=0.75 * self.campaign.radar.sample_rate_hz)
+        radar = dataclasses.replace(self.campaign.radar,
+                                    sample_rate_hz=0.75 * self.campaign.radar.sample_rate_hz)
         self.campaign.radar = self.radar = radar
         self.config = dataclasses.replace(self.config, rig_id="sim-rig-2")
         self.rig_id = "sim-rig-2"  # (the simulator serves RIG_ID from here since map 1.1)
@@ -73,8 +74,8 @@ class _RadarChangesWithoutReboot(RigController):
     def read(self, now, table, address, count):
         if address == R.WINDOW_ADDRESS and self.pass_ is not None and not self.changed:
             self.changed = True
-            self.campaign.radar = dataclasses.replace(self.campaign.radar,
-                                                      sample_rate_hz=0.75 * self.campaign.radar.sample_rate_hz)
+            rate = 0.75 * self.campaign.radar.sample_rate_hz
+            self.campaign.radar = dataclasses.replace(self.campaign.radar, sample_rate_hz=rate)
         return super().read(now, table, address, count)
 
 
@@ -97,7 +98,8 @@ def test_radar_that_changes_under_a_pass_is_seen_on_the_next_connection_and_the_
         report = run_session(settings_for(server, tmp_path, cycles=1))
     assert server.dropped and report.faults.reconnects >= 1 and report.faults.description_changes == 1
     assert report.ok and len(report.passes_written) == 2 and len(report.passes_incomplete) == 1, report
-    assert all(archive.read_pass(p).radar.sample_rate_hz == pytest.approx(new_rate) for p in report.passes_written)
+    assert all(archive.read_pass(p).radar.sample_rate_hz == pytest.approx(new_rate)
+               for p in report.passes_written)
     assert_archives_match_device(report, server)
 
 
@@ -194,7 +196,8 @@ class _StuckRadar(RigController):
 
     def advance(self, now):
         p = self.pass_
-        if p is not None and p.token == self.first_token() and p.produced >= 10 and p.state is R.PassState.RUNNING:
+        if p is not None and p.token == self.first_token() and p.produced >= 10 \
+                and p.state is R.PassState.RUNNING:
             p.t_start = now - float(p.times[p.produced - 1])  # the next pulse never falls due
         super().advance(now)
 
@@ -249,7 +252,8 @@ def test_the_cycle_counter_and_cmd_seq_wrap_at_the_boundary(tmp_path):
 # ============================================================================================== item 4
 
 
-def test_a_decreasing_cycle_counter_is_logged_and_its_passes_written_beside_the_earlier_ones(tmp_path, caplog):
+def test_a_decreasing_cycle_counter_is_logged_and_its_passes_written_beside_the_earlier_ones(
+        tmp_path, caplog):
     device = RigController(dataclasses.replace(FAST_DEVICE, cycle_interval_s=1e9))
 
     def longwall(server):  # 1001 -> 1002 -> back to 1001 (a reset of the longwall control system)
@@ -273,7 +277,8 @@ def test_a_decreasing_cycle_counter_is_logged_and_its_passes_written_beside_the_
 
 
 class _ShortPassOnce(RigController):
-    """The first pass announces 7000 pulses, produces its 61 and reports COMPLETE (a controller that stops early)."""
+    """The first pass announces 7000 pulses, produces its 61 and reports COMPLETE (a controller
+    that stops early)."""
 
     def read(self, now, table, address, count):
         regs = super().read(now, table, address, count)
@@ -291,7 +296,8 @@ def test_pulses_produced_short_of_pulses_planned_is_an_incomplete_pass_re_run(tm
         report = run_session(settings_for(server, tmp_path, cycles=1))
     first = device.__dict__["_first"]
     assert report.ok and len(report.passes_written) == 2 and len(report.passes_incomplete) == 1, report
-    assert all(not archive.read_pass_header(p)["pass_id"].endswith(f"-p{first}") for p in report.passes_written)
+    assert all(not archive.read_pass_header(p)["pass_id"].endswith(f"-p{first}")
+               for p in report.passes_written)
     assert_archives_match_device(report, server)
 
 
@@ -300,10 +306,12 @@ def test_pulses_produced_short_of_pulses_planned_is_an_incomplete_pass_re_run(tm
 
 @pytest.mark.slow  # ~12 s; run by default (no marker is deselected in pyproject.toml)
 def test_a_short_seeded_fault_campaign_of_every_kind_loses_and_misreports_nothing(tmp_path):
-    """scripts/acquisition_study.py D, cut to 45 faults (the full campaign is in the closing note of issue 12)."""
+    """scripts/acquisition_study.py D, cut to 45 faults (the full campaign is in the closing note
+    of issue 12)."""
     script = Path(__file__).resolve().parents[1] / "scripts" / "acquisition_study.py"
-    run = subprocess.run([sys.executable, str(script), "--skip", "A,B,C", "--campaign-faults", "45", "--seed", "3",
-                          "--out", str(tmp_path)], capture_output=True, text=True, timeout=180, check=False)
+    run = subprocess.run([sys.executable, str(script), "--skip", "A,B,C", "--campaign-faults", "45", "--seed",
+                          "3", "--out", str(tmp_path)], capture_output=True, text=True, timeout=180,
+                          check=False)
     out = run.stdout + run.stderr
     assert run.returncode == 0 and "D: PASS" in out, out
     assert "whole passes lost: 0" in out and "differ from what the controller used: 0" in out

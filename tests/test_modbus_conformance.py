@@ -1,7 +1,8 @@
-"""Conformance of `uwbcl simulate-device` to docs/modbus-register-map.md, checked by a client that knows only the
-map: a plain pymodbus client (and raw Modbus TCP frames where pymodbus refuses to build an illegal request),
-register numbers written out from the document, CRC-16/CCITT-FALSE from binascii. Nothing of uwbcl.acquisition
-is imported here on purpose: if the map and the simulator disagree, this test, not the shared code, says so.
+"""Conformance of `uwbcl simulate-device` to docs/modbus-register-map.md, checked by a client that knows
+only the map: a plain pymodbus client (and raw Modbus TCP frames where pymodbus refuses to build an illegal
+request), register numbers written out from the document, CRC-16/CCITT-FALSE from binascii. Nothing of
+uwbcl.acquisition is imported here on purpose: if the map and the simulator disagree, this test, not the
+shared code, says so.
 """
 
 from __future__ import annotations
@@ -72,8 +73,8 @@ def raw_exception(port, function, address, count) -> int:
 
 def start_device(*args) -> tuple[subprocess.Popen, int]:
     proc = subprocess.Popen([sys.executable, "-m", "uwbcl.cli", "simulate-device", "--port", "0",
-                             "--range-samples", "8", *args], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                            text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                             "--range-samples", "8", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     line = proc.stdout.readline()
     m = re.search(r"listening on 127\.0\.0\.1:(\d+)", line)
     if not m:
@@ -103,8 +104,9 @@ def wait_for(predicate, timeout_s=10.0, what=""):
 
 def test_boot_id_changes_and_the_cycle_counter_persists_across_restarts_and_wraps(tmp_path):
     state = tmp_path / "rig-state.json"
-    proc, port = start_device("--state", str(state), "--time-scale", "50", "--initial-cycle", str(SEQ_MOD - 2),
-                              "--first-cycle-after", "1", "--cycle-interval", "2", "--max-cycles", "2")
+    proc, port = start_device("--state", str(state), "--time-scale", "50", "--initial-cycle",
+                              str(SEQ_MOD - 2), "--first-cycle-after", "1", "--cycle-interval", "2",
+                              "--max-cycles", "2")
     try:
         c = ModbusTcpClient(LOOPBACK, port=port, timeout=2.0)
         wait_for(lambda: u32(block(c, STATUS), 12) == 0, what="the cycle counter to wrap 2^32-1 -> 0")

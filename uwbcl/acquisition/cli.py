@@ -22,8 +22,8 @@ from ..scenarios import SCENARIOS
 def add_acquisition_commands(sub) -> None:
     """Add simulate-device, acquire and demo to the `uwbcl` subcommands."""
     d = sub.add_parser("simulate-device", help="serve a simulated rig controller over Modbus TCP",
-                       description="A rig controller implementing docs/modbus-register-map.md, fed by the echo "
-                                   "simulator. Runs until interrupted.")
+                       description="A rig controller implementing docs/modbus-register-map.md, fed by the "
+                                   "echo simulator. Runs until interrupted.")
     d.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     d.add_argument("--port", type=int, default=5020, help="TCP port; 0 picks a free one (default 5020)")
     _world_options(d)
@@ -31,8 +31,9 @@ def add_acquisition_commands(sub) -> None:
     d.set_defaults(func=_simulate_device)
 
     a = sub.add_parser("acquire", help="acquire passes from a rig over Modbus TCP into an archive directory",
-                       description="Waits for the longwall cycle signal, scans every configured height, writes "
-                                   "each pass atomically (docs/archive-format.md); incomplete passes are re-run.")
+                       description="Waits for the longwall cycle signal, scans every configured height, "
+                                   "writes each pass atomically (docs/archive-format.md); incomplete passes "
+                                   "are re-run.")
     a.add_argument("--host", help="rig controller address (default 127.0.0.1)")
     a.add_argument("--port", type=int, help="Modbus TCP port (default 502)")
     a.add_argument("--unit-id", type=int, help="Modbus unit id (default 1)")
@@ -49,14 +50,17 @@ def add_acquisition_commands(sub) -> None:
     a.add_argument("--process", action="store_true", default=None,
                    help="focus each finished cycle and publish retreat/creep to the result registers")
     a.add_argument("--backend", help="processing backend (default: the pipeline's)")
-    a.add_argument("--web-depth", type=float, help="nominal web depth in metres, a prior for plate association")
+    a.add_argument("--web-depth", type=float,
+                   help="nominal web depth in metres, a prior for plate association")
     a.set_defaults(func=_acquire)
 
     m = sub.add_parser("demo", help="simulated rig on loopback -> acquire -> process -> retreat/creep table",
-                       description="Starts a simulated rig on 127.0.0.1, acquires a few cycles (time-scaled), "
-                                   "processes them and prints the measured retreat and creep beside the truth.")
+                       description="Starts a simulated rig on 127.0.0.1, acquires a few cycles "
+                                   "(time-scaled), processes them and prints the measured retreat and creep "
+                                   "beside the truth.")
     m.add_argument("--cycles", type=int, default=4, help="cycles to acquire (default 4: 3 displacements)")
-    m.add_argument("--out", help="directory for the archives and results (default: a new temporary directory)")
+    m.add_argument("--out",
+                   help="directory for the archives and results (default: a new temporary directory)")
     m.add_argument("--time-scale", type=float, default=20.0, help="device time / real time (default 20)")
     m.add_argument("--faults", default="", help="inject faults, e.g. every=300 (see simulate-device --help)")
     m.add_argument("--backend", help="processing backend (default: the pipeline's, numpy if unavailable)")
@@ -76,10 +80,13 @@ def _world_options(p) -> None:
     p.add_argument("--scenario", choices=sorted(SCENARIOS), default="paper-sim1",
                    help="plate pattern, radar and rail of a paper scenario, repeated along the roadway")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--snr-db", type=float, default=None, help="receiver SNR per raw sample (default: noise-free)")
-    p.add_argument("--speed-jitter", type=float, default=0.0, help="carriage speed wander, e.g. 0.1 for +-10%%")
+    p.add_argument("--snr-db", type=float, default=None,
+                   help="receiver SNR per raw sample (default: noise-free)")
+    p.add_argument("--speed-jitter", type=float, default=0.0,
+                   help="carriage speed wander, e.g. 0.1 for +-10%%")
     p.add_argument("--range-samples", type=int, default=None,
-                   help="fixed range gate in samples (default: a power of two covering the plates in the beam)")
+                   help="fixed range gate in samples (default: a power of two covering the plates in the "
+                        "beam)")
     p.add_argument("--prf", type=float, default=None, help="pulse repetition frequency in Hz (default: 20)")
 
 
@@ -90,19 +97,25 @@ def _device_options(p) -> None:
                    help="cycle counter at the first start, when the state file holds none (default 1000)")
     p.add_argument("--state", default=None,
                    help="file keeping CYCLE_COUNTER and the last BOOT_ID across restarts (default "
-                        "$XDG_STATE_HOME/uwbcl/simulate-device-<rig-id>.json, i.e. ~/.local/state/...); '' keeps none")
+                        "$XDG_STATE_HOME/uwbcl/simulate-device-<rig-id>.json, i.e. ~/.local/state/...); '' "
+                        "keeps none")
     p.add_argument("--first-seq", type=int, default=1,
                    help="sequence number of the first pulse after each boot (default 1; e.g. 4294967000 to "
                         "exercise the wrap 2^32-1 -> 0)")
-    p.add_argument("--first-cycle-after", type=float, default=5.0, help="device seconds to the first cycle signal")
+    p.add_argument("--first-cycle-after", type=float, default=5.0,
+                   help="device seconds to the first cycle signal")
     p.add_argument("--cycle-interval", type=float, default=2700.0,
                    help="device seconds between cycle signals (default 2700 = 45 min)")
-    p.add_argument("--max-cycles", type=int, default=None, help="raise the cycle signal this many times, then stop")
+    p.add_argument("--max-cycles", type=int, default=None,
+                   help="raise the cycle signal this many times, then stop")
     p.add_argument("--buffer", type=int, default=512, help="pulse buffer capacity (default 512)")
-    p.add_argument("--window-regs", type=int, default=2048, help="pulse window size in registers (default 2048)")
-    p.add_argument("--faults", default="", help="fault injection spec, e.g. 'every=50' or 'drop=0.01,corrupt=0.01'"
+    p.add_argument("--window-regs", type=int, default=2048,
+                   help="pulse window size in registers (default 2048)")
+    p.add_argument("--faults", default="",
+                   help="fault injection spec, e.g. 'every=50' or 'drop=0.01,corrupt=0.01'"
                    " (kinds: drop missing slow exception exception02 exception03 exception04 corrupt reboot "
-                   "reconfigure overflow absurd short stall counter_back counter_jump; see uwbcl/acquisition/faults.py)")
+                   "reconfigure overflow absurd short stall counter_back counter_jump; see "
+                   "uwbcl/acquisition/faults.py)")
 
 
 def _device_config(args, world):
@@ -163,7 +176,8 @@ def _simulate_device(args: argparse.Namespace) -> int:
 
 @contextlib.contextmanager
 def _stop_on_signals(stop: threading.Event):
-    """SIGINT/SIGTERM set `stop` (the session finishes cleanly) while inside; the old handlers come back after."""
+    """SIGINT/SIGTERM set `stop` (the session finishes cleanly) while inside; the old handlers
+    come back after."""
     def handler(signum, _frame):
         logging.getLogger("uwbcl.acquire").warning("%s received: finishing cleanly",
                                                   signal.Signals(signum).name)
@@ -186,8 +200,8 @@ def _acquire(args: argparse.Namespace) -> int:
             args.config, host=args.host, port=args.port, unit_id=args.unit_id, out=args.out,
             heights_m=parse_heights(args.heights), cycles=args.cycles, rotation_table_angle_deg=args.angle,
             rib_distance_m=args.rib_distance, reference_height_m=args.reference_height, rig_id=args.rig_id,
-            timeout_s=args.timeout, max_attempts=args.max_attempts, process=args.process, backend=args.backend,
-            web_depth_m=args.web_depth)
+            timeout_s=args.timeout, max_attempts=args.max_attempts, process=args.process,
+            backend=args.backend, web_depth_m=args.web_depth)
     except (ConfigError, ValueError, TypeError) as exc:
         print(f"uwbcl acquire: {exc}", file=sys.stderr)
         return 2
@@ -209,15 +223,17 @@ def _acquire(args: argparse.Namespace) -> int:
 
 def _print_summary(report, out) -> None:
     f = report.faults
-    print(f"{len(report.passes_written)} passes written to {out}; {len(report.passes_incomplete)} incomplete and "
-          f"re-run; {len(report.passes_failed)} failed; cycles complete {len(report.cycles_complete)}, "
+    print(f"{len(report.passes_written)} passes written to {out}; {len(report.passes_incomplete)} incomplete "
+          f"and re-run; {len(report.passes_failed)} failed; cycles complete {len(report.cycles_complete)}, "
           f"incomplete {len(report.cycles_incomplete)}, missed {report.cycles_missed}")
-    print(f"faults seen: {f.no_reply} lost replies, {f.disconnects} dropped connections, {f.exceptions} exception "
-          f"replies, {f.corrupt} corrupted replies, {f.reboots} controller reboots ({f.reconnects} reconnects)")
-    print(f"  {f.refused} refused requests (01/02/03), {f.requests_failed} requests given up, {f.absurd_values} absurd "
-          f"values, {f.description_changes} IDENTITY/RADAR changes under a pass, {f.rig_id_changes} RIG_ID "
-          f"changes, {f.no_progress} watchdog aborts, {f.counter_decreases} cycle-counter decreases, "
-          f"{f.names_taken} archives under a unique name, {f.rate_limited} requests delayed by the rate bound")
+    print(f"faults seen: {f.no_reply} lost replies, {f.disconnects} dropped connections, {f.exceptions} "
+          f"exception replies, {f.corrupt} corrupted replies, {f.reboots} controller reboots ({f.reconnects} "
+          f"reconnects)")
+    print(f"  {f.refused} refused requests (01/02/03), {f.requests_failed} requests given up, "
+          f"{f.absurd_values} absurd values, {f.description_changes} IDENTITY/RADAR changes under a pass, "
+          f"{f.rig_id_changes} RIG_ID changes, {f.no_progress} watchdog aborts, {f.counter_decreases} "
+          f"cycle-counter decreases, {f.names_taken} archives under a unique name, {f.rate_limited} requests "
+          f"delayed by the rate bound")
     for line in report.passes_failed:
         print(f"  failed: {line}", file=sys.stderr)
     if report.error:
@@ -261,12 +277,13 @@ def _demo(args: argparse.Namespace) -> int:
     stop = threading.Event()
     with _stop_on_signals(stop), RigServer(device, "127.0.0.1", 0, faults=plan) as server:
         print(f"simulated rig on 127.0.0.1:{server.port} (paper-sim1 plates along the roadway, SNR "
-              f"{args.snr_db:g} dB, time x{args.time_scale:g}); acquiring {args.cycles} cycles at 0.15 and 0.30 m "
-              f"with the {proc.backend} backend ...", flush=True)
+              f"{args.snr_db:g} dB, time x{args.time_scale:g}); acquiring {args.cycles} cycles at 0.15 and "
+              f"0.30 m with the {proc.backend} backend ...", flush=True)
         settings = AcquireSettings(host="127.0.0.1", port=server.port, out=str(out), cycles=args.cycles,
                                    heights_m=(0.15, 0.30), rotation_table_angle_deg=30.0, rib_distance_m=2.4,
                                    reference_height_m=0.3, timeout_s=1.0, process=True)
-        session = AcquisitionSession(settings, stop=stop, processor=LiveProcessor(proc, max_pending=args.cycles))
+        session = AcquisitionSession(settings, stop=stop,
+                                     processor=LiveProcessor(proc, max_pending=args.cycles))
         longwall = LongwallFollower(
             server, lambda: len(session.report.cycles_complete) + len(session.report.cycles_incomplete),
             listening=lambda: session.link.requests > 3)
@@ -276,8 +293,8 @@ def _demo(args: argparse.Namespace) -> int:
     truth_rows = _write_truth(out, device, report)
     _print_table(truth_rows)
     _print_summary(report, out)
-    print(f"archives: {out}/{device.config.rig_id}/...  results: {out}/acquire-results.csv  truth: {out}/truth.csv"
-          f"  ({time.monotonic() - t_start:.0f} s)")
+    print(f"archives: {out}/{device.config.rig_id}/...  results: {out}/acquire-results.csv  truth: "
+          f"{out}/truth.csv  ({time.monotonic() - t_start:.0f} s)")
     measured = [r for r in truth_rows if r["status"] == "ok"]
     return 0 if report.ok and len(measured) == args.cycles - 1 else 1
 
@@ -292,8 +309,9 @@ def _write_truth(out: Path, device, report) -> list[dict]:
         k, k0 = device.cycle_index(r["cycle"]), device.cycle_index(r["previous_cycle"])
         true = device.campaign.rig_position_m(k) - device.campaign.rig_position_m(k0)
         rows.append({"cycle": r["cycle"], "previous_cycle": r["previous_cycle"], "retreat_m": r["retreat_m"],
-                     "true_retreat_m": float(true[0]), "creep_m": r["creep_m"], "true_creep_m": float(true[1]),
-                     "vertical_m": r["vertical_m"], "true_vertical_m": float(true[2]), "status": r["status"]})
+                     "true_retreat_m": float(true[0]), "creep_m": r["creep_m"],
+                     "true_creep_m": float(true[1]), "vertical_m": r["vertical_m"],
+                     "true_vertical_m": float(true[2]), "status": r["status"]})
     cols = ("cycle", "previous_cycle", "retreat_m", "true_retreat_m", "creep_m", "true_creep_m", "vertical_m",
             "true_vertical_m", "status")
     fmt = [{k: (f"{v:.6f}" if isinstance(v, float) else v) for k, v in row.items()} for row in rows]

@@ -1,4 +1,5 @@
-"""`uwbcl acquire`: drive the rig over Modbus TCP, drain its pulse buffer, archive every pass whole or not at all.
+"""`uwbcl acquire`: drive the rig over Modbus TCP, drain its pulse buffer, archive every pass whole or
+not at all.
 
 `RigLink` owns the Modbus connection: every request is retried through exception replies, lost replies and
 dropped connections, reconnecting with exponential backoff, under a request-rate bound; CRC-checked blocks are
@@ -43,8 +44,8 @@ class Interrupted(Exception):
 
 
 class LinkDown(Exception):
-    """A request failed (fault REFUSED: exception 01/02/03 repeated, 04/06 or damaged replies too many times in a
-    row): the step it belongs to fails; inside a pass the pass is re-run. Never stops acquisition."""
+    """A request failed (fault REFUSED: exception 01/02/03 repeated, 04/06 or damaged replies too many times
+    in a row): the step it belongs to fails; inside a pass the pass is re-run. Never stops acquisition."""
 
 
 class DescriptionChanged(PassIncomplete):
@@ -96,7 +97,8 @@ class AcquireSettings:
         return Limits(self.max_samples_per_pulse, self.max_pulses_per_pass, self.max_pass_bytes)
 
     def reference_point_m(self, boresight_y_sign: int) -> tuple[float, float, float]:
-        """Scene centre T: the point of the rib on boresight (tan theta = x_T / W), at the plate row height."""
+        """Scene centre T: the point of the rib on boresight (tan theta = x_T / W), at the plate
+        row height."""
         w = self.rib_distance_m
         return (w * math.tan(math.radians(self.rotation_table_angle_deg)), boresight_y_sign * w,
                 self.reference_height_m)
@@ -111,15 +113,18 @@ class AcquireSettings:
         for name in ("timeout_s", "reconnect_max_s", "stall_timeout_s", "command_timeout_s", "poll_s",
                      "rib_distance_m", "max_request_rate_hz"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
-                raise ConfigError(None, f"acquire.{name}", f"must be finite and > 0, got {getattr(self, name)}")
+                raise ConfigError(None, f"acquire.{name}",
+                                  f"must be finite and > 0, got {getattr(self, name)}")
         if self.max_attempts < 1 or self.cycles < 0:
-            raise ConfigError(None, "acquire.max_attempts/cycles", "max_attempts must be >= 1 and cycles >= 0")
+            raise ConfigError(None, "acquire.max_attempts/cycles",
+                              "max_attempts must be >= 1 and cycles >= 0")
         if not 0 < self.port < 65536 or not 0 <= self.unit_id <= 255:
             raise ConfigError(None, "acquire.port/unit_id", "port must be in 1..65535 and unit_id in 0..255")
 
 
 def load_settings(path: str | Path | None, **overrides) -> AcquireSettings:
-    """Settings from the `[acquire]` table of a TOML file, then the non-None overrides (command-line flags)."""
+    """Settings from the `[acquire]` table of a TOML file, then the non-None overrides
+    (command-line flags)."""
     values: dict = {}
     if path is not None:
         table = read_toml(path).get("acquire", {})  # the one site file and its checks (uwbcl.config)
@@ -128,7 +133,8 @@ def load_settings(path: str | Path | None, **overrides) -> AcquireSettings:
         fields = {f.name: f for f in dataclasses.fields(AcquireSettings)}
         for key, value in table.items():
             if key not in fields:
-                raise ConfigError(path, f"[acquire] {key}", f"unknown setting; expected one of {', '.join(fields)}")
+                raise ConfigError(path, f"[acquire] {key}",
+                                  f"unknown setting; expected one of {', '.join(fields)}")
             values[key] = _coerce(path, key, value, fields[key].type)
     values.update({k: v for k, v in overrides.items() if v is not None})
     if "heights_m" in values:
@@ -224,7 +230,8 @@ class RigLink:
             self.counts.rate_limited += 1
             if now - self._rate_logged > 60.0:
                 self._rate_logged = now
-                log.warning("fault: request rate bound (%g/s) reached; requests are being delayed", self._rate_hz)
+                log.warning("fault: request rate bound (%g/s) reached; requests are being delayed",
+                            self._rate_hz)
             self.sleep((1.0 - self._tokens) / self._rate_hz)
             self._tokens = 1.0
             self._tokens_t = time.monotonic()
@@ -233,8 +240,8 @@ class RigLink:
     # ------------------------------------------------------------------------------------------ connection
 
     def ensure_connected(self) -> None:
-        """Connect (again) with exponential backoff; read STATUS, IDENTITY and RADAR on every new connection (map
-        4.1, 4.3); DeviceRebooted if BOOT_ID changed since the last connection."""
+        """Connect (again) with exponential backoff; read STATUS, IDENTITY and RADAR on every new
+        connection (map 4.1, 4.3); DeviceRebooted if BOOT_ID changed since the last connection."""
         delay = 0.05
         while not self.client.connected:
             if self.stop.is_set():
@@ -298,7 +305,8 @@ class RigLink:
             try:
                 reply = fn()
             except (ModbusException, OSError) as exc:
-                kind = "connection lost" if "onnection" in str(exc) or isinstance(exc, OSError) else "no reply"
+                lost_link = "onnection" in str(exc) or isinstance(exc, OSError)
+                kind = "connection lost" if lost_link else "no reply"
                 if kind == "no reply":
                     self.counts.no_reply += 1
                 else:
@@ -307,12 +315,14 @@ class RigLink:
                 self.client.close()  # a fresh connection: a late reply can never be taken for the next one
                 lost += 1
                 if lost > 1:  # the first one reconnects at once; a controller that keeps dropping us is paced
-                    self.sleep(min(0.05 * 2 ** (lost - 2), self.reconnect_max_s) * (0.8 + 0.4 * self._jitter.random()))
+                    self.sleep(min(0.05 * 2 ** (lost - 2), self.reconnect_max_s)
+                               * (0.8 + 0.4 * self._jitter.random()))
                 continue
             if reply.isError():
                 code = getattr(reply, "exception_code", None)
                 self.counts.exceptions += 1
-                if code in (1, 2, 3):  # REFUSED: a damaged request gets one; a request this device refuses, all
+                # REFUSED: a damaged request gets one; a request this device refuses, all
+                if code in (1, 2, 3):
                     self.counts.refused += 1
                     refused += 1
                     if refused > self.MAX_REFUSED_RETRIES:
@@ -335,7 +345,8 @@ class RigLink:
             fn = lambda: self.client.read_input_registers(address, count=count, device_id=self.unit_id)
         else:
             fn = lambda: self.client.read_holding_registers(address, count=count, device_id=self.unit_id)
-        regs = self._request(f"read {'IR' if table is R.Table.INPUT else 'HR'} {address}+{count}", fn).registers
+        regs = self._request(f"read {'IR' if table is R.Table.INPUT else 'HR'} {address}+{count}",
+                             fn).registers
         if len(regs) != count:
             self.counts.corrupt += 1
             raise _Corrupt(f"read {address}+{count}: {len(regs)} registers came back")
@@ -422,16 +433,27 @@ class AcquisitionReport:
         return not (self.passes_failed or self.error)
 
 
+@dataclasses.dataclass
+class _DrainState:
+    """The bookkeeping of one AcquisitionSession._drain loop."""
+    last_progress: float
+    last_status: float
+    seen_state: tuple | None = None
+    corrupt_in_a_row: int = 0
+    empty_after_end: int = 0
+
+
 class AcquisitionSession:
-    """Runs `uwbcl acquire` against one rig; `run()` returns an AcquisitionReport (docs/modbus-register-map.md s. 8)."""
+    """Runs `uwbcl acquire` against one rig; `run()` returns an AcquisitionReport
+    (docs/modbus-register-map.md s. 8)."""
 
     def __init__(self, settings: AcquireSettings, stop: threading.Event | None = None, processor=None):
         settings.validate()
         self.settings = settings
         self.stop = stop or threading.Event()
-        self.link = RigLink(settings.host, settings.port, unit_id=settings.unit_id, timeout_s=settings.timeout_s,
-                            reconnect_max_s=settings.reconnect_max_s, stop=self.stop,
-                            max_request_rate_hz=settings.max_request_rate_hz)
+        self.link = RigLink(settings.host, settings.port, unit_id=settings.unit_id,
+                            timeout_s=settings.timeout_s, reconnect_max_s=settings.reconnect_max_s,
+                            stop=self.stop, max_request_rate_hz=settings.max_request_rate_hz)
         self.report = AcquisitionReport(faults=self.link.counts)
         self.processor = processor
         self.out = Path(settings.out)
@@ -474,7 +496,8 @@ class AcquisitionSession:
 
     def _adopt_description(self) -> None:
         """Take IDENTITY and RADAR as the link last read them (this connection, this boot) for the next pass;
-        log a new rig id; AbsurdValue if RADAR is unusable, DeviceRefused if the configuration does not fit."""
+        log a new rig id; AbsurdValue if RADAR is unusable, DeviceRefused if the configuration does
+        not fit."""
         if self.link.identity is None or self.link.radar is None:  # a reboot whose re-read failed: read now
             self.link.describe()
         identity, radar = self.link.identity, self.link.radar
@@ -489,8 +512,8 @@ class AcquisitionSession:
         rig_id = self.settings.rig_id or identity["RIG_ID"] or "rig"
         if self.rig_id and rig_id != self.rig_id:
             self.link.counts.rig_id_changes += 1
-            log.warning("fault: controller RIG_ID changed from %r to %r; archives carry the new id", self.rig_id,
-                        rig_id)
+            log.warning("fault: controller RIG_ID changed from %r to %r; archives carry the new id",
+                        self.rig_id, rig_id)
         if self.radar is not None and radar != self.radar:
             changed = sorted(k for k in radar if radar[k] != self.radar.get(k))
             log.warning("controller RADAR changed (%s); passes from now on use the new values",
@@ -502,23 +525,27 @@ class AcquisitionSession:
         if self.processor is not None and (not self.processor.rig_id or not self.settings.rig_id):
             self.processor.rig_id = rig_id
         log.log(logging.INFO if first else logging.WARNING,
-                "rig %s (%s, serial %d, firmware 0x%08X, map %d.%d) at %s:%d: f_c %.3f GHz, fs %.3f GHz, PRF %g Hz, "
-                "buffer %d pulses", rig_id, identity["VENDOR"], identity["SERIAL"], identity["FIRMWARE"],
-                identity["MAP_MAJOR"], identity["MAP_MINOR"], self.settings.host, self.settings.port,
-                radar["CARRIER_FREQUENCY"] / 1e9, radar["SAMPLE_RATE"] / 1e9, radar["PRF"], radar["BUFFER_CAPACITY"])
+                "rig %s (%s, serial %d, firmware 0x%08X, map %d.%d) at %s:%d: f_c %.3f GHz, fs %.3f GHz, PRF "
+                "%g Hz, buffer %d pulses", rig_id, identity["VENDOR"], identity["SERIAL"],
+                identity["FIRMWARE"], identity["MAP_MAJOR"], identity["MAP_MINOR"], self.settings.host,
+                self.settings.port, radar["CARRIER_FREQUENCY"] / 1e9, radar["SAMPLE_RATE"] / 1e9,
+                radar["PRF"], radar["BUFFER_CAPACITY"])
 
     def _check_configuration(self, radar: dict) -> None:
-        """Fault CONFIGURATION: configured heights and angle the rig cannot reach (when RADAR gives its limits)."""
+        """Fault CONFIGURATION: configured heights and angle the rig cannot reach (when RADAR gives
+        its limits)."""
         lo, hi = radar["HEIGHT_MIN"], radar["HEIGHT_MAX"]
         if math.isfinite(lo) and math.isfinite(hi) and hi > lo:
             for h in self.settings.heights_m:
                 if not lo - 1e-6 <= h <= hi + 1e-6:
-                    raise DeviceRefused(f"MOVE_HEIGHT {round(h * 1e6)}: outside the rig's range (height {h:g} m, "
-                                        f"RADAR HEIGHT_MIN..HEIGHT_MAX {lo:g}..{hi:g} m; check heights)")
+                    raise DeviceRefused(f"MOVE_HEIGHT {round(h * 1e6)}: outside the rig's range (height "
+                                        f"{h:g} m, RADAR HEIGHT_MIN..HEIGHT_MAX {lo:g}..{hi:g} m; check "
+                                        f"heights)")
         table_max = radar["TABLE_MAX"]
-        if math.isfinite(table_max) and table_max > 0 and abs(self.settings.rotation_table_angle_deg) > table_max:
-            raise DeviceRefused(f"SET_TABLE_ANGLE {self.settings.rotation_table_angle_deg:g} deg: outside the rig's "
-                                f"range (RADAR TABLE_MAX {table_max:g} deg; check the angle)")
+        if math.isfinite(table_max) and table_max > 0 \
+                and abs(self.settings.rotation_table_angle_deg) > table_max:
+            raise DeviceRefused(f"SET_TABLE_ANGLE {self.settings.rotation_table_angle_deg:g} deg: outside "
+                                f"the rig's range (RADAR TABLE_MAX {table_max:g} deg; check the angle)")
 
     def _status(self) -> dict:
         status = self.link.read_block(R.STATUS)
@@ -576,8 +603,9 @@ class AcquisitionSession:
                                 R.seq_add(last, 1), R.seq_add(cycle, -1), last, cycle)
                 elif step < 0:
                     self.link.counts.counter_decreases += 1
-                    log.warning("fault: cycle counter decreased from %d to %d; scanning %d as a new cycle (its "
-                                "archives are named so that they cannot replace earlier ones)", last, cycle, cycle)
+                    log.warning("fault: cycle counter decreased from %d to %d; scanning %d as a new cycle "
+                                "(its archives are named so that they cannot replace earlier ones)", last,
+                                cycle, cycle)
                 last = cycle
                 pending = self._scan_cycle(cycle)
                 done += 1
@@ -585,7 +613,8 @@ class AcquisitionSession:
                 if pending is not None and pending == last:
                     pending = None
             except (LinkDown, DeviceRebooted, PassIncomplete) as exc:
-                log.warning("fault: %s; waiting %.1f s before going on", exc or "controller rebooted", pause_s)
+                log.warning("fault: %s; waiting %.1f s before going on", exc or "controller rebooted",
+                            pause_s)
                 self.link.sleep(pause_s)
                 pause_s = min(2.0 * pause_s, self.settings.reconnect_max_s)
 
@@ -634,8 +663,8 @@ class AcquisitionSession:
                     break
                 if not path.name.endswith(f"_h{round(height * 1000):04d}.h5"):
                     self.link.counts.names_taken += 1
-                    log.warning("pass %s: the usual archive name was taken (cycle %d acquired before); written "
-                                "as %s", name, cycle, path.name)
+                    log.warning("pass %s: the usual archive name was taken (cycle %d acquired before); "
+                                "written as %s", name, cycle, path.name)
                 self.report.passes_written.append(str(path))
                 passes.append(scan)
                 start_time = start_time or scan.pass_start_time
@@ -644,8 +673,8 @@ class AcquisitionSession:
                 break
             else:
                 self.report.passes_failed.append(f"{name}: incomplete {self.settings.max_attempts} times")
-                log.error("pass %s failed %d times; cycle %d stays incomplete", name, self.settings.max_attempts,
-                          cycle)
+                log.error("pass %s failed %d times; cycle %d stays incomplete", name,
+                          self.settings.max_attempts, cycle)
         complete = len(passes) == len(self.settings.heights_m)
         (self.report.cycles_complete if complete else self.report.cycles_incomplete).append(cycle)
         self._submit(cycle, passes, complete=complete, start_time=start_time)
@@ -654,8 +683,9 @@ class AcquisitionSession:
     # ------------------------------------------------------------------------------------------ one pass
 
     def _run_pass(self, cycle: int, height_m: float):
-        """One attempt: returns (scan, token, boot id), the scan carrying the IDENTITY and RADAR the controller
-        had for the whole pass; PassIncomplete (or a subclass), DeviceRebooted or LinkDown otherwise."""
+        """One attempt: returns (scan, token, boot id), the scan carrying the IDENTITY and RADAR the
+        controller had for the whole pass; PassIncomplete (or a subclass), DeviceRebooted or LinkDown
+        otherwise."""
         status = self._status()
         if status["CYCLE_COUNTER"] != cycle:
             raise CycleSuperseded(status["CYCLE_COUNTER"])
@@ -687,9 +717,10 @@ class AcquisitionSession:
             raise DeviceRebooted()
         if self.link.identity != identity or self.link.radar != radar:
             self.link.counts.description_changes += 1
-            raise DescriptionChanged("IDENTITY or RADAR changed during the pass; running it again with the new "
-                                     "values")
-        scan = assembler.scan_pass(radar, rig_id=rig_id, reference_point_m=self.reference_point_m, cycle=cycle)
+            raise DescriptionChanged("IDENTITY or RADAR changed during the pass; running it again with the "
+                                     "new values")
+        scan = assembler.scan_pass(radar, rig_id=rig_id, reference_point_m=self.reference_point_m,
+                                   cycle=cycle)
         return scan, token, boot
 
     def _drain(self, asm: PassAssembler) -> None:
@@ -697,80 +728,103 @@ class AcquisitionSession:
         watchdog (no new pulse and no change of STATE, STATUS_WORD, FAULT_WORD or PASS for stall_timeout_s)
         ABORTs the pass; every pass through the loop that stores nothing waits poll_s, so it cannot spin."""
         window_regs = int(self.radar["WINDOW_REGS"])
-        hdr = R.WINDOW_HEADER.length
-        last_progress = last_status = time.monotonic()
-        seen_state = None
-        corrupt_in_a_row = empty_after_end = 0
+        now = time.monotonic()
+        d = _DrainState(last_progress=now, last_status=now)
         while True:
             if self.stop.is_set():
                 raise Interrupted()
-            now = time.monotonic()
-            if now - last_progress > self.settings.stall_timeout_s:
-                self.link.counts.no_progress += 1
-                log.warning("fault: pass token %d: no new pulse and no state change for %g s (watchdog); aborting",
-                            asm.token, self.settings.stall_timeout_s)
-                raise PassIncomplete(f"no progress for {self.settings.stall_timeout_s:g} s (watchdog)")
-            first = self.link.read(R.Table.INPUT, R.WINDOW_ADDRESS, min(R.MAX_REGISTERS_PER_READ, window_regs))
+            self._check_watchdog(asm, d)
+            first = self.link.read(R.Table.INPUT, R.WINDOW_ADDRESS,
+                                   min(R.MAX_REGISTERS_PER_READ, window_regs))
             try:
-                head = R.WINDOW_HEADER.decode(first[:hdr])
-                n, rec_regs = head["RECORDS"], head["RECORD_REGS"]
-                if n:
-                    if head["TOKEN"] != asm.token:
-                        raise PassIncomplete(f"the window holds pulses of pass token {head['TOKEN']}")
-                    if rec_regs != R.record_regs(asm.samples_per_pulse) or hdr + n * rec_regs > window_regs:
-                        raise PassIncomplete(f"window header claims {n} records of {rec_regs} registers")
-                    regs = first + self._read_rest(len(first), hdr + n * rec_regs)
-                    seq, t, x, flags, iq, bad = R.decode_records(regs[hdr:], n, asm.samples_per_pulse)
-                    if bad:
-                        raise R.RegisterError(f"pulse window: CRC mismatch in record(s) {bad[:5]} "
-                                              f"(seq {R.seq_add(head['OLDEST_SEQ'], bad[0])})")
+                head, records = self._decode_window(asm, first, window_regs)
             except R.RegisterError as exc:
                 self.link.counts.corrupt += 1
-                corrupt_in_a_row += 1
+                d.corrupt_in_a_row += 1
                 log.warning("fault: %s; re-reading the window", exc)
-                if corrupt_in_a_row > RigLink.MAX_CRC_RETRIES:
-                    raise PassIncomplete(f"pulse window corrupted {corrupt_in_a_row} times in a row") from None
+                if d.corrupt_in_a_row > RigLink.MAX_CRC_RETRIES:
+                    raise PassIncomplete(f"pulse window corrupted {d.corrupt_in_a_row} times "
+                                         f"in a row") from None
                 continue
-            corrupt_in_a_row = 0
+            d.corrupt_in_a_row = 0
             now = time.monotonic()
             self.report.max_backlog_pulses = max(self.report.max_backlog_pulses,
                                                  R.seq_diff(head["NEWEST_SEQ"], asm.last_seq))
             stored = 0
-            if n:
-                # Modulo 2^32 (map 6): records at or before the last one stored are ours already (a lost ACK).
-                stale = min(max(R.seq_diff(asm.next_seq, head["OLDEST_SEQ"]), 0), n)
-                if stale:
-                    seq, t, x, flags, iq = seq[stale:], t[stale:], x[stale:], flags[stale:], iq[stale:]
-                before = asm.count
-                asm.add(seq, t, x, flags, iq)
-                stored = asm.count - before
-                self.link.write_block(R.ACK, {"ACK_SEQ": asm.last_seq})
+            if records is not None:
+                stored = self._store(asm, head, records)
                 if stored:
-                    last_progress = now
+                    d.last_progress = now
                 if asm.last_seen:
                     return
-            if not stored or now - last_status > 0.5:
-                last_status = now
-                status = self._status()
-                state = (status["STATE"], status["STATUS_WORD"], status["FAULT_WORD"])
-                if state != seen_state:  # a state change counts as progress for the watchdog
-                    if seen_state is not None:
-                        last_progress = now
-                    seen_state = state
-                if status["STATUS_WORD"] & R.Status.OVERFLOW:
-                    raise PassIncomplete("device buffer overflowed: pulses were dropped")
-                if not n and not status["STATUS_WORD"] & R.Status.PASS_ACTIVE:
-                    d = self.link.read_block(R.PASS)
-                    if d["TOKEN"] != asm.token or d["PASS_STATE"] != R.PassState.COMPLETE:
-                        state = R.PassState(d["PASS_STATE"]).name if d["PASS_STATE"] < 4 else d["PASS_STATE"]
-                        raise PassIncomplete(f"pass ended ({state}) before its LAST pulse arrived")
-                    # The last pulses may have arrived after our window read: look once more, then give up.
-                    empty_after_end += 1
-                    if empty_after_end > 1:
-                        raise PassIncomplete(f"pass complete but pulses after seq {asm.last_seq} never arrived")
-                    continue
+            if not stored or now - d.last_status > 0.5:
+                if self._poll_status(asm, d, now, window_empty=records is None):
+                    continue  # the pass is over: look at the window once more, at once
             if not stored:
                 self.link.sleep(self.settings.poll_s)
+
+    def _check_watchdog(self, asm: PassAssembler, d: _DrainState) -> None:
+        if time.monotonic() - d.last_progress > self.settings.stall_timeout_s:
+            self.link.counts.no_progress += 1
+            log.warning("fault: pass token %d: no new pulse and no state change for %g s (watchdog); "
+                        "aborting", asm.token, self.settings.stall_timeout_s)
+            raise PassIncomplete(f"no progress for {self.settings.stall_timeout_s:g} s (watchdog)")
+
+    def _decode_window(self, asm: PassAssembler, first: list[int], window_regs: int):
+        """The window header and its decoded records (None when it holds none), reading the rest of the
+        window after `first`; R.RegisterError when a record fails its CRC, PassIncomplete when the window
+        cannot belong to this pass."""
+        hdr = R.WINDOW_HEADER.length
+        head = R.WINDOW_HEADER.decode(first[:hdr])
+        n, rec_regs = head["RECORDS"], head["RECORD_REGS"]
+        if not n:
+            return head, None
+        if head["TOKEN"] != asm.token:
+            raise PassIncomplete(f"the window holds pulses of pass token {head['TOKEN']}")
+        if rec_regs != R.record_regs(asm.samples_per_pulse) or hdr + n * rec_regs > window_regs:
+            raise PassIncomplete(f"window header claims {n} records of {rec_regs} registers")
+        regs = first + self._read_rest(len(first), hdr + n * rec_regs)
+        seq, t, x, flags, iq, bad = R.decode_records(regs[hdr:], n, asm.samples_per_pulse)
+        if bad:
+            raise R.RegisterError(f"pulse window: CRC mismatch in record(s) {bad[:5]} "
+                                  f"(seq {R.seq_add(head['OLDEST_SEQ'], bad[0])})")
+        return head, (seq, t, x, flags, iq)
+
+    def _store(self, asm: PassAssembler, head: dict, records: tuple) -> int:
+        """Store the records not stored yet and acknowledge; how many were new."""
+        seq, t, x, flags, iq = records
+        # Modulo 2^32 (map 6): records at or before the last one stored are ours already (a lost ACK).
+        stale = min(max(R.seq_diff(asm.next_seq, head["OLDEST_SEQ"]), 0), head["RECORDS"])
+        if stale:
+            seq, t, x, flags, iq = seq[stale:], t[stale:], x[stale:], flags[stale:], iq[stale:]
+        before = asm.count
+        asm.add(seq, t, x, flags, iq)
+        self.link.write_block(R.ACK, {"ACK_SEQ": asm.last_seq})
+        return asm.count - before
+
+    def _poll_status(self, asm: PassAssembler, d: _DrainState, now: float, window_empty: bool) -> bool:
+        """Read STATUS: feed the watchdog, stop on an overflow or a pass that ended early; True when the
+        pass is complete and the window should be read once more at once."""
+        d.last_status = now
+        status = self._status()
+        state = (status["STATE"], status["STATUS_WORD"], status["FAULT_WORD"])
+        if state != d.seen_state:  # a state change counts as progress for the watchdog
+            if d.seen_state is not None:
+                d.last_progress = now
+            d.seen_state = state
+        if status["STATUS_WORD"] & R.Status.OVERFLOW:
+            raise PassIncomplete("device buffer overflowed: pulses were dropped")
+        if not window_empty or status["STATUS_WORD"] & R.Status.PASS_ACTIVE:
+            return False
+        p = self.link.read_block(R.PASS)
+        if p["TOKEN"] != asm.token or p["PASS_STATE"] != R.PassState.COMPLETE:
+            state = R.PassState(p["PASS_STATE"]).name if p["PASS_STATE"] < 4 else p["PASS_STATE"]
+            raise PassIncomplete(f"pass ended ({state}) before its LAST pulse arrived")
+        # The last pulses may have arrived after our window read: look once more, then give up.
+        d.empty_after_end += 1
+        if d.empty_after_end > 1:
+            raise PassIncomplete(f"pass complete but pulses after seq {asm.last_seq} never arrived")
+        return True
 
     def _read_rest(self, have: int, total: int) -> list[int]:
         out = []
@@ -796,8 +850,8 @@ class AcquisitionSession:
         self.link.write_block(R.COMMAND, values)
         while True:
             st = self._status()
-            result = R.CommandResult(st["CMD_RESULT"]) if st["CMD_RESULT"] in R.CommandResult._value2member_map_ \
-                else None
+            known = st["CMD_RESULT"] in R.CommandResult._value2member_map_
+            result = R.CommandResult(st["CMD_RESULT"]) if known else None
             if st["CMD_ACK_SEQ"] != seq:  # not recorded (a controller off the map): the same CMD_SEQ again
                 if time.monotonic() > deadline:
                     raise PassIncomplete(f"{code.name}: never acknowledged (CMD_ACK_SEQ {st['CMD_ACK_SEQ']})")
@@ -807,7 +861,8 @@ class AcquisitionSession:
             if result is R.CommandResult.DONE or (result is R.CommandResult.ACCEPTED and not wait):
                 return
             if result is R.CommandResult.FAILED:
-                raise PassIncomplete(f"{code.name} failed on the device (FAULT_WORD 0x{st['FAULT_WORD']:04X})")
+                raise PassIncomplete(f"{code.name} failed on the device "
+                                     f"(FAULT_WORD 0x{st['FAULT_WORD']:04X})")
             if result is not R.CommandResult.ACCEPTED:
                 name = result.name if result is not None else st["CMD_RESULT"]
                 raise PassIncomplete(f"{code.name} {arg} rejected: {name}")
@@ -835,8 +890,8 @@ class AcquisitionSession:
             status = self._status()
 
     def _abort_quietly(self) -> None:
-        """Best effort: stop a pass we are walking away from, so the rig does not scan on for nothing (the next
-        attempt's _make_idle ABORTs with confirmation if this one does not arrive)."""
+        """Best effort: stop a pass we are walking away from, so the rig does not scan on for nothing (the
+        next attempt's _make_idle ABORTs with confirmation if this one does not arrive)."""
         if self._active_token is None:
             return
         self._active_token = None
@@ -875,8 +930,9 @@ class AcquisitionSession:
                       "TIME": result["time_s"]}
             self._last_result = values
             if self._write_result(values, final):
-                log.info("cycle %d: published retreat %.4f m, creep %.4f m (%s) as result %d", result["cycle"],
-                         result["retreat_m"], result["creep_m"], result["status"], self._result_seq)
+                log.info("cycle %d: published retreat %.4f m, creep %.4f m (%s) as result %d",
+                         result["cycle"], result["retreat_m"], result["creep_m"], result["status"],
+                         self._result_seq)
 
     def _write_result(self, values: dict, final: bool) -> bool:
         try:
@@ -887,7 +943,8 @@ class AcquisitionSession:
         except (LinkDown, DeviceRebooted, Interrupted) as exc:
             if isinstance(exc, Interrupted) and not final:
                 raise
-            self._published_boot = None  # written again at the next chance (a failed step never loses a result)
+            # Written again at the next chance (a failed step never loses a result).
+            self._published_boot = None
             log.warning("cycle %d: result not published%s: %s", values["CYCLE"], "" if final else " yet",
                         exc or "interrupted")
             return False

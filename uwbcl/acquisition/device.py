@@ -7,8 +7,8 @@ Modbus TCP (pymodbus `ModbusTcpServer` with a `SimDevice` whose access hook call
 background thread, and applies the faults a `FaultInjector` draws.
 
 Persistence: with a state file (`DeviceConfig.state_file`, `uwbcl simulate-device --state`), CYCLE_COUNTER
-and the last BOOT_ID survive a restart of the simulator, as the map requires of a controller (the counter lives
-in the longwall control system; BOOT_ID must differ from the previous boot's).
+and the last BOOT_ID survive a restart of the simulator, as the map requires of a controller (the counter
+lives in the longwall control system; BOOT_ID must differ from the previous boot's).
 
 Time: device time runs `time_scale` times faster than the host's monotonic clock, so a 45-minute cycle or a
 13-second pass can be compressed for tests and the demo; every rate in the registers stays in device time.
@@ -39,6 +39,7 @@ log = logging.getLogger("uwbcl.device")
 
 DEVICE_EPOCH = dt.datetime(2026, 11, 2, 6, 0, tzinfo=dt.timezone.utc)
 HEARTBEAT_PERIOD_S = 0.1
+_SERVE = object()  # RigServer._answer_fault: no fault reply, serve the request
 INT16_FULL_SCALE = 32767
 
 
@@ -192,7 +193,8 @@ class RigController:
             with open(path, encoding="utf-8") as f:
                 return json.load(f)
         except (OSError, ValueError) as exc:
-            log.warning("device: state file %s unreadable (%s); starting from the configured counter", path, exc)
+            log.warning("device: state file %s unreadable (%s); starting from the configured counter", path,
+                        exc)
             return None
 
     def _save_state(self) -> None:
@@ -203,13 +205,15 @@ class RigController:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         tmp = f"{path}.tmp{os.getpid()}"
         with open(tmp, "w", encoding="utf-8") as f:
-            json.dump({"cycle_counter": self.cycle_counter, "boot_id": self.boot_id, "rig_id": self.rig_id}, f)
+            json.dump({"cycle_counter": self.cycle_counter, "boot_id": self.boot_id, "rig_id": self.rig_id},
+                      f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
 
     def reboot(self, now: float, reconfigure: bool = False) -> None:
-        """Controller restart: the pass, the buffer and the holding registers are lost; the drives keep position.
+        """Controller restart: the pass, the buffer and the holding registers are lost; the drives
+        keep position.
         reconfigure: the controller comes back with another SAMPLE_RATE (x0.75, or back) and RIG_ID (fault
         injection: a firmware update or a swapped radar head; the map allows RADAR and IDENTITY to change at a
         reboot only)."""
@@ -223,7 +227,8 @@ class RigController:
             base = self.radar.sample_rate_hz
             rate = 0.75 * base if self.campaign.radar.sample_rate_hz == base else base
             self.campaign.radar = dataclasses.replace(self.campaign.radar, sample_rate_hz=rate)
-            self.rig_id = f"{self.config.rig_id}-b" if self.rig_id == self.config.rig_id else self.config.rig_id
+            own_id = self.config.rig_id
+            self.rig_id = f"{own_id}-b" if self.rig_id == own_id else own_id
         self._boot(now)
 
     def cut_short(self, now: float) -> None:
@@ -315,8 +320,8 @@ class RigController:
         self.next_cycle_due = min(self.next_cycle_due, now)
 
     def cycle_index(self, counter: int) -> int:
-        """Campaign cycle index of a counter value: the first signal raised is cycle index 1 (the latest signal
-        that set this value; a value set from outside counts on from the start value, modulo 2^32)."""
+        """Campaign cycle index of a counter value: the first signal raised is cycle index 1 (the latest
+        signal that set this value; a value set from outside counts on from the start value, modulo 2^32)."""
         k = self._k_of_counter.get(counter)
         if k is None:
             start = next(iter(self._k_of_counter))
@@ -415,7 +420,8 @@ class RigController:
             data = dataclasses.replace(data, echo=data.echo[:, :self.config.max_samples])
         m = data.echo.shape[1]
         peak = float(max(np.abs(data.echo.real).max(), np.abs(data.echo.imag).max(), 1e-30))
-        scale = float(np.float32(peak / (0.9 * INT16_FULL_SCALE)))  # 10 % headroom, as an ADC gain would leave
+        # 10 % headroom, as an ADC gain would leave
+        scale = float(np.float32(peak / (0.9 * INT16_FULL_SCALE)))
         iq = np.stack([data.echo.real, data.echo.imag], axis=-1) / scale
         iq = np.clip(np.rint(iq), -INT16_FULL_SCALE, INT16_FULL_SCALE).astype(np.int16)
         first_seq = self.next_seq
@@ -438,11 +444,11 @@ class RigController:
 
     def _audit(self, p: _Pass) -> dict:
         """What a faithful archive of this pass must hold (scripts/acquisition_study.py checks every file)."""
-        return {"token": p.token, "cycle": p.cycle, "k": p.k, "direction": p.direction, "angle_deg": p.angle_deg,
-                "height_m": p.height_m, "n_pulses": len(p.times), "first_seq": p.first_seq, "radar": p.radar,
-                "rig_id": p.rig_id, "boot_id": p.boot_id, "range_window_start_s": p.range_window_start_s,
-                "overflow": p.overflow, "scale": p.scale, "iq": p.iq,
-                "positions_um": np.rint(p.positions * 1e6).astype(np.int64),
+        return {"token": p.token, "cycle": p.cycle, "k": p.k, "direction": p.direction,
+                "angle_deg": p.angle_deg, "height_m": p.height_m, "n_pulses": len(p.times),
+                "first_seq": p.first_seq, "radar": p.radar, "rig_id": p.rig_id, "boot_id": p.boot_id,
+                "range_window_start_s": p.range_window_start_s, "overflow": p.overflow, "scale": p.scale,
+                "iq": p.iq, "positions_um": np.rint(p.positions * 1e6).astype(np.int64),
                 "times_us": np.rint(p.times * 1e6).astype(np.int64)}
 
     # ------------------------------------------------------------------------------------------ acknowledge
@@ -455,10 +461,12 @@ class RigController:
         newest = R.seq_add(self.next_seq, -1)
         if R.seq_diff(seq, newest) > 0:  # modulo 2^32: 0 follows 2^32 - 1 (map 6)
             raise ModbusFault(ILLEGAL_VALUE, f"ACK_SEQ {seq} beyond the newest pulse {newest}")
-        # "At or below" the acknowledgement (modulo 2^32) frees nothing more: the buffer holds only later pulses.
+        # "At or below" the acknowledgement (modulo 2^32) frees nothing more: the buffer holds only
+        # later pulses.
         self.ack_seq = seq
         p = self.pass_
-        while self.buffer and p is not None and R.seq_at_or_before(R.seq_add(p.first_seq, self.buffer[0]), seq):
+        while self.buffer and p is not None \
+                and R.seq_at_or_before(R.seq_add(p.first_seq, self.buffer[0]), seq):
             self.buffer.popleft()
         self._window_cache = None
 
@@ -470,7 +478,8 @@ class RigController:
     def status_word(self, now: float) -> R.Status:
         s = R.Status.CYCLE_LINK_OK
         p = self.pass_
-        if not self.booting(now) and not (self.fault_word & ~(R.Fault.BUFFER_OVERFLOW | R.Fault.PASS_ABORTED)):
+        if not self.booting(now) \
+                and not (self.fault_word & ~(R.Fault.BUFFER_OVERFLOW | R.Fault.PASS_ABORTED)):
             s |= R.Status.READY
         if self._busy():
             s |= R.Status.BUSY
@@ -504,8 +513,9 @@ class RigController:
         """IR 0-127: IDENTITY, STATUS, RADAR, PASS."""
         cfg, radar = self.config, self.campaign.radar
         identity = R.IDENTITY.encode({
-            "MAGIC": R.MAP_MAGIC, "MAP_MAJOR": R.MAP_VERSION[0], "MAP_MINOR": R.MAP_VERSION[1], "DEVICE_TYPE": 1,
-            "SERIAL": cfg.serial, "FIRMWARE": 0x00010000, "RIG_ID": self.rig_id, "VENDOR": "uwbcl-sim"})
+            "MAGIC": R.MAP_MAGIC, "MAP_MAJOR": R.MAP_VERSION[0], "MAP_MINOR": R.MAP_VERSION[1],
+            "DEVICE_TYPE": 1, "SERIAL": cfg.serial, "FIRMWARE": 0x00010000, "RIG_ID": self.rig_id,
+            "VENDOR": "uwbcl-sim"})
         status = R.STATUS.encode({
             "HEARTBEAT": int((now - self.boot_time) / HEARTBEAT_PERIOD_S) & 0xFFFF,
             "STATUS_WORD": int(self.status_word(now)), "FAULT_WORD": int(self.fault_word),
@@ -536,7 +546,8 @@ class RigController:
                 "PULSES_PRODUCED": p.produced, "OVERFLOW_COUNT": p.overflow,
                 "RANGE_WINDOW_START": p.range_window_start_s, "SAMPLES_PER_PULSE": p.samples_per_pulse,
                 "DIRECTION": p.direction, "AMPLITUDE_SCALE": p.scale, "HEIGHT": p.height_m,
-                "TABLE_ANGLE": p.angle_deg, "START_TIME": p.start_time_ms / 1000.0, "PASS_STATE": int(p.state)})
+                "TABLE_ANGLE": p.angle_deg, "START_TIME": p.start_time_ms / 1000.0,
+                "PASS_STATE": int(p.state)})
         return identity + status + radar_block + pass_block
 
     def _window_capacity(self, p: _Pass) -> int:
@@ -558,7 +569,8 @@ class RigController:
         else:
             head = R.WINDOW_HEADER.encode({
                 "OLDEST_SEQ": R.seq_add(p.first_seq, idx[0]) if idx else 0, "RECORDS": len(idx),
-                "RECORD_REGS": p.records.shape[1], "NEWEST_SEQ": R.seq_add(self.next_seq, -1), "TOKEN": p.token})
+                "RECORD_REGS": p.records.shape[1], "NEWEST_SEQ": R.seq_add(self.next_seq, -1),
+                "TOKEN": p.token})
         out[:R.WINDOW_HEADER.length] = head
         return out
 
@@ -607,8 +619,10 @@ class RigController:
         # address error (02) and takes precedence; one inside the blocks that is not exactly one block is 03.
         mapped = {a for b in R.HOLDING_BLOCKS for a in range(b.address, b.address + b.length)}
         if any(a not in mapped for a in range(address, address + len(values))):
-            raise ModbusFault(ILLEGAL_ADDRESS, f"HR {address}+{len(values)}: reaches a reserved or unmapped register")
-        raise ModbusFault(ILLEGAL_VALUE, f"HR {address}+{len(values)}: writes must cover exactly one holding block")
+            raise ModbusFault(ILLEGAL_ADDRESS,
+                              f"HR {address}+{len(values)}: reaches a reserved or unmapped register")
+        raise ModbusFault(ILLEGAL_VALUE,
+                          f"HR {address}+{len(values)}: writes must cover exactly one holding block")
 
 
 def _encode_records(first_seq: int, times_s, positions_m, flags, iq: np.ndarray) -> np.ndarray:
@@ -621,7 +635,8 @@ def _encode_records(first_seq: int, times_s, positions_m, flags, iq: np.ndarray)
     head["x"] = np.rint(np.asarray(positions_m) * 1e6)  # micrometres (R.RECORD_POSITION_SCALE_M)
     head["flags"] = flags
     regs = np.zeros((n, R.record_regs(m)), dtype=np.uint16)
-    regs[:, :R.RECORD_HEADER_REGS] = np.frombuffer(head.tobytes(), dtype=">u2").reshape(n, R.RECORD_HEADER_REGS)
+    header_regs = np.frombuffer(head.tobytes(), dtype=">u2").reshape(n, R.RECORD_HEADER_REGS)
+    regs[:, :R.RECORD_HEADER_REGS] = header_regs
     regs[:, R.RECORD_HEADER_REGS:-1] = iq.reshape(n, 2 * m).view(np.uint16)
     big = regs[:, :-1].astype(">u2")
     regs[:, -1] = [binascii.crc_hqx(big[i].tobytes(), 0xFFFF) for i in range(n)]
@@ -698,8 +713,8 @@ class RigServer:
                      [SimData(0, count=n_ir, values=0, datatype=DataType.REGISTERS)]),
             action=self._action)
         self._loop = asyncio.get_running_loop()
-        self._server = ModbusTcpServer(device, address=(self.host, self.port), trace_packet=self._trace_packet,
-                                       trace_pdu=self._trace_pdu)
+        self._server = ModbusTcpServer(device, address=(self.host, self.port),
+                                       trace_packet=self._trace_packet, trace_pdu=self._trace_pdu)
         await self._server.serve_forever(background=True)
         self.port = self._server.transport.sockets[0].getsockname()[1]
         log.info("device: serving rig %s on %s:%d", self.controller.config.rig_id, self.host, self.port)
@@ -746,9 +761,7 @@ class RigServer:
             now = self.now()
             c = self.controller
             if c.booting(now):  # a rebooting controller does not talk
-                self._swallow = True
-                self._loop.call_soon(self._drop_connections)
-                return None
+                return self._go_silent()
             running = c.pass_ is not None and c.pass_.state is R.PassState.RUNNING
             if values is None or func_code != 23:
                 fault = self.faults.next_request(running, now, c.pass_.token if running else None)
@@ -757,53 +770,81 @@ class RigServer:
             self.requests_served += 1
             if fault is not None:
                 log.info("device: injecting %s at request %d", fault, self.faults.requests)
-            if fault == "drop":
-                self._swallow = True
-                self._loop.call_soon(self._drop_connections)
-                return None
-            if fault == "exception":
-                self._exception_turn += 1
-                return ExcCodes.DEVICE_BUSY if self._exception_turn % 2 else ExcCodes.DEVICE_FAILURE
-            if fault in ("exception02", "exception03", "exception04"):
-                return ExcCodes(int(fault[-2:]))
-            if fault in ("reboot", "reconfigure"):
-                c.reboot(now, reconfigure=True) if fault == "reconfigure" else c.reboot(now)
-                self._swallow = True
-                self._loop.call_soon(self._drop_connections)
-                return None
-            if fault == "absurd":
-                self._absurd_pending = True
-            if fault == "short":
-                c.cut_short(now)
-            if fault == "stall" and c.pass_ is not None:
-                c.pass_.stalled = True
-            if fault in ("counter_back", "counter_jump"):
-                c.set_cycle_counter(now, R.seq_add(c.cycle_counter, -1 if fault == "counter_back" else 3))
-            if fault == "overflow":
-                c.inject_overflow(self.faults.plan.overflow_pulses)
-            if fault == "missing":
-                self._swallow = True
-            if fault == "corrupt":
-                self._corrupt = True
-            table = R.Table.INPUT if func_code == 4 else R.Table.HOLDING
-            if self._corrupt and values is None:  # damage a register the client relies on, not unused window
-                self._corrupt_span = c.meaningful(table, address, count)
-            try:
-                if values is not None:
-                    c.write(now, address, list(values))
-                    registers[address - start_address:address - start_address + len(values)] = list(values)
-                else:
-                    regs = c.read(now, table, address, count)
-                    if self._absurd_pending and table is R.Table.INPUT and address <= R.PASS.address \
-                            and address + count >= R.PASS.address + R.PASS.length:
-                        regs = self._absurd(regs, R.PASS.address - address)
-                    registers[address - start_address:address - start_address + count] = regs
-            except ModbusFault as exc:
-                log.debug("device: exception %d: %s", exc.code, exc)
-                self._swallow = False if fault != "missing" else self._swallow
-                return ExcCodes(exc.code)
+            answer = self._answer_fault(fault, now)
+            if answer is not _SERVE:
+                return answer
+            self._arm_fault(fault, now)
+            answer = self._serve(func_code, start_address, address, count, registers, values, now, fault)
+            if answer is not None:
+                return answer
         if fault == "slow":
             await asyncio.sleep(self.faults.plan.slow_s)
+        return None
+
+    def _go_silent(self) -> None:
+        """Send nothing back and drop the connections (a dead or rebooting controller)."""
+        self._swallow = True
+        self._loop.call_soon(self._drop_connections)
+        return None
+
+    def _answer_fault(self, fault, now: float):
+        """The reply of a fault that replaces the request's (a dropped connection, an exception, a reboot);
+        _SERVE when the request is to be served."""
+        from pymodbus.constants import ExcCodes
+
+        if fault == "drop":
+            return self._go_silent()
+        if fault == "exception":
+            self._exception_turn += 1
+            return ExcCodes.DEVICE_BUSY if self._exception_turn % 2 else ExcCodes.DEVICE_FAILURE
+        if fault in ("exception02", "exception03", "exception04"):
+            return ExcCodes(int(fault[-2:]))
+        if fault in ("reboot", "reconfigure"):
+            c = self.controller
+            c.reboot(now, reconfigure=True) if fault == "reconfigure" else c.reboot(now)
+            return self._go_silent()
+        return _SERVE
+
+    def _arm_fault(self, fault, now: float) -> None:
+        """Set up a fault that damages the request being served or the controller behind it."""
+        c = self.controller
+        if fault == "absurd":
+            self._absurd_pending = True
+        if fault == "short":
+            c.cut_short(now)
+        if fault == "stall" and c.pass_ is not None:
+            c.pass_.stalled = True
+        if fault in ("counter_back", "counter_jump"):
+            c.set_cycle_counter(now, R.seq_add(c.cycle_counter, -1 if fault == "counter_back" else 3))
+        if fault == "overflow":
+            c.inject_overflow(self.faults.plan.overflow_pulses)
+        if fault == "missing":
+            self._swallow = True
+        if fault == "corrupt":
+            self._corrupt = True
+
+    def _serve(self, func_code, start_address, address, count, registers, values, now: float, fault):
+        """Read or write the controller's registers; the Modbus exception code, or None."""
+        from pymodbus.constants import ExcCodes
+
+        c = self.controller
+        table = R.Table.INPUT if func_code == 4 else R.Table.HOLDING
+        if self._corrupt and values is None:  # damage a register the client relies on, not unused window
+            self._corrupt_span = c.meaningful(table, address, count)
+        try:
+            if values is not None:
+                c.write(now, address, list(values))
+                registers[address - start_address:address - start_address + len(values)] = list(values)
+            else:
+                regs = c.read(now, table, address, count)
+                if self._absurd_pending and table is R.Table.INPUT and address <= R.PASS.address \
+                        and address + count >= R.PASS.address + R.PASS.length:
+                    regs = self._absurd(regs, R.PASS.address - address)
+                registers[address - start_address:address - start_address + count] = regs
+        except ModbusFault as exc:
+            log.debug("device: exception %d: %s", exc.code, exc)
+            self._swallow = False if fault != "missing" else self._swallow
+            return ExcCodes(exc.code)
         return None
 
     def _absurd(self, regs: list[int], offset: int) -> list[int]:
@@ -827,8 +868,8 @@ class RigServer:
     def _trace_pdu(self, sending: bool, pdu):
         if sending and getattr(pdu, "exception_code", None) == 1 and pdu.function_code == 0x80 \
                 and self._last_rx_function in (3, 4, 6, 16, 23):
-            # pymodbus answers a request it cannot decode (a read of 126 registers, a write of 124) with 01 and
-            # function code 0; the map (and the Modbus spec) say 03 for an illegal quantity of a supported
+            # pymodbus answers a request it cannot decode (a read of 126 registers, a write of 124) with 01
+            # and function code 0; the map (and the Modbus spec) say 03 for an illegal quantity of a supported
             # function. The request is the packet just received: the reply is sent from the same call.
             pdu.function_code = self._last_rx_function | 0x80
             pdu.exception_code = 3
@@ -855,14 +896,16 @@ class RigServer:
 
 
 class LongwallFollower(threading.Thread):
-    """A longwall control system that pushes as soon as the rig is done: raises the next cycle signal each time
-    `cycles_done()` reaches the number of signals raised, once `listening()` is true. For the demo and the study,
-    which own both ends and should not wait out a fixed interval (or lose cycles to one) when faults slow a scan.
+    """A longwall control system that pushes as soon as the rig is done: raises the next cycle signal each
+    time `cycles_done()` reaches the number of signals raised, once `listening()` is true. For the demo and
+    the study, which own both ends and should not wait out a fixed interval (or lose cycles to one) when
+    faults slow a scan.
     """
 
     def __init__(self, server: RigServer, cycles_done, listening=lambda: True, period_s: float = 0.05):
         super().__init__(name="uwbcl-longwall", daemon=True)
-        self.server, self.cycles_done, self.listening, self.period_s = server, cycles_done, listening, period_s
+        self.server, self.cycles_done = server, cycles_done
+        self.listening, self.period_s = listening, period_s
         self.done = threading.Event()
 
     def run(self) -> None:

@@ -22,11 +22,12 @@ controller restarts while a pass runs: the pass and the buffer are lost), reconf
 brings a new RADAR.SAMPLE_RATE, x0.75 and back, and a new IDENTITY.RIG_ID, "<rig>-b" and back), overflow (the
 buffer drops the next `overflow_pulses` pulses of a running pass as if it were full), absurd (the next PASS
 read carries an absurd value with a valid CRC: PULSES_PLANNED 1e9, SAMPLES_PER_PULSE 60000 or AMPLITUDE_SCALE
--1, in turn), short (the running pass ends COMPLETE with fewer pulses than planned, no LAST pulse: a controller
-that breaks the map), stall (the radar of the running pass stops delivering pulses, the pass stays RUNNING:
-only a no-progress watchdog notices), counter_back (the longwall counter goes back by 1), counter_jump (it jumps by 3: two
-cycles missed). reboot, reconfigure, overflow, absurd, short and stall wait for a pass to be running; the others hit
-the request they are drawn for. A counter change during a pass aborts it (map 4.2).
+-1, in turn), short (the running pass ends COMPLETE with fewer pulses than planned, no LAST pulse: a
+controller that breaks the map), stall (the radar of the running pass stops delivering pulses, the pass stays
+RUNNING: only a no-progress watchdog notices), counter_back (the longwall counter goes back by 1),
+counter_jump (it jumps by 3: two cycles missed). reboot, reconfigure, overflow, absurd, short and stall wait
+for a pass to be running; the others hit the request they are drawn for. A counter change during a pass aborts
+it (map 4.2).
 """
 
 from __future__ import annotations
@@ -35,9 +36,11 @@ import dataclasses
 
 import numpy as np
 
-KINDS = ("drop", "missing", "slow", "exception", "corrupt", "reboot", "overflow", "exception02", "exception03",
-         "exception04", "absurd", "short", "stall", "reconfigure", "counter_back", "counter_jump")
-PASS_KINDS = ("reboot", "overflow", "absurd", "short", "stall", "reconfigure")  # only meaningful while a pass runs
+KINDS = ("drop", "missing", "slow", "exception", "corrupt", "reboot", "overflow", "exception02",
+         "exception03", "exception04", "absurd", "short", "stall", "reconfigure", "counter_back",
+         "counter_jump")
+# Only meaningful while a pass runs.
+PASS_KINDS = ("reboot", "overflow", "absurd", "short", "stall", "reconfigure")
 CYCLE_KINDS = ("counter_back", "counter_jump")  # change the cycle counter: the cycle being scanned is left
 
 
@@ -126,7 +129,8 @@ class FaultInjector:
         self._at = dict(plan.at)
         self._hit_pass: int | None = None  # the pass the last pass-only fault was applied to
 
-    def next_request(self, pass_running: bool, device_time_s: float, pass_token: int | None = None) -> str | None:
+    def next_request(self, pass_running: bool, device_time_s: float,
+                     pass_token: int | None = None) -> str | None:
         """Count a request; return the fault kind to apply to it, or None. With `pass_token`, pass-only faults
         waiting for a pass hit one pass each (two on one pass would count as two faults but act as one)."""
         self.requests += 1

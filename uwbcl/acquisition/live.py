@@ -1,11 +1,12 @@
-"""`uwbcl acquire --process`: focus each finished cycle beside the acquisition and measure it against the last one.
+"""`uwbcl acquire --process`: focus each finished cycle beside the acquisition and measure it against the
+last one.
 
 A worker thread takes cycles from a bounded queue (acquisition never waits on processing: a full queue means
 the cycle stays archived and is left to `uwbcl process`), locates the plates with `pipeline.locate_cycle` and
-measures each cycle with the same `chain.RigChain` that `uwbcl process` uses (association, GLS with the plates'
-covariances, bridging of untrusted cycles), so acquire-results.csv, the RESULT registers and displacements.csv
-agree for the same passes. Results come back through `results` to the acquisition thread, which alone talks
-Modbus and publishes them.
+measures each cycle with the same `chain.RigChain` that `uwbcl process` uses (association, GLS with the
+plates' covariances, bridging of untrusted cycles), so acquire-results.csv, the RESULT registers and
+displacements.csv agree for the same passes. Results come back through `results` to the acquisition thread,
+which alone talks Modbus and publishes them.
 """
 
 from __future__ import annotations
@@ -128,7 +129,8 @@ class LiveProcessor:
         rows = []
         for r in results:
             rows.append({k: (f"{r[k]:.6f}" if isinstance(r[k], float) and math.isfinite(r[k]) else
-                             ("" if isinstance(r[k], float) or r[k] is None else r[k])) for k in RESULT_COLUMNS})
+                             ("" if isinstance(r[k], float) or r[k] is None else r[k]))
+                         for k in RESULT_COLUMNS})
         path = Path(out_dir) / RESULTS_FILE
         write_csv_atomic(path, RESULT_COLUMNS, rows)
         return path

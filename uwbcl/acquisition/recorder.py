@@ -1,6 +1,6 @@
-"""Drained pulse records -> a validated ScanPass -> an archive file (docs/archive-format.md), or a clear reason
-why the pass is incomplete. Memory is bounded before anything is allocated: a device claiming absurd sizes is
-refused, and a pass that delivers more pulses than it announced is cut off.
+"""Drained pulse records -> a validated ScanPass -> an archive file (docs/archive-format.md), or a clear
+reason why the pass is incomplete. Memory is bounded before anything is allocated: a device claiming absurd
+sizes is refused, and a pass that delivers more pulses than it announced is cut off.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ class PassIncomplete(Exception):
 
 
 class AbsurdValue(PassIncomplete):
-    """A PASS or RADAR value this client will not use (sizes over its limits, ...): the pass fails and is re-run
-    (fault ABSURD_VALUE); one absurd reply never stops acquisition."""
+    """A PASS or RADAR value this client will not use (sizes over its limits, ...): the pass fails and is
+    re-run (fault ABSURD_VALUE); one absurd reply never stops acquisition."""
 
 
 class DeviceRefused(Exception):
@@ -42,7 +42,8 @@ def check_radar(radar: dict, limits: Limits) -> None:
     """Refuse a RADAR block this client cannot use safely: DeviceRefused for a map it does not speak,
     AbsurdValue for values no pass can be run with (re-read and re-tried, never a stop on one reply)."""
     if radar["WINDOW_ADDRESS"] != R.WINDOW_ADDRESS:
-        raise DeviceRefused(f"RADAR.WINDOW_ADDRESS = {radar['WINDOW_ADDRESS']}: map 1.x puts it at {R.WINDOW_ADDRESS}")
+        raise DeviceRefused(f"RADAR.WINDOW_ADDRESS = {radar['WINDOW_ADDRESS']}: map 1.x puts it at "
+                            f"{R.WINDOW_ADDRESS}")
     for name in ("CARRIER_FREQUENCY", "BANDWIDTH", "SAMPLE_RATE", "PRF", "ANTENNA_APERTURE", "NOMINAL_SPEED"):
         if not radar[name] > 0:
             raise AbsurdValue(f"RADAR.{name} = {radar[name]}: must be > 0")
@@ -61,7 +62,8 @@ def radar_parameters(radar: dict) -> RadarParameters:
 
 
 class PassAssembler:
-    """Collects the records of one pass in order; any gap, repeat, foreign or damaged pulse ends it incomplete."""
+    """Collects the records of one pass in order; any gap, repeat, foreign or damaged pulse ends
+    it incomplete."""
 
     def __init__(self, descriptor: dict, radar: dict, limits: Limits):
         m, n = int(descriptor["SAMPLES_PER_PULSE"]), int(descriptor["PULSES_PLANNED"])
@@ -72,8 +74,8 @@ class PassAssembler:
         if not 2 <= n <= limits.max_pulses_per_pass:
             raise AbsurdValue(f"PASS.PULSES_PLANNED = {n}: outside 2..{limits.max_pulses_per_pass}")
         if n * m * 4 > limits.max_pass_bytes:
-            raise AbsurdValue(f"PASS: {n} pulses x {m} samples need {n * m * 4 / 2**20:.0f} MiB, more than the "
-                                f"{limits.max_pass_bytes / 2**20:.0f} MiB limit")
+            raise AbsurdValue(f"PASS: {n} pulses x {m} samples need {n * m * 4 / 2**20:.0f} MiB, more than "
+                              f"the {limits.max_pass_bytes / 2**20:.0f} MiB limit")
         scale = descriptor["AMPLITUDE_SCALE"]
         if not (math.isfinite(scale) and scale > 0):
             raise AbsurdValue(f"PASS.AMPLITUDE_SCALE = {scale}: must be a finite number > 0")
@@ -105,10 +107,12 @@ class PassAssembler:
             if self.count >= self.planned:
                 raise PassIncomplete(f"more pulses than the {self.planned} the device planned")
             if (self.count == 0) != bool(flags[i] & R.RecordFlag.FIRST):
-                raise PassIncomplete(f"pulse seq {seq[i]}: FIRST flag {'missing' if self.count == 0 else 'repeated'}")
+                raise PassIncomplete(f"pulse seq {seq[i]}: FIRST flag "
+                                     f"{'missing' if self.count == 0 else 'repeated'}")
             k = self.count
             if k and not time_s[i] > self.time_s[k - 1]:
-                raise PassIncomplete(f"pulse seq {seq[i]}: time {time_s[i]:.6f} s not after the previous pulse")
+                raise PassIncomplete(f"pulse seq {seq[i]}: time {time_s[i]:.6f} s not after the previous "
+                                     f"pulse")
             self.time_s[k], self.position_m[k], self.iq[k] = time_s[i], position_m[i], iq[i]
             self.count += 1
             self.next_seq = R.seq_add(self.next_seq, 1)
@@ -117,16 +121,19 @@ class PassAssembler:
     def finish(self, descriptor: dict) -> None:
         """The pass as the device reports it at the end must match what arrived, pulse for pulse."""
         d0 = self.descriptor
-        for name in ("TOKEN", "CYCLE", "FIRST_SEQ", "PULSES_PLANNED", "RANGE_WINDOW_START", "SAMPLES_PER_PULSE",
-                     "AMPLITUDE_SCALE", "HEIGHT", "TABLE_ANGLE", "START_TIME", "DIRECTION"):
+        for name in ("TOKEN", "CYCLE", "FIRST_SEQ", "PULSES_PLANNED", "RANGE_WINDOW_START",
+                     "SAMPLES_PER_PULSE", "AMPLITUDE_SCALE", "HEIGHT", "TABLE_ANGLE", "START_TIME",
+                     "DIRECTION"):
             if descriptor[name] != d0[name]:
-                raise PassIncomplete(f"PASS.{name} changed during the pass ({d0[name]} -> {descriptor[name]})")
+                raise PassIncomplete(f"PASS.{name} changed during the pass "
+                                     f"({d0[name]} -> {descriptor[name]})")
         if descriptor["PASS_STATE"] != R.PassState.COMPLETE:
             raise PassIncomplete(f"pass ended in state {R.PassState(descriptor['PASS_STATE']).name}")
         if descriptor["OVERFLOW_COUNT"]:
             raise PassIncomplete(f"device buffer overflowed: {descriptor['OVERFLOW_COUNT']} pulses dropped")
         if descriptor["PULSES_PRODUCED"] != self.count or not self.last_seen:
-            raise PassIncomplete(f"{self.count} pulses received, device produced {descriptor['PULSES_PRODUCED']}")
+            raise PassIncomplete(f"{self.count} pulses received, device produced "
+                                 f"{descriptor['PULSES_PRODUCED']}")
         if self.count != self.planned:  # map 1.1, 4.4: a COMPLETE pass produced every pulse it planned
             raise PassIncomplete(f"PULSES_PRODUCED {self.count} != PULSES_PLANNED {self.planned}: incomplete")
         steps = np.diff(self.position_m[:self.count])
@@ -147,15 +154,16 @@ class PassAssembler:
 
 
 def write_scan(out_dir: Path, scan: ScanPass, pass_id: str, unique: str) -> Path:
-    """Write the pass atomically under its archive path. If that name is taken (a cycle counter that went back,
-    a pass acquired twice), the name gets `_<unique>` (the controller's boot id and pass token), then `_2`, `_3`,
-    ...: a whole pass is never dropped for its name, and never overwrites another."""
+    """Write the pass atomically under its archive path. If that name is taken (a cycle counter that went
+    back, a pass acquired twice), the name gets `_<unique>` (the controller's boot id and pass token), then
+    `_2`, `_3`, ...: a whole pass is never dropped for its name, and never overwrites another."""
     path = Path(out_dir) / archive.default_relative_path(scan)
     candidates = [path, path.with_name(f"{path.stem}_{unique}{path.suffix}")]
     candidates += [path.with_name(f"{path.stem}_{unique}_{k}{path.suffix}") for k in range(2, 1000)]
     for candidate in candidates:
         try:
-            return archive.write_pass(candidate, scan, pass_id=pass_id, created_by=f"uwbcl {__version__} acquire")
+            return archive.write_pass(candidate, scan, pass_id=pass_id,
+                                      created_by=f"uwbcl {__version__} acquire")
         except FileExistsError:
             continue
     raise FileExistsError(f"{path}: 1000 passes under this name")

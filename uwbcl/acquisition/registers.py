@@ -1,10 +1,10 @@
-"""The rig controller's Modbus register map (version 1.0) as data: one source for the client, the simulator and
-docs/modbus-register-map.md (whose tables `markdown_tables()` renders; a test holds the document to it).
+"""The rig controller's Modbus register map (version 1.0) as data: one source for the client, the simulator
+and docs/modbus-register-map.md (whose tables `markdown_tables()` renders; a test holds the document to it).
 
-Conventions (docs/modbus-register-map.md section 2): 0-based protocol addresses; 32/64-bit values high word first;
-float32 is IEEE 754 binary32 in the same word order; strings ASCII, two characters per register, high byte first;
-every block ends in a CRC-16/CCITT-FALSE register over the block's preceding registers (big-endian bytes), the
-value `binascii.crc_hqx(data, 0xFFFF)` computes.
+Conventions (docs/modbus-register-map.md section 2): 0-based protocol addresses; 32/64-bit values high word
+first; float32 is IEEE 754 binary32 in the same word order; strings ASCII, two characters per register, high
+byte first; every block ends in a CRC-16/CCITT-FALSE register over the block's preceding registers (big-endian
+bytes), the value `binascii.crc_hqx(data, 0xFFFF)` computes.
 """
 
 from __future__ import annotations
@@ -37,7 +37,8 @@ class Table(str, enum.Enum):
 # --------------------------------------------------------------------------------------------- value types
 
 _TYPES = {  # name: (registers, struct format)
-    "u16": (1, ">H"), "s16": (1, ">h"), "u32": (2, ">I"), "s32": (2, ">i"), "f32": (2, ">f"), "u64": (4, ">Q"),
+    "u16": (1, ">H"), "s16": (1, ">h"), "u32": (2, ">I"), "s32": (2, ">i"), "f32": (2, ">f"),
+    "u64": (4, ">Q"),
 }
 
 
@@ -62,7 +63,8 @@ class Field:
 
 
 def crc16(registers: Iterable[int]) -> int:
-    """CRC-16/CCITT-FALSE of the registers' big-endian bytes (poly 0x1021, init 0xFFFF; '123456789' -> 0x29B1)."""
+    """CRC-16/CCITT-FALSE of the registers' big-endian bytes (poly 0x1021, init 0xFFFF;
+    '123456789' -> 0x29B1)."""
     regs = list(registers)
     return binascii.crc_hqx(struct.pack(f">{len(regs)}H", *regs), 0xFFFF)
 
@@ -88,7 +90,8 @@ def _raw_from_value(block: str, f: Field, value) -> list[int]:
         try:
             raw_bytes = struct.pack(_TYPES[f.kind][1], raw)
         except struct.error:
-            raise RegisterError(f"{block}.{f.name}: {value!r} does not fit {f.kind} at scale {f.scale:g}") from None
+            raise RegisterError(f"{block}.{f.name}: {value!r} does not fit {f.kind} "
+                                f"at scale {f.scale:g}") from None
     return list(struct.unpack(f">{f.size}H", raw_bytes))
 
 
@@ -165,7 +168,7 @@ class Block:
         return {f.name: _value_from_raw(f, regs[f.offset:f.offset + f.size]) for f in self.fields}
 
 
-# --------------------------------------------------------------------------------------------- wrapping counters
+# ------------------------------------------------------------------------------------------ wrapping counters
 # Serial-number arithmetic (RFC 1982 style) for the u32 counters of the map: a is "before" b when b is less
 # than half the number space ahead of a. Buffers and cycle gaps are far below 2^31, so this is unambiguous.
 
@@ -295,21 +298,23 @@ ENUM_DOCS = {
     "Command.NONE": "no operation (rejected as REJECTED_UNKNOWN)",
     "Command.MOVE_HEIGHT": "ARG0: carriage height, s32 micrometres; DONE when the carriage is there",
     "Command.SET_TABLE_ANGLE": "ARG0: rotation-table angle, s32 millidegrees; DONE when the table is there",
-    "Command.START_PASS": "ARG0: pass token, 1 .. 2^31 - 1, echoed in PASS.TOKEN; DONE when the pass is complete",
+    "Command.START_PASS": "ARG0: pass token, 1 .. 2^31 - 1, echoed in PASS.TOKEN; DONE when the pass is "
+                          "complete",
     "Command.ABORT": "stop any motion and the pass; DONE at once (accepted even when BUSY)",
     "Command.CLEAR_FAULTS": "clear FAULT_WORD; DONE at once",
     "CommandResult.NONE": "no command since boot",
     "CommandResult.ACCEPTED": "accepted and executing",
     "CommandResult.DONE": "finished",
-    "CommandResult.REJECTED_BUSY": "another command is executing (only ABORT and CLEAR_FAULTS are taken when BUSY)",
+    "CommandResult.REJECTED_BUSY": "another command is executing (only ABORT and CLEAR_FAULTS are taken when "
+                                   "BUSY)",
     "CommandResult.REJECTED_RANGE": "argument outside the travel, the limits, or (token) 1 .. 2^31 - 1",
     "CommandResult.REJECTED_NOT_READY": "booting, faulted or in local control",
     "CommandResult.REJECTED_UNKNOWN": "unknown command code",
     "CommandResult.FAILED": "accepted, then stopped by a fault or a reboot while executing",
     "PassState.NONE": "no pass since boot",
     "PassState.RUNNING": "pulses are being produced",
-    "PassState.COMPLETE": "every pulse produced, PULSES_PRODUCED = PULSES_PLANNED (some may have been dropped: "
-                          "OVERFLOW_COUNT)",
+    "PassState.COMPLETE": "every pulse produced, PULSES_PRODUCED = PULSES_PLANNED (some may have been "
+                          "dropped: OVERFLOW_COUNT)",
     "PassState.ABORTED": "stopped before the end: the pass is unusable",
     "ResultStatus.OK": "a trustworthy estimate",
     "ResultStatus.AMBIGUOUS": "another plate correspondence explains the data as well",
@@ -346,7 +351,8 @@ class FaultRule:
 
 FAULT_TAXONOMY = (
     FaultRule("NO_REPLY", FaultClass.TRANSIENT, "no reply within the timeout; connection dropped or refused",
-              "close the connection, reconnect with backoff (0.05 s doubling to reconnect_max_s, jitter), repeat"),
+              "close the connection, reconnect with backoff (0.05 s doubling to reconnect_max_s, jitter), "
+              "repeat"),
     FaultRule("BUSY", FaultClass.TRANSIENT, "exception 04 or 06 (the request was not executed)",
               "wait 20 ms doubling to 1 s, repeat; after 25 in a row the request fails (REFUSED)"),
     FaultRule("DAMAGED", FaultClass.TRANSIENT, "CRC mismatch or wrong length in a reply",
@@ -362,16 +368,17 @@ FAULT_TAXONOMY = (
               "IDENTITY or RADAR, re-read on a new connection or boot, differ from what the pass assumed",
               "ABORT, run the pass again with the new values"),
     FaultRule("PASS_INCOMPLETE", FaultClass.PASS,
-              "sequence gap, OVERFLOW, PASS_STATE ABORTED, PULSES_PRODUCED != PULSES_PLANNED, a PASS value that "
-              "changed, a foreign TOKEN or CYCLE", "ABORT if still running, log, run the pass again"),
+              "sequence gap, OVERFLOW, PASS_STATE ABORTED, PULSES_PRODUCED != PULSES_PLANNED, a PASS value "
+              "that changed, a foreign TOKEN or CYCLE", "ABORT if still running, log, run the pass again"),
     FaultRule("ABSURD_VALUE", FaultClass.PASS,
-              "a PASS or RADAR value the client will not use (sizes over its limits, a record that does not fit "
-              "WINDOW_REGS, AMPLITUDE_SCALE not finite > 0)", "ABORT, log, re-read, run the pass again"),
+              "a PASS or RADAR value the client will not use (sizes over its limits, a record that does not "
+              "fit WINDOW_REGS, AMPLITUDE_SCALE not finite > 0)", "ABORT, log, re-read, run the pass again"),
     FaultRule("NO_PROGRESS", FaultClass.PASS,
               "no new pulse and no change of STATE, PASS_STATE or PULSES_PRODUCED for stall_timeout_s",
               "log, ABORT, run the pass again"),
     FaultRule("COMMAND_FAILED", FaultClass.PASS,
-              "REJECTED_BUSY, REJECTED_NOT_READY, REJECTED_UNKNOWN, REJECTED_RANGE or FAILED; not DONE in time",
+              "REJECTED_BUSY, REJECTED_NOT_READY, REJECTED_UNKNOWN, REJECTED_RANGE or FAILED; not DONE in "
+              "time",
               "ABORT, log, run the pass again"),
     FaultRule("CYCLES_MISSED", FaultClass.NOTICE, "CYCLE_COUNTER moved on by more than 1 (modulo 2^32)",
               "log the cycles never scanned; scan the new one"),
@@ -401,12 +408,14 @@ def fault_table() -> str:
 
 IDENTITY = Block("IDENTITY", Table.INPUT, 0, 32, (
     Field("MAGIC", 0, "u16", doc="0x5557 (\"UW\"): this is a uwbcl rig controller"),
-    Field("MAP_MAJOR", 1, "u16", doc="register map major version (1); a client refuses a major it does not know"),
+    Field("MAP_MAJOR", 1, "u16",
+          doc="register map major version (1); a client refuses a major it does not know"),
     Field("MAP_MINOR", 2, "u16", doc="minor version: additions only"),
     Field("DEVICE_TYPE", 3, "u16", doc="1 = UWB SAR rail rig"),
     Field("SERIAL", 4, "u32", doc="controller serial number"),
     Field("FIRMWARE", 6, "u32", doc="firmware version, major * 65536 + minor"),
-    Field("RIG_ID", 8, "str8", doc="rig identifier, up to 16 ASCII characters, NUL padded (A-Z a-z 0-9 . _ -)"),
+    Field("RIG_ID", 8, "str8",
+          doc="rig identifier, up to 16 ASCII characters, NUL padded (A-Z a-z 0-9 . _ -)"),
     Field("VENDOR", 16, "str8", doc="vendor name, up to 16 ASCII characters"),
 ), "who the device is; constant while it runs")
 
@@ -415,16 +424,19 @@ STATUS = Block("STATUS", Table.INPUT, 32, 32, (
     Field("STATUS_WORD", 1, "u16", doc="bits: table Status word"),
     Field("FAULT_WORD", 2, "u16", doc="bits: table Fault word; 0 = no fault"),
     Field("STATE", 3, "u16", doc="enumeration: table States"),
-    Field("BOOT_ID", 4, "u32", doc="changes at every controller start: a new value means the controller rebooted"),
+    Field("BOOT_ID", 4, "u32",
+          doc="changes at every controller start: a new value means the controller rebooted"),
     Field("UPTIME", 6, "u32", 1e-3, "s", "time since boot, milliseconds"),
     Field("DEVICE_TIME", 8, "u64", 1e-3, "s", "device clock, milliseconds since 1970-01-01T00:00:00Z (UTC)"),
     Field("CYCLE_COUNTER", 12, "u32",
-          doc="cutting-cycle counter of the longwall control system: +1 when a cycle's conveyor push is done; "
-              "2^32 - 1 is followed by 0"),
-    Field("CARRIAGE_HEIGHT", 14, "s32", 1e-6, "m", "measured carriage (antenna phase centre) height, micrometres"),
+          doc="cutting-cycle counter of the longwall control system: +1 when a cycle's conveyor push is "
+              "done; 2^32 - 1 is followed by 0"),
+    Field("CARRIAGE_HEIGHT", 14, "s32", 1e-6, "m",
+          "measured carriage (antenna phase centre) height, micrometres"),
     Field("CARRIAGE_POSITION", 16, "s32", 1e-6, "m", "measured rail position X_r, micrometres"),
     Field("TABLE_ANGLE", 18, "s32", 1e-3, "deg", "measured rotation-table angle, millidegrees"),
-    Field("CMD_ACK_SEQ", 20, "u16", doc="CMD_SEQ of the last command received, i.e. written without an exception "
+    Field("CMD_ACK_SEQ", 20, "u16",
+          doc="CMD_SEQ of the last command received, i.e. written without an exception "
                                          "reply (0 after boot)"),
     Field("CMD_ACK_CODE", 21, "u16", doc="CMD_CODE of that command"),
     Field("CMD_RESULT", 22, "u16", doc="its outcome: table Command results"),
@@ -442,8 +454,10 @@ RADAR = Block("RADAR", Table.INPUT, 64, 32, (
     Field("BUFFER_CAPACITY", 12, "u16", doc="pulses the ring buffer holds before it drops new ones"),
     Field("WINDOW_ADDRESS", 13, "u16", doc="input-register address of the pulse window (1024)"),
     Field("WINDOW_REGS", 14, "u16", doc="length of the pulse window in registers, header included"),
-    Field("NOMINAL_SPEED", 16, "u32", 1e-6, "m/s", "carriage set speed during a pass, micrometres per second"),
-    Field("RAIL_MIN", 18, "s32", 1e-6, "m", "rail travel, low end (a pass runs between the ends), micrometres"),
+    Field("NOMINAL_SPEED", 16, "u32", 1e-6, "m/s",
+          "carriage set speed during a pass, micrometres per second"),
+    Field("RAIL_MIN", 18, "s32", 1e-6, "m",
+          "rail travel, low end (a pass runs between the ends), micrometres"),
     Field("RAIL_MAX", 20, "s32", 1e-6, "m", "rail travel, high end, micrometres"),
     Field("HEIGHT_MIN", 22, "s32", 1e-6, "m", "lowest carriage height, micrometres"),
     Field("HEIGHT_MAX", 24, "s32", 1e-6, "m", "highest carriage height, micrometres"),
@@ -455,7 +469,8 @@ PASS = Block("PASS", Table.INPUT, 96, 32, (
     Field("CYCLE", 2, "u32", doc="CYCLE_COUNTER when the pass started"),
     Field("FIRST_SEQ", 4, "u32", doc="sequence number of the pass's first pulse"),
     Field("PULSES_PLANNED", 6, "u32", doc="pulses the pass will produce (travel / speed * PRF + 1)"),
-    Field("PULSES_PRODUCED", 8, "u32", doc="pulses produced so far, dropped ones included; equal to PULSES_PLANNED "
+    Field("PULSES_PRODUCED", 8, "u32",
+          doc="pulses produced so far, dropped ones included; equal to PULSES_PLANNED "
                                            "at COMPLETE"),
     Field("OVERFLOW_COUNT", 10, "u32", doc="pulses of this pass dropped because the buffer was full"),
     Field("RANGE_WINDOW_START", 12, "u32", 1e-12, "s", "two-way delay of fast-time sample 0, picoseconds"),
@@ -470,7 +485,8 @@ PASS = Block("PASS", Table.INPUT, 96, 32, (
 
 COMMAND = Block("COMMAND", Table.HOLDING, 0, 8, (
     Field("CMD_CODE", 0, "u16", doc="table Commands"),
-    Field("CMD_SEQ", 1, "u16", doc="1..65535 (after 65535 comes 1; 0 gets exception 03), a new value for every new "
+    Field("CMD_SEQ", 1, "u16",
+          doc="1..65535 (after 65535 comes 1; 0 gets exception 03), a new value for every new "
                                    "command; a repeated value is a retransmission"),
     Field("ARG0", 2, "s32", doc="first argument (table Commands)"),
     Field("ARG1", 4, "s32", doc="second argument, 0 (reserved)"),
@@ -481,14 +497,17 @@ ACK = Block("ACK", Table.HOLDING, 8, 3, (
 ), "pulse read-acknowledge, written in one FC16 request of the 3 registers")
 
 CLIENT = Block("CLIENT", Table.HOLDING, 12, 2, (
-    Field("CLIENT_HEARTBEAT", 0, "u16", doc="the client writes a new value at least every 2 s while connected"),
+    Field("CLIENT_HEARTBEAT", 0, "u16",
+          doc="the client writes a new value at least every 2 s while connected"),
 ), "client watchdog, written in one FC16 request of the 2 registers")
 
 RESULT = Block("RESULT", Table.HOLDING, 16, 21, (
-    Field("RESULT_SEQ", 0, "u32", doc="+1 for every result published; readers take a changed value as new data"),
+    Field("RESULT_SEQ", 0, "u32",
+          doc="+1 for every result published; readers take a changed value as new data"),
     Field("CYCLE", 2, "u32", doc="cycle counter value of the cycle measured"),
     Field("PREVIOUS_CYCLE", 4, "u32", doc="the cycle it is measured from (normally CYCLE - 1)"),
-    Field("RETREAT", 6, "s32", 1e-6, "m", "advance along the panel (X) since PREVIOUS_CYCLE, micrometres; -2^31: n/a"),
+    Field("RETREAT", 6, "s32", 1e-6, "m",
+          "advance along the panel (X) since PREVIOUS_CYCLE, micrometres; -2^31: n/a"),
     Field("CREEP", 8, "s32", 1e-6, "m", "slide along the face (Y), micrometres; -2^31: n/a"),
     Field("VERTICAL", 10, "s32", 1e-6, "m", "vertical change (Z), micrometres; -2^31: n/a"),
     Field("STATUS", 12, "u16", doc="table Result status"),
@@ -507,7 +526,8 @@ WINDOW_HEADER = Block("WINDOW_HEADER", Table.INPUT, WINDOW_ADDRESS, 10, (
     Field("OLDEST_SEQ", 0, "u32", doc="sequence number of record 0; 0 when RECORDS = 0"),
     Field("RECORDS", 2, "u16", doc="complete records that follow the header"),
     Field("RECORD_REGS", 3, "u16", doc="registers per record: 9 + 2 * SAMPLES_PER_PULSE"),
-    Field("NEWEST_SEQ", 4, "u32", doc="sequence number of the last pulse produced since boot (before the first: "
+    Field("NEWEST_SEQ", 4, "u32",
+          doc="sequence number of the last pulse produced since boot (before the first: "
                                       "the first's minus 1)"),
     Field("TOKEN", 6, "u32", doc="PASS.TOKEN of the pass the records belong to"),
 ), "start of the pulse window (section 6)")
@@ -544,17 +564,20 @@ def decode_records(regs: Sequence[int], n_records: int, samples_per_pulse: int):
 
     n_regs = record_regs(samples_per_pulse)
     if len(regs) < n_records * n_regs:
-        raise RegisterError(f"pulse window: {len(regs)} registers cannot hold {n_records} records of {n_regs}")
+        raise RegisterError(f"pulse window: {len(regs)} registers cannot hold {n_records} records "
+                            f"of {n_regs}")
     block = np.asarray(regs[:n_records * n_regs], dtype=np.uint16).reshape(n_records, n_regs)
     as_bytes = block.astype(">u2")
-    bad = [i for i in range(n_records) if binascii.crc_hqx(as_bytes[i, :-1].tobytes(), 0xFFFF) != block[i, -1]]
+    bad = [i for i in range(n_records)
+           if binascii.crc_hqx(as_bytes[i, :-1].tobytes(), 0xFFFF) != block[i, -1]]
     head = as_bytes[:, :RECORD_HEADER_REGS].tobytes()
     fields = np.frombuffer(head, dtype=np.dtype([("seq", ">u4"), ("t", ">u4"), ("x", ">i4"), ("flags", ">u2"),
                                                   ("res", ">u2")]), count=n_records)
-    iq = block[:, RECORD_HEADER_REGS:-1].astype(np.uint16).view(np.int16).reshape(n_records, samples_per_pulse, 2)
+    iq = block[:, RECORD_HEADER_REGS:-1].astype(np.uint16).view(np.int16)
+    iq = iq.reshape(n_records, samples_per_pulse, 2)
     return (fields["seq"].astype(np.int64), fields["t"].astype(np.float64) / _inverse(RECORD_TIME_SCALE_S),
-            fields["x"].astype(np.float64) / _inverse(RECORD_POSITION_SCALE_M), fields["flags"].astype(np.int64), iq,
-            bad)
+            fields["x"].astype(np.float64) / _inverse(RECORD_POSITION_SCALE_M),
+            fields["flags"].astype(np.int64), iq, bad)
 
 
 # --------------------------------------------------------------------------------------------- documentation
@@ -570,8 +593,8 @@ def block_table(block: Block) -> str:
     for f in block.fields:
         kind = f"ASCII, {f.size} regs" if f.kind.startswith("str") else f.kind
         scale = "" if f.scale == 1.0 or f.kind.startswith("str") else f"{f.scale:g}"
-        rows.append(f"| {_addr(block.table, block.address + f.offset, f.size)} | {f.name} | {kind} | {scale} | "
-                    f"{f.unit} | {f.doc} |")
+        rows.append(f"| {_addr(block.table, block.address + f.offset, f.size)} | {f.name} | {kind} | {scale} "
+                    f"| {f.unit} | {f.doc} |")
     rows.append(f"| {_addr(block.table, block.crc_address, 1)} | {block.name}_CRC | u16 | | | CRC-16 of "
                 f"{_addr(block.table, block.address, block.length - 1)} |")
     return "\n".join(rows)
@@ -581,7 +604,8 @@ def enum_table(enum_cls) -> str:
     bits = issubclass(enum_cls, enum.IntFlag)
     rows = [f"| {'bit' if bits else 'value'} | name | meaning |", "|---|---|---|"]
     for m in enum_cls:
-        rows.append(f"| {int(m).bit_length() - 1 if bits else int(m)} | {m.name} | {ENUM_DOCS[f'{enum_cls.__name__}.{m.name}']} |")
+        rows.append(f"| {int(m).bit_length() - 1 if bits else int(m)} | {m.name} | "
+                    f"{ENUM_DOCS[f'{enum_cls.__name__}.{m.name}']} |")
     return "\n".join(rows)
 
 

@@ -1,14 +1,15 @@
 """The world the simulated rig scans: a rib of bolt plates and a face that advances once per cutting cycle.
 
-A paper scenario (`uwbcl.scenarios`) gives the plate pattern, the radar, the rail speed and aperture, the first
-rig position and the nominal advance. A production run needs many cycles, so the plate group is repeated along
-the roadway (X) with an irregular pitch, and the rig advances by the scenario's web with +-`web_jitter`
+A paper scenario (`uwbcl.scenarios`) gives the plate pattern, the radar, the rail speed and aperture, the
+first rig position and the nominal advance. A production run needs many cycles, so the plate group is repeated
+along the roadway (X) with an irregular pitch, and the rig advances by the scenario's web with +-`web_jitter`
 variation, a creep that drifts a few millimetres per cycle, and a little vertical noise. Cycle k of a campaign
-is the same whatever else is asked of it (each cycle's draws come from a generator seeded by (seed, k)), so the
-device, a test and `scripts/acquisition_study.py` agree on the truth.
+is the same whatever else is asked of it (each cycle's draws come from a generator seeded by (seed, k)), so
+the device, a test and `scripts/acquisition_study.py` agree on the truth.
 
-The echo of a pass comes from `uwbcl.simulate` (eq. 2 with the beam pattern and the rail's speed wander) for the
-height and rotation-table angle the client commanded, so the client's steering decides what the radar sees.
+The echo of a pass comes from `uwbcl.simulate` (eq. 2 with the beam pattern and the rail's speed wander) for
+the height and rotation-table angle the client commanded, so the client's steering decides what the radar
+sees.
 """
 
 from __future__ import annotations
@@ -54,7 +55,8 @@ class Campaign:
 
     def __init__(self, config: WorldConfig = WorldConfig()):
         if config.scenario not in SCENARIOS:
-            raise ValueError(f"unknown scenario {config.scenario!r}; available: {', '.join(sorted(SCENARIOS))}")
+            raise ValueError(f"unknown scenario {config.scenario!r}; available: "
+                             f"{', '.join(sorted(SCENARIOS))}")
         self.config = config
         self.base: Scenario = SCENARIOS[config.scenario]
         radar = self.base.radar
@@ -63,7 +65,8 @@ class Campaign:
         self.radar: RadarParameters = radar
         self.speed_m_s = float(config.speed_m_s or self.base.speed_m_s)
         self.aperture_length_m = float(config.aperture_length_m or self.base.aperture_length_m)
-        n_intervals = 2 * round(0.5 * self.aperture_length_m / self.speed_m_s * radar.pulse_repetition_frequency_hz)
+        n_intervals = 2 * round(0.5 * self.aperture_length_m / self.speed_m_s
+                                * radar.pulse_repetition_frequency_hz)
         self.pulses_per_pass = n_intervals + 1
         self.rail_half_travel_m = 0.5 * n_intervals * self.speed_m_s / radar.pulse_repetition_frequency_hz
         advance = self.base.rig_positions_m[1] - self.base.rig_positions_m[0]
@@ -75,7 +78,8 @@ class Campaign:
     # ------------------------------------------------------------------------------------------ the rib
 
     def plates_roadway_m(self, x_max_m: float) -> np.ndarray:
-        """Plates with roadway X below x_max_m: the scenario's group repeated along X at an irregular pitch."""
+        """Plates with roadway X below x_max_m: the scenario's group repeated along X at an
+        irregular pitch."""
         if len(self._plates) and self._plates[:, 0].max() >= x_max_m:
             return self._plates
         group = np.asarray(self.base.targets_roadway_m, dtype=float)
@@ -126,8 +130,8 @@ class Campaign:
                                      1 if direction > 0 else 0])
         prf = self.radar.pulse_repetition_frequency_hz
         start = -direction * self.rail_half_travel_m
-        times, positions = rail_motion(self.pulses_per_pass, prf, self.speed_m_s, start, self.config.speed_jitter,
-                                       rng, direction)
+        times, positions = rail_motion(self.pulses_per_pass, prf, self.speed_m_s, start,
+                                       self.config.speed_jitter, rng, direction)
         targets = self.targets_radar_m(k)
         geometry = PassGeometry(height_m=height_m, rotation_table_angle_deg=table_angle_deg,
                                 reference_point_m=(0.0, -1.0, 0.0))  # not used by the echo model
@@ -136,7 +140,8 @@ class Campaign:
         return PassData(times, positions, echo, t0, targets)
 
     def _range_gate(self, positions_m, targets_m, geometry: PassGeometry) -> tuple[float, int]:
-        """Gate from the nearest plate in the beam less the margin; picosecond-exact, as the register holds it."""
+        """Gate from the nearest plate in the beam less the margin; picosecond-exact, as the register
+        holds it."""
         ranges = seen_ranges_m(self.radar, positions_m, targets_m, geometry.height_m,
                                geometry.rotation_table_angle_rad, geometry.boresight_y_sign)
         if np.isfinite(ranges).any():
