@@ -177,7 +177,10 @@ def study_accuracy(args, out: Path) -> bool:
     if rows:
         live = np.array([r[1] for r in rows])
         filed = np.array([r[2] for r in rows])
-        rms = lambda e: 1e3 * np.sqrt(np.nanmean(e ** 2, axis=0))
+
+        def rms(e):
+            return 1e3 * np.sqrt(np.nanmean(e ** 2, axis=0))
+
         print(f"RMS (mm) retreat/creep/vertical: live {np.round(rms(live), 2)}, files "
               f"{np.round(rms(filed), 2)}; max |live - files| {1e3 * np.nanmax(np.abs(live - filed)):.2f} mm")
         ok = (np.all(np.isfinite(live)) and rms(live)[0] <= rms(filed)[0] + 1.0

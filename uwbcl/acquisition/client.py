@@ -341,10 +341,12 @@ class RigLink:
             return reply
 
     def read(self, table: R.Table, address: int, count: int) -> list[int]:
-        if table is R.Table.INPUT:
-            fn = lambda: self.client.read_input_registers(address, count=count, device_id=self.unit_id)
-        else:
-            fn = lambda: self.client.read_holding_registers(address, count=count, device_id=self.unit_id)
+        reader = (self.client.read_input_registers if table is R.Table.INPUT
+                  else self.client.read_holding_registers)
+
+        def fn():
+            return reader(address, count=count, device_id=self.unit_id)
+
         regs = self._request(f"read {'IR' if table is R.Table.INPUT else 'HR'} {address}+{count}",
                              fn).registers
         if len(regs) != count:
