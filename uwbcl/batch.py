@@ -60,7 +60,8 @@ PARAMETER_KEYS = ("carrier_frequency_hz", "bandwidth_hz", "sample_rate_hz", "pul
 
 # ----------------------------------------------------------------------------------------------- per pass
 def file_sha256(path: Path) -> str:
-    """SHA-256 of a regular file's bytes (O_NONBLOCK and a type check: a FIFO put in its place never blocks)."""
+    """SHA-256 of a regular file's bytes (O_NONBLOCK and a type check: a FIFO put in its place never
+    blocks)."""
     h = hashlib.sha256()
     with os.fdopen(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb") as f:
         if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
@@ -72,7 +73,8 @@ def file_sha256(path: Path) -> str:
 
 @functools.lru_cache(maxsize=1)
 def code_fingerprint() -> str:
-    """Hash of the package's own source (Python and OpenCL): a changed focuser or detector invalidates the cache
+    """Hash of the package's own source (Python and OpenCL): a changed focuser or detector invalidates the
+    cache
     even when the version number did not move (development installs)."""
     root = Path(__file__).resolve().parent
     files = sorted(p for p in root.rglob("*") if p.suffix in (".py", ".cl") and "__pycache__" not in p.parts)
@@ -146,7 +148,8 @@ def _finite(v) -> bool:
 
 
 def _record(file: str, sha: str, entry) -> PassRecord:
-    """The PassRecord of a worker's or the cache's entry; ValueError naming what is wrong with a damaged one."""
+    """The PassRecord of a worker's or the cache's entry; ValueError naming what is wrong with a damaged
+    one."""
     if not isinstance(entry, dict) or not isinstance(entry.get("header"), dict):
         raise ValueError("not a record with a header")
     h = entry["header"]
@@ -165,11 +168,13 @@ def _record(file: str, sha: str, entry) -> PassRecord:
     if not isinstance(dets, list):
         raise ValueError("detections: not a list")
     for d in dets:
-        if not isinstance(d, dict) or set(d) != set(_DETECTION_FIELDS) or not all(_number(v) for v in d.values()):
+        if (not isinstance(d, dict) or set(d) != set(_DETECTION_FIELDS)
+                or not all(_number(v) for v in d.values())):
             raise ValueError(f"detections: {d!r:.80}")
-    return PassRecord(file=file, sha256=sha, rig_id=h["rig_id"], cycle=h["cycle"], height_m=float(h["height_m"]),
-                      pass_id=h["pass_id"], pass_start_time=h["pass_start_time"], parameters=params,
-                      detections=tuple(Detection(**{k: float(d[k]) for k in _DETECTION_FIELDS}) for d in dets))
+    detections = tuple(Detection(**{k: float(d[k]) for k in _DETECTION_FIELDS}) for d in dets)
+    return PassRecord(file=file, sha256=sha, rig_id=h["rig_id"], cycle=h["cycle"],
+                      height_m=float(h["height_m"]), pass_id=h["pass_id"],
+                      pass_start_time=h["pass_start_time"], parameters=params, detections=detections)
 
 
 class PassCache:
@@ -181,7 +186,8 @@ class PassCache:
         self.damaged = 0  # entries found damaged and recomputed in this run
 
     def get(self, file: str, sha: str) -> PassRecord | None:
-        """The cached record of a file's content, or None (absent, or damaged: then recomputed, never trusted)."""
+        """The cached record of a file's content, or None (absent, or damaged: then recomputed, never
+        trusted)."""
         if not self.enabled:
             return None
         path = self.dir / f"{sha}.json"
@@ -206,7 +212,8 @@ class PassCache:
             self.dir.mkdir(parents=True, exist_ok=True)
             # JSON floats round-trip float64 exactly, so a cached pass gives bit-identical results downstream.
             write_text_atomic(self.dir / f"{sha}.json",
-                              json.dumps({"cache_version": CACHE_VERSION, "sha256": sha, **entry}, sort_keys=True))
+                              json.dumps({"cache_version": CACHE_VERSION, "sha256": sha, **entry},
+                                         sort_keys=True))
         except OSError as e:  # a cache that cannot be written costs time next run, never this run's results
             log.warning("cache %s not writable (%s): continuing without it", self.dir, e.strerror or e)
             self.enabled = False
@@ -231,7 +238,8 @@ class Progress:
         elapsed = time.monotonic() - self.start
         eta = elapsed / self.done * (self.total - self.done)
         sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} passes"
-                         f"{f', {self.failed} failed' if self.failed else ''}, {elapsed:.0f} s, ETA {eta:.0f} s ")
+                         f"{f', {self.failed} failed' if self.failed else ''}, {elapsed:.0f} s, "
+                         f"ETA {eta:.0f} s ")
         sys.stderr.flush()
 
     def close(self) -> None:
@@ -257,7 +265,8 @@ def default_jobs(settings: ProcessingSettings) -> int:
 
 
 def worker_count(requested: int | None, settings: ProcessingSettings, pending: int) -> int:
-    """Workers to start: as requested (default_jobs when None), never more than the cores or the pending passes:
+    """Workers to start: as requested (default_jobs when None), never more than the cores or the pending
+    passes:
     `--jobs 1000` must not start a thousand processes."""
     jobs = requested or default_jobs(settings)
     if jobs > cpu_count():
@@ -275,65 +284,87 @@ def _params_differ(a: dict, b: dict) -> list[str]:
     return out
 
 
+def _expected_height(r: PassRecord, options: BatchOptions) -> Problem | None:
+    if options.heights_m is None or any(abs(r.height_m - h) <= options.height_tolerance_m
+                                        for h in options.heights_m):
+        return None
+    heights = ", ".join(f"{h:g}" for h in options.heights_m)
+    return Problem(r.file, "unexpected_height",
+                   f"rail height {r.height_m:.4f} m is not one of the configured heights {heights} m")
+
+
+def _one_per_height(recs: list[PassRecord], where: str, problems: list[Problem]) -> dict[int, PassRecord]:
+    """{height_mm: record}: of byte-identical copies one is kept, of different passes at one height none."""
+    by_height: dict[int, list[PassRecord]] = defaultdict(list)
+    for r in sorted(recs, key=lambda r: r.file):
+        by_height[archive.height_mm(r.height_m)].append(r)
+    kept: dict[int, PassRecord] = {}
+    for hmm, rs in sorted(by_height.items()):
+        files = "; ".join(r.file for r in rs)
+        if len(rs) == 1:
+            kept[hmm] = rs[0]
+        elif len({r.sha256 for r in rs}) == 1:
+            kept[hmm] = rs[0]
+            problems.append(Problem(files, "duplicate_pass", f"{where} height {hmm} mm: {len(rs)} identical "
+                                                             f"copies; {rs[0].file} used"))
+        else:
+            problems.append(Problem(files, "duplicate_pass",
+                                    f"{where} height {hmm} mm: {len(rs)} different passes; none used"))
+    return kept
+
+
+def _agreeing_majority(kept: dict[int, PassRecord], where: str, problems: list[Problem]
+                       ) -> dict[int, PassRecord] | None:
+    """The passes sharing the rig set-up (PARAMETER_KEYS) when a strict majority does, reporting the others;
+    None when no majority agrees."""
+    groups: list[list[PassRecord]] = []
+    for r in kept.values():
+        for g in groups:
+            if not _params_differ(g[0].parameters, r.parameters):
+                g.append(r)
+                break
+        else:
+            groups.append([r])
+    if len(groups) <= 1:
+        return kept
+    groups.sort(key=lambda g: (-len(g), min(r.file for r in g)))
+    majority = groups[0] if 2 * len(groups[0]) > len(kept) else None
+    for g in groups:
+        if g is majority:
+            continue
+        ref = (groups[1] if g is groups[0] else groups[0])[0]
+        fields = ", ".join(_params_differ(ref.parameters, g[0].parameters))
+        for r in g:
+            problems.append(Problem(r.file, "mismatched_parameters",
+                                    f"{where}: differs from {ref.file} in {fields}"
+                                    + ("" if majority else " (no majority; cycle not used)")))
+    if majority is None:
+        return None
+    return {k: r for k, r in kept.items() if any(r is m for m in majority)}
+
+
 def group_cycles(records: list[PassRecord], options: BatchOptions) -> tuple[dict, list[Problem]]:
     """(rig, cycle) -> {height_mm: record}, after the checks of a cycle; the problems found on the way."""
     problems: list[Problem] = []
     by_cycle: dict[tuple[str, int], list[PassRecord]] = defaultdict(list)
     for r in records:
-        if options.heights_m is not None and not any(abs(r.height_m - h) <= options.height_tolerance_m
-                                                     for h in options.heights_m):
-            problems.append(Problem(r.file, "unexpected_height",
-                                    f"rail height {r.height_m:.4f} m is not one of the configured heights "
-                                    f"{', '.join(f'{h:g}' for h in options.heights_m)} m"))
-            continue
-        by_cycle[(r.rig_id, r.cycle)].append(r)
+        problem = _expected_height(r, options)
+        if problem is not None:
+            problems.append(problem)
+        else:
+            by_cycle[(r.rig_id, r.cycle)].append(r)
     cycles = {}
     for (rig, cycle), recs in sorted(by_cycle.items()):
         where = f"rig {rig} cycle {cycle}"
-        # Duplicates: the same rig, cycle and height twice.
-        by_height: dict[int, list[PassRecord]] = defaultdict(list)
-        for r in sorted(recs, key=lambda r: r.file):
-            by_height[archive.height_mm(r.height_m)].append(r)
-        kept: dict[int, PassRecord] = {}
-        for hmm, rs in sorted(by_height.items()):
-            if len(rs) == 1:
-                kept[hmm] = rs[0]
-            elif len({r.sha256 for r in rs}) == 1:
-                kept[hmm] = rs[0]
-                problems.append(Problem("; ".join(r.file for r in rs), "duplicate_pass",
-                                        f"{where} height {hmm} mm: {len(rs)} identical copies; {rs[0].file} used"))
-            else:
-                problems.append(Problem("; ".join(r.file for r in rs), "duplicate_pass",
-                                        f"{where} height {hmm} mm: {len(rs)} different passes; none used"))
-        # Parameters the passes of one cycle must share (same rig set-up): keep a strict majority, if any.
-        groups: list[list[PassRecord]] = []
-        for r in kept.values():
-            for g in groups:
-                if not _params_differ(g[0].parameters, r.parameters):
-                    g.append(r)
-                    break
-            else:
-                groups.append([r])
-        if len(groups) > 1:
-            groups.sort(key=lambda g: (-len(g), min(r.file for r in g)))
-            majority = groups[0] if 2 * len(groups[0]) > len(kept) else None
-            for g in groups:
-                if g is majority:
-                    continue
-                ref = (groups[1] if g is groups[0] else groups[0])[0]
-                fields = ", ".join(_params_differ(ref.parameters, g[0].parameters))
-                for r in g:
-                    problems.append(Problem(r.file, "mismatched_parameters",
-                                            f"{where}: differs from {ref.file} in {fields}"
-                                            + ("" if majority else " (no majority; cycle not used)")))
-            if majority is None:
-                continue
-            kept = {k: r for k, r in kept.items() if any(r is m for m in majority)}
+        kept = _agreeing_majority(_one_per_height(recs, where, problems), where, problems)
+        if kept is None:
+            continue
         if len(kept) < 2:
             files = "; ".join(r.file for r in kept.values()) or "; ".join(r.file for r in recs)
-            heights = ", ".join(f"{r.height_m:g}" for r in kept.values()) or "none usable"
+            has = (f"has {', '.join(f'{r.height_m:g}' for r in kept.values())} m" if kept
+                   else "has no usable pass")
             problems.append(Problem(files, "single_height",
-                                    f"{where}: a cycle needs passes at two or more heights, has {heights} m"))
+                                    f"{where}: a cycle needs passes at two or more heights, {has}"))
             continue
         cycles[(rig, cycle)] = kept
     return cycles, problems
@@ -369,7 +400,8 @@ def _exclusive(out_dir: Path):
 def discover(in_dir: Path, out_dir: Path, follow_symlinks: bool = False
              ) -> tuple[list[Path], list[Problem], list[Problem]]:
     """Archives under in_dir, sorted, minus anything under out_dir (it may live inside the input tree); the
-    problems of the tree (skipped, reported) and its warnings (accepted). Never raises for what the tree holds."""
+    problems of the tree (skipped, reported) and its warnings (accepted). Never raises for what the tree
+    holds."""
     walk = archive.walk_pass_files(in_dir, skip=(out_dir,), follow_symlinks=follow_symlinks)
     return (walk.files, [Problem(*p) for p in walk.problems], [Problem(*w) for w in walk.warnings])
 
@@ -390,8 +422,9 @@ def suspicious(records: list[PassRecord], now_s: float | None = None) -> list[Pr
         except ValueError:
             continue
         if t > now_s + FUTURE_TOLERANCE_S:
-            out.append(Problem(r.file, "future_time", f"starts {r.pass_start_time}, {(t - now_s) / 86400:.0f} days "
-                                                      "after this machine's clock"))
+            days = (t - now_s) / 86400
+            out.append(Problem(r.file, "future_time",
+                               f"starts {r.pass_start_time}, {days:.0f} days after this machine's clock"))
     for pid, rs in by_id.items():
         if len({r.sha256 for r in rs}) > 1:
             out.append(Problem("; ".join(sorted(r.file for r in rs)), "shared_pass_id",
@@ -469,10 +502,9 @@ def _run_pool(todo: list[tuple[Path, str, str]], settings: ProcessingSettings, j
     return [item for k, item in enumerate(todo) if k not in done]
 
 
-def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, cache: PassCache,
-               options: BatchOptions) -> tuple[list[PassRecord], list[Problem], set[str]]:
-    """Records of every readable archive, from the cache or by focusing; problems of the others; the files
-    focused in this run."""
+def _from_cache(files: list[Path], in_dir: Path, cache: PassCache
+                ) -> tuple[list[PassRecord], list[Problem], list[tuple[Path, str, str]]]:
+    """The cached records, the unreadable files' problems, and the (path, name, sha256) left to focus."""
     records: list[PassRecord] = []
     problems: list[Problem] = []
     todo: list[tuple[Path, str, str]] = []
@@ -491,6 +523,32 @@ def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, ca
             todo.append((path, rel, sha))
     if records:
         log.info("%d passes from the cache, %d to focus", len(records), len(todo))
+    return records, problems, todo
+
+
+def _focus(todo: list[tuple[Path, str, str]], settings: ProcessingSettings, jobs: int, finish) -> None:
+    """Every pass of `todo` through DETECT, in this process or a pool of `jobs` workers; `finish` gets
+    each."""
+    if jobs <= 1:
+        for path, rel, sha in todo:
+            finish(path, rel, sha, DETECT(str(path), settings))
+        return
+    left = _run_pool(todo, settings, jobs, finish)
+    if left:
+        # A worker died (a crash or the out-of-memory killer) and took the pool with it: redo the
+        # unfinished passes one per fresh worker, so the one that kills its worker is the one reported.
+        log.warning("a worker process died; focusing the %d unfinished passes one at a time", len(left))
+        for item in left:
+            if _run_pool([item], settings, 1, finish):
+                finish(*item, {"error": "the worker process died while focusing it (crash or out of memory)",
+                               "kind": "processing_failed"})
+
+
+def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, cache: PassCache,
+               options: BatchOptions) -> tuple[list[PassRecord], list[Problem], set[str]]:
+    """Records of every readable archive, from the cache or by focusing; problems of the others; the files
+    focused in this run."""
+    records, problems, todo = _from_cache(files, in_dir, cache)
     progress = Progress(len(todo), options.progress)
     done = 0
 
@@ -500,7 +558,8 @@ def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, ca
             try:
                 record = _record(rel, sha, entry)
             except ValueError as e:
-                entry = {"error": f"the worker returned an unusable record ({e})", "kind": "processing_failed"}
+                entry = {"error": f"the worker returned an unusable record ({e})",
+                         "kind": "processing_failed"}
             else:
                 cache.put(sha, entry)
                 records.append(record)
@@ -512,21 +571,8 @@ def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, ca
         if options.on_pass_done is not None:
             options.on_pass_done(done)
 
-    jobs = worker_count(options.jobs, settings, len(todo))
     try:
-        if jobs <= 1:
-            for path, rel, sha in todo:
-                finish(path, rel, sha, DETECT(str(path), settings))
-        else:
-            left = _run_pool(todo, settings, jobs, finish)
-            if left:
-                # A worker died (a crash or the out-of-memory killer) and took the pool with it: redo the
-                # unfinished passes one per fresh worker, so the one that kills its worker is the one reported.
-                log.warning("a worker process died; focusing the %d unfinished passes one at a time", len(left))
-                for item in left:
-                    if _run_pool([item], settings, 1, finish):
-                        finish(*item, {"error": "the worker process died while focusing it (crash or out of "
-                                                "memory)", "kind": "processing_failed"})
+        _focus(todo, settings, worker_count(options.jobs, settings, len(todo)), finish)
     finally:
         progress.close()
     return records, problems, {rel for _, rel, _ in todo}
@@ -534,7 +580,8 @@ def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, ca
 
 def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings | None = None,
                       options: BatchOptions | None = None) -> BatchReport:
-    """Every archive under in_dir -> the outputs of docs/outputs.md in out_dir. Bad input is reported, skipped."""
+    """Every archive under in_dir -> the outputs of docs/outputs.md in out_dir. Bad input is reported,
+    skipped."""
     settings = settings or ProcessingSettings()
     options = options or BatchOptions()
     in_dir, out_dir = Path(in_dir), Path(out_dir)
@@ -569,8 +616,8 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
                             r.cycle.cycle, r.displacement.status, r.displacement.n_targets,
                             r.displacement.runner_up_targets)
         problems.sort(key=lambda p: (p.file, p.kind, p.reason))
-        rows = outputs.write_all(out_dir, rows_series, cycles, problems, out_opts, groups=groups, in_dir=in_dir,
-                                 settings=settings)
+        rows = outputs.write_all(out_dir, rows_series, cycles, problems, out_opts, groups=groups,
+                                 in_dir=in_dir, settings=settings)
     n_cached = len(records) - sum(1 for r in records if r.file in focused)
     return BatchReport(rows, problems, cycles, rows_series, len(files), n_detected, n_cached, cache.damaged,
                        warnings)
