@@ -1,42 +1,45 @@
 #!/usr/bin/env python3
-"""Benchmark: the numpy reference, a float32 scipy.fft chain and the OpenCL engine, on the same inputs, in one run.
+"""Benchmark: the numpy reference, a float32 scipy.fft chain and the OpenCL engine; same inputs, one run.
 
 Legs, one `Focuser` each (uwbcl.focus.protocol; all focus with modified NLCS and exact-reference azimuth
 compression; each focuses detection's neighbour models with its own chain (`nlcs_model_spectra`), as
 `uwbcl process` does; the rest of detection is shared code):
   numpy    the float64 reference, `--backend numpy` (uwbcl.focus.reference.NumpyFocuser: nlcs.nlcs_focus)
-  scipy32  uwbcl.focus.scipy32.Scipy32Focuser (nlcs_focus_scipy32): complex64 data, float64 phases, scipy.fft on
-           all cores; what a careful CPU user would write instead of the engine
+  scipy32  uwbcl.focus.scipy32.Scipy32Focuser (nlcs_focus_scipy32): complex64 data, float64 phases,
+           scipy.fft on all cores; what a careful CPU user would write instead of the engine
   opencl   the OpenCL engine, `--backend opencl` (uwbcl.focus.engine.shared_engine(--device))
 
 Workloads
-  (a) batch: N paper-sized passes (PAPER_SIM1 and PAPER_SIM2 on alternate rigs, SNR 10 dB, +-10 % carriage speed;
-      one rig = 2 cycles x 2 heights = 4 passes) written as scan archives first (untimed); then, per leg, end to
-      end: archive read -> focus -> detect (as pipeline.detect_pass, with the echo for neighbour cancellation)
-      -> locate -> displacement -> displacements.csv written.
-  (b) hires: one pass of 2048 pulses x 1024 range samples (sim 1 geometry, PRF 153.6 Hz so 2048 pulses span the
-      2 m aperture, 16 GHz fast-time sampling and a 2 m range margin for the 1024 samples) focused by each leg.
-Each leg is warmed up once on every input shape (FFT plans, kernels, caches) before it is timed. The FFT share is
-measured in a separate profiling pass over a sample of the batch, with every FFT call timed (OpenCL: queue.finish()
-before and after each), so the timed pass is not distorted. The images of the numpy leg are the oracle: every
-other leg must agree within ||out - ref|| / ||ref|| < 1e-4 (also checked with --skip-numpy, on a few passes).
+  (a) batch: N paper-sized passes (PAPER_SIM1 and PAPER_SIM2 on alternate rigs, SNR 10 dB, +-10 % carriage
+      speed; one rig = 2 cycles x 2 heights = 4 passes) written as scan archives first (untimed); then, per
+      leg, end to end: archive read -> focus -> detect (as pipeline.detect_pass, with the echo for neighbour
+      cancellation) -> locate -> displacement -> displacements.csv written.
+  (b) hires: one pass of 2048 pulses x 1024 range samples (sim 1 geometry, PRF 153.6 Hz so 2048 pulses span
+      the 2 m aperture, 16 GHz fast-time sampling and a 2 m range margin for the 1024 samples) focused by each
+      leg.
+Each leg is warmed up once on every input shape (FFT plans, kernels, caches) before it is timed. The FFT share
+is measured in a separate profiling pass over a sample of the batch, with every FFT call timed (OpenCL:
+queue.finish() before and after each), so the timed pass is not distorted. The images of the numpy leg are the
+oracle: every other leg must agree within ||out - ref|| / ||ref|| < 1e-4 (also checked with --skip-numpy, on a
+few passes).
 
 Running it
   On the CPU, as CI does (PoCL, 2 threads):
       POCL_DEVICES=pthread POCL_MAX_PTHREAD_COUNT=2 POCL_CPU_MAX_CU_COUNT=2 python scripts/benchmark.py
   A smoke run (20 passes; the hires pass timed once, without a warm-up run):
       python scripts/benchmark.py --quick
-  On a GPU: install the vendor's OpenCL driver (it registers an ICD in /etc/OpenCL/vendors; NVIDIA's comes with the
-  driver) and the `opencl` extra (pyvkfft, see README), then pick the device by its "platform:device" spec from
-  `uwbcl devices`, or by a substring of its name, with --device or pyopencl's PYOPENCL_CTX:
+  On a GPU: install the vendor's OpenCL driver (it registers an ICD in /etc/OpenCL/vendors; NVIDIA's comes
+  with the driver) and the `opencl` extra (pyvkfft, see README), then pick the device by its "platform:device"
+  spec from `uwbcl devices`, or by a substring of its name, with --device or pyopencl's PYOPENCL_CTX:
       uwbcl devices
       python scripts/benchmark.py --device 0:0 --json gpu.json
       PYOPENCL_CTX=0:0 python scripts/benchmark.py --skip-numpy
   With neither, the engine takes the first GPU, else the first OpenCL device.
 
-Threads are whatever the environment says; the script sets nothing and prints them: numpy's FFT and elementwise
-maths run on one thread, BLAS (the H8 polynomial fits of every leg) follows OPENBLAS_NUM_THREADS / OMP_NUM_THREADS,
-scipy.fft uses all cores (workers=-1), PoCL follows POCL_MAX_PTHREAD_COUNT / POCL_CPU_MAX_CU_COUNT.
+Threads are whatever the environment says; the script sets nothing and prints them: numpy's FFT and
+elementwise maths run on one thread, BLAS (the H8 polynomial fits of every leg) follows OPENBLAS_NUM_THREADS /
+OMP_NUM_THREADS, scipy.fft uses all cores (workers=-1), PoCL follows POCL_MAX_PTHREAD_COUNT /
+POCL_CPU_MAX_CU_COUNT.
 
 Exit status: 0; 1 if a leg failed or an image disagreed with the reference; 2 for bad arguments.
 """
@@ -125,7 +128,8 @@ class FftClock:
 
 @contextlib.contextmanager
 def patched(owner, names: tuple[str, ...], clock: FftClock, sync: Callable | None = None):
-    """Replace owner.<name> by a timed wrapper for the duration; callers look the attribute up at call time."""
+    """Replace owner.<name> by a timed wrapper for the duration; callers look the attribute up at call
+    time."""
     own = {n: n in vars(owner) for n in names}  # module functions: own; an engine's method: its class's
     saved = {n: getattr(owner, n) for n in names}
     try:
@@ -184,14 +188,17 @@ def hires_pass() -> ScanPass:
                                 sample_rate_hz=HIRES_SAMPLE_RATE_HZ)
     geometry = PassGeometry(height_m=sc.heights_m[0], rotation_table_angle_deg=sc.rotation_table_angle_deg(0),
                             reference_point_m=tuple(float(c) for c in sc.reference_point_m(0)))
-    scan = simulate.simulate_pass(radar, geometry, sc.targets_radar_m(0), aperture_length_m=sc.aperture_length_m,
-                                  speed_m_s=sc.speed_m_s, snr_db=BATCH_SNR_DB, speed_jitter=BATCH_SPEED_JITTER,
-                                  rng=np.random.default_rng(0), range_margin_m=HIRES_RANGE_MARGIN_M, rig_id="hires")
+    scan = simulate.simulate_pass(radar, geometry, sc.targets_radar_m(0),
+                                  aperture_length_m=sc.aperture_length_m, speed_m_s=sc.speed_m_s,
+                                  snr_db=BATCH_SNR_DB, speed_jitter=BATCH_SPEED_JITTER,
+                                  rng=np.random.default_rng(0), range_margin_m=HIRES_RANGE_MARGIN_M,
+                                  rig_id="hires")
     n = HIRES_PULSES  # the simulator centres an odd pulse count (2049) on the aperture: drop the last pulse
-    scan = dataclasses.replace(scan, pulse_time_s=scan.pulse_time_s[:n], pulse_position_m=scan.pulse_position_m[:n],
-                               echo=scan.echo[:n])
+    scan = dataclasses.replace(scan, pulse_time_s=scan.pulse_time_s[:n],
+                               pulse_position_m=scan.pulse_position_m[:n], echo=scan.echo[:n])
     if scan.echo.shape != (HIRES_PULSES, HIRES_SAMPLES):
-        raise RuntimeError(f"hires pass came out {scan.echo.shape}, expected ({HIRES_PULSES}, {HIRES_SAMPLES})")
+        raise RuntimeError(f"hires pass came out {scan.echo.shape}, "
+                           f"expected ({HIRES_PULSES}, {HIRES_SAMPLES})")
     return scan
 
 
@@ -257,7 +264,8 @@ def header(engine, engine_error: str | None, fresh_cache: str | None) -> dict:
     info = {
         "python": platform.python_version(), "numpy": np.__version__, "scipy": scipy.__version__,
         "pyopencl": version("pyopencl"), "pyvkfft": version("pyvkfft"),
-        "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(), "cpu_affinity": affinity,
+        "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
+        "cpu_affinity": affinity,
         "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
         "env": {k: os.environ.get(k) for k in ENV_VARS},
         "scipy_fft_workers": affinity, "fresh_kernel_cache": fresh_cache,
@@ -284,19 +292,21 @@ def header(engine, engine_error: str | None, fresh_cache: str | None) -> dict:
 
 def print_header(info: dict) -> None:
     print("== uwbcl benchmark: numpy float64 reference vs float32 scipy.fft vs OpenCL engine ==")
-    print(f"python {info['python']}, numpy {info['numpy']}, scipy {info['scipy']}, pyopencl {info['pyopencl']}, "
-          f"pyvkfft {info['pyvkfft']}")
+    print(f"python {info['python']}, numpy {info['numpy']}, scipy {info['scipy']}, "
+          f"pyopencl {info['pyopencl']}, pyvkfft {info['pyvkfft']}")
     load = info["load_average"]
-    print(f"CPU: {info['cpu']}, {info['cpu_count']} logical cores ({info['cpu_affinity']} usable), load average "
+    print(f"CPU: {info['cpu']}, {info['cpu_count']} logical cores ({info['cpu_affinity']} usable), "
+          "load average "
           + (" ".join(f"{x:.2f}" for x in load) if load else "n/a"))
     env = "  ".join(f"{k}={v if v is not None else '(unset)'}" for k, v in info["env"].items())
     print(f"environment: {env}")
     print(f"threads: numpy FFT/elementwise 1; scipy.fft workers=-1 ({info['scipy_fft_workers']}); "
           f"BLAS pools: {info['threadpools']}")
     if not any(info["env"].get(k) for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")):
-        print("note: BLAS threads are unset, so BLAS uses every core. Detection's many small matrix-vector products "
-              "then slow down badly on a busy machine (2.2 s instead of 0.2 s per pass measured on a loaded 2-core "
-              "host); OPENBLAS_NUM_THREADS=1 avoids it. Nothing is changed here.")
+        print("note: BLAS threads are unset, so BLAS uses every core. Detection's many small "
+              "matrix-vector products then slow down badly on a busy machine (2.2 s instead of 0.2 s per "
+              "pass measured on a loaded 2-core host); OPENBLAS_NUM_THREADS=1 avoids it. "
+              "Nothing is changed here.")
     cl = info["opencl"]
     if "error" in cl:
         print(f"OpenCL: unavailable ({cl['error']})")
@@ -317,7 +327,8 @@ def write_json_atomic(path: Path, data: dict) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
     try:
         with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=2, default=lambda o: o.tolist() if isinstance(o, np.ndarray) else str(o))
+            json.dump(data, f, indent=2,
+                      default=lambda o: o.tolist() if isinstance(o, np.ndarray) else str(o))
             f.write("\n")
         os.replace(tmp, path)
     except BaseException:
@@ -333,8 +344,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help=f"passes in the batch, a multiple of {PASSES_PER_RIG} (default 200; 20 with --quick)")
     p.add_argument("--quick", action="store_true",
                    help="smoke run: 20 passes, the hires pass timed without a warm-up run")
-    p.add_argument("--device", default=None, help="OpenCL device spec (see `uwbcl devices`); default PYOPENCL_CTX, "
-                   "else the first GPU, else the first device")
+    p.add_argument("--device", default=None,
+                   help="OpenCL device spec (see `uwbcl devices`); default PYOPENCL_CTX, "
+                        "else the first GPU, else the first device")
     p.add_argument("--skip-numpy", action="store_true",
                    help="do not time the numpy leg (its images are still computed for the agreement check "
                         "on a few batch passes, not on the hires pass)")
@@ -343,7 +355,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="point PoCL's and CUDA's kernel caches at an empty directory, for a true cold start")
     p.add_argument("--workdir", type=Path, default=None,
                    help="where the archives and CSVs go (kept); default a temporary directory, removed")
-    p.add_argument("--json", type=Path, default=None, metavar="OUT", help="write the numbers to this JSON file")
+    p.add_argument("--json", type=Path, default=None, metavar="OUT",
+                   help="write the numbers to this JSON file")
     args = p.parse_args(argv)
     if args.passes is None:
         args.passes = 20 if args.quick else 200
@@ -374,7 +387,8 @@ def main(argv=None) -> int:
         except Exception as exc:  # noqa: BLE001 - no engine: report it, run the CPU legs
             engine_error = str(exc)
             failures.append(f"opencl: {exc}")
-        info = header(engine, engine_error, str(scratch / "kernel-cache") if args.fresh_kernel_cache else None)
+        info = header(engine, engine_error,
+                      str(scratch / "kernel-cache") if args.fresh_kernel_cache else None)
         if engine is not None:
             info["opencl"]["warm_start_s"] = warm_s
         print_header(info)
@@ -401,10 +415,27 @@ def benchmark_batch(args, legs: list[Leg], workdir: Path, failures: list[str]) -
     t = time.perf_counter()
     files = write_batch(workdir / "archive", args.passes)
     n_rigs = args.passes // PASSES_PER_RIG
-    print(f"\n(a) batch: {len(files)} passes ({n_rigs} rigs x 2 cycles x 2 heights, sim 1 and sim 2 alternately, "
-          f"SNR {BATCH_SNR_DB:g} dB, speed +-{100 * BATCH_SPEED_JITTER:g} %); archives written in "
-          f"{time.perf_counter() - t:.1f} s (untimed)")
+    print(f"\n(a) batch: {len(files)} passes ({n_rigs} rigs x 2 cycles x 2 heights, sim 1 and sim 2 "
+          f"alternately, SNR {BATCH_SNR_DB:g} dB, speed +-{100 * BATCH_SPEED_JITTER:g} %); archives "
+          f"written in {time.perf_counter() - t:.1f} s (untimed)")
+    n_warm, agreement = warm_up_legs(legs, files, settings)
+    runs = time_batch_runs(legs, files, workdir, settings, failures)
+    n_sample, fft_frac = fft_fractions(legs, runs, files)
+    out = report_batch_legs(runs, len(files), fft_frac, agreement, n_sample)
+    out["ratios"], out["focus_only_ratios"] = throughput_ratios(runs)
+    print(f"    agreement on {n_warm} passes (one per shape), max ||out - numpy|| / ||numpy||: "
+          + ", ".join(f"{k} {v:.1e}" for k, v in agreement.items()))
+    for name, err in agreement.items():
+        if not err < AGREEMENT_TOL:
+            failures.append(f"batch {name}: image error vs numpy {err:.2e} >= {AGREEMENT_TOL:g}")
+    out["displacement_vs"], out["displacement_max_abs_diff_mm"] = compare_displacements(runs)
+    return out
 
+
+def warm_up_legs(legs: list[Leg], files: list[Path],
+                 settings: ProcessingSettings) -> tuple[int, dict[str, float]]:
+    """Warm every leg up on one pass per input shape (plans, kernels, caches); (passes used, each leg's
+    max image error vs the numpy oracle on them)."""
     # One pass per input shape: the warm-up inputs, and those the images are compared on.
     by_shape: dict[tuple[int, int], Path] = {}
     for path in files:
@@ -420,18 +451,30 @@ def benchmark_batch(args, legs: list[Leg], workdir: Path, failures: list[str]) -
             detect.detect_nlcs(products, settings.detection, scan, leg.focuser)
             images.append(products.image)
         agreement[leg.name] = max(rel_err(im, ref) for im, ref in zip(images, reference))
+    return len(warm_scans), agreement
 
+
+def time_batch_runs(legs: list[Leg], files: list[Path], workdir: Path, settings: ProcessingSettings,
+                    failures: list[str]) -> dict[str, BatchRun]:
+    """The timed end-to-end run of each leg; a leg that fails is reported and left out."""
     runs: dict[str, BatchRun] = {}
     for leg in legs:
         load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
         try:
-            runs[leg.name] = run_batch(leg, files, workdir / f"out-{leg.name}" / "displacements.csv", settings)
+            runs[leg.name] = run_batch(leg, files, workdir / f"out-{leg.name}" / "displacements.csv",
+                                       settings)
         except Exception as exc:  # noqa: BLE001 - report the leg, keep the others
             failures.append(f"batch {leg.name}: {type(exc).__name__}: {exc}")
             print(f"  {leg.name}: FAILED ({type(exc).__name__}: {exc})")
             continue
         runs[leg.name].stages["load_average_before"] = load
+    return runs
 
+
+def fft_fractions(legs: list[Leg], runs: dict[str, BatchRun],
+                  files: list[Path]) -> tuple[int, dict[str, tuple[float, float]]]:
+    """(passes profiled, per timed leg (FFT time / focus time, FFT calls per pass)) from a separate profiling
+    pass over a sample of the batch."""
     sample = files[:: max(1, len(files) // PROFILE_SAMPLE)][:PROFILE_SAMPLE]
     sample_scans = [archive.read_pass(p) for p in sample]
     fft_frac = {}
@@ -439,25 +482,33 @@ def benchmark_batch(args, legs: list[Leg], workdir: Path, failures: list[str]) -
         if leg.name in runs:
             focus_s, fft_s, calls = profile_ffts(leg, sample_scans)
             fft_frac[leg.name] = (fft_s / focus_s if focus_s > 0 else float("nan"), calls / len(sample_scans))
+    return len(sample_scans), fft_frac
 
+
+def report_batch_legs(runs: dict[str, BatchRun], n_files: int, fft_frac: dict[str, tuple[float, float]],
+                      agreement: dict[str, float], n_sample: int) -> dict:
+    """Print each leg's throughput, stage shares and FFT share; the batch's numbers without the ratios and
+    displacement comparison."""
     shapes = next(iter(runs.values())).shapes if runs else Counter()
-    print("    shapes (pulses x samples): " + ", ".join(f"{a}x{b}: {n}" for (a, b), n in sorted(shapes.items())))
+    print("    shapes (pulses x samples): "
+          + ", ".join(f"{a}x{b}: {n}" for (a, b), n in sorted(shapes.items())))
     print("    shares of each leg's total time: archive read, focus (of it FFTs, estimated), detect, "
           "locate + displacement + CSV")
-    print(f"    {'leg':<8} {'passes/s':>9} {'total s':>8} {'read':>7} {'focus':>7} {'(FFT)':>8} {'detect':>7} "
-          f"{'loc+csv':>8}  load avg before")
-    out: dict = {"files": len(files), "shapes": {f"{a}x{b}": n for (a, b), n in shapes.items()}, "legs": {}}
+    print(f"    {'leg':<8} {'passes/s':>9} {'total s':>8} {'read':>7} {'focus':>7} {'(FFT)':>8} "
+          f"{'detect':>7} {'loc+csv':>8}  load avg before")
+    out: dict = {"files": n_files, "shapes": {f"{a}x{b}": n for (a, b), n in shapes.items()}, "legs": {}}
     for name, run in runs.items():
         st = run.stages
         total = run.seconds
         rest = st["locate"] + st["displacement"] + st["csv"]
         frac, calls = fft_frac.get(name, (float("nan"), 0))
         fft_s = frac * st["focus"]
-        print(f"    {name:<8} {len(files) / total:9.2f} {total:8.1f} {fmt_share(st['read'], total):>7} "
+        print(f"    {name:<8} {n_files / total:9.2f} {total:8.1f} {fmt_share(st['read'], total):>7} "
               f"{fmt_share(st['focus'], total):>7} {'(' + fmt_share(fft_s, total).strip() + ')':>8} "
-              f"{fmt_share(st['detect'], total):>7} {fmt_share(rest, total):>8}  {st['load_average_before']:.2f}")
+              f"{fmt_share(st['detect'], total):>7} {fmt_share(rest, total):>8}  "
+              f"{st['load_average_before']:.2f}")
         out["legs"][name] = {
-            "passes_per_s": len(files) / total, "seconds": total,
+            "passes_per_s": n_files / total, "seconds": total,
             "stage_seconds": {k: v for k, v in st.items() if k != "load_average_before"},
             "load_average_before": st["load_average_before"],
             "fft_fraction_of_focus": frac, "fft_calls_per_pass": calls,
@@ -465,36 +516,38 @@ def benchmark_batch(args, legs: list[Leg], workdir: Path, failures: list[str]) -
             "max_image_error_vs_numpy": agreement.get(name),
         }
     print("    FFT share: from a separate profiling pass over "
-          f"{len(sample_scans)} passes (FFT time / focus time there) x the focus time of the timed pass")
+          f"{n_sample} passes (FFT time / focus time there) x the focus time of the timed pass")
     for name, d in out["legs"].items():
         total = d["seconds"]
         focus = d["stage_seconds"]["focus"]
         print(f"    {name:<8} FFTs {fmt_share(d['fft_seconds_estimate'], total)}, focusing without FFTs "
-              f"{fmt_share(focus - d['fft_seconds_estimate'], total)}, the rest {fmt_share(total - focus, total)} "
+              f"{fmt_share(focus - d['fft_seconds_estimate'], total)}, "
+              f"the rest {fmt_share(total - focus, total)} "
               f"(FFTs are {100 * d['fft_fraction_of_focus']:.0f}% of focusing, "
               f"{d['fft_calls_per_pass']:.0f} calls per pass)")
+    return out
 
+
+def throughput_ratios(runs: dict[str, BatchRun]) -> tuple[dict[str, float], dict[str, float]]:
+    """End-to-end and focus-only time ratios between the legs that ran, printed."""
     ratios, focus_ratios = {}, {}
     for a, b in (("opencl", "numpy"), ("opencl", "scipy32"), ("scipy32", "numpy")):
         if a in runs and b in runs:
             ratios[f"{a}/{b}"] = runs[b].seconds / runs[a].seconds
             focus_ratios[f"{a}/{b}"] = runs[b].stages["focus"] / runs[a].stages["focus"]
-    out["ratios"] = ratios
-    out["focus_only_ratios"] = focus_ratios
     if ratios:
         print("    end-to-end throughput ratios (>1: the first is faster): "
               + ", ".join(f"{k} {v:.2f}x" for k, v in ratios.items()))
         print("    focusing alone (same timed pass):                    "
               + ", ".join(f"{k} {v:.2f}x" for k, v in focus_ratios.items()))
+    return ratios, focus_ratios
 
-    print(f"    agreement on {len(warm_scans)} passes (one per shape), max ||out - numpy|| / ||numpy||: "
-          + ", ".join(f"{k} {v:.1e}" for k, v in agreement.items()))
-    for name, err in agreement.items():
-        if not err < AGREEMENT_TOL:
-            failures.append(f"batch {name}: image error vs numpy {err:.2e} >= {AGREEMENT_TOL:g}")
+
+def compare_displacements(runs: dict[str, BatchRun]) -> tuple[str | None, dict[str, list[float]]]:
+    """(the leg compared against: numpy, else scipy32, else None; each other leg's max |displacement
+    difference| per component in mm), printed."""
     base = "numpy" if "numpy" in runs else ("scipy32" if "scipy32" in runs else None)
-    out["displacement_vs"] = base
-    out["displacement_max_abs_diff_mm"] = {}
+    worst_mm: dict[str, list[float]] = {}
     if base:
         ref = runs[base].displacements
         for name, run in runs.items():
@@ -504,12 +557,12 @@ def benchmark_batch(args, legs: list[Leg], workdir: Path, failures: list[str]) -
             diff = np.array([np.abs(run.displacements[k][0] - ref[k][0]) for k in keys]).reshape(-1, 3)
             status_same = sum(run.displacements[k][1] == ref[k][1] for k in keys)
             worst = np.nanmax(diff, axis=0) * 1e3 if diff.size else np.full(3, np.nan)
-            out["displacement_max_abs_diff_mm"][name] = worst.tolist()
+            worst_mm[name] = worst.tolist()
             print(f"    displacements {name} vs {base}: max |diff| retreat/creep/vertical "
                   f"{worst[0]:.3f} / {worst[1]:.3f} / {worst[2]:.3f} mm over {len(keys)} rigs "
                   f"(of {len(ref)}); same status {status_same}/{len(keys)}; detections {run.n_detections} vs "
                   f"{runs[base].n_detections}")
-    return out
+    return base, worst_mm
 
 
 def benchmark_hires(args, legs: list[Leg], failures: list[str]) -> dict:
@@ -519,7 +572,8 @@ def benchmark_hires(args, legs: list[Leg], failures: list[str]) -> dict:
     print(f"\n(b) hires pass: {scan.n_pulses} pulses x {scan.samples_per_pulse} samples (focus grid "
           f"{grid.n_azimuth} x {grid.n_range} after the 8x azimuth padding), simulated in "
           f"{time.perf_counter() - t:.1f} s (untimed); "
-          + ("one cold run per leg (--quick)" if args.quick else "one warm-up run per leg, then one timed run"))
+          + ("one cold run per leg (--quick)" if args.quick
+             else "one warm-up run per leg, then one timed run"))
     seconds, images = {}, {}
     for leg in legs:
         try:
@@ -534,7 +588,8 @@ def benchmark_hires(args, legs: list[Leg], failures: list[str]) -> dict:
     ref_name = "numpy" if "numpy" in images else None
     out: dict = {"pulses": scan.n_pulses, "samples": scan.samples_per_pulse,
                  "focus_grid": [grid.n_azimuth, grid.n_range], "warm": not args.quick, "legs": {}}
-    print(f"    {'leg':<8} {'seconds':>8} {'numpy/leg':>10} {'error vs ' + (ref_name or 'numpy (skipped)'):>22}")
+    print(f"    {'leg':<8} {'seconds':>8} {'numpy/leg':>10} "
+          f"{'error vs ' + (ref_name or 'numpy (skipped)'):>22}")
     for name, s in seconds.items():
         err = rel_err(images[name], images[ref_name]) if ref_name and name != ref_name else None
         ratio = seconds[ref_name] / s if ref_name else None

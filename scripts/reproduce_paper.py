@@ -5,14 +5,14 @@
     python scripts/reproduce_paper.py --seeds 3        # quicker noise study
     python scripts/reproduce_paper.py --no-noise       # tables only
     python scripts/reproduce_paper.py --cancellation-passes 0   # without neighbour cancellation in detection
-    python scripts/reproduce_paper.py --backend opencl  # focus with the OpenCL engine (default: numpy reference)
+    python scripts/reproduce_paper.py --backend opencl  # focus with OpenCL (default: the numpy reference)
 
-Part 1 (noise-free): per pass and target, the along-track (azimuth) and range errors of the located point in the
-pass's closest-approach coordinates (paper Tables 2 and 5); per target the 3-D position errors before/after and
-the per-target advance (Tables 3 and 6); the mean advance error. For NLCS (exact-reference and series azimuth
-compression) and backprojection.
-Part 2 (noise): SNR 10 dB per raw sample, +-10 % rail-speed fluctuation with positions logged per pulse, N seeds:
-RMS advance error, with 2 heights and with a third height.
+Part 1 (noise-free): per pass and target, the along-track (azimuth) and range errors of the located point in
+the pass's closest-approach coordinates (paper Tables 2 and 5); per target the 3-D position errors
+before/after and the per-target advance (Tables 3 and 6); the mean advance error. For NLCS (exact-reference
+and series azimuth compression) and backprojection.
+Part 2 (noise): SNR 10 dB per raw sample, +-10 % rail-speed fluctuation with positions logged per pulse,
+N seeds: RMS advance error, with 2 heights and with a third height.
 """
 
 from __future__ import annotations
@@ -107,7 +107,8 @@ def part1(sc, base: ProcessingSettings) -> None:
             print(f"| {'before' if c == 0 else 'after'} h={h:.2f} m | {'/'.join(az)} | {p_az} | "
                   f"{'/'.join(rg)} | {p_rg} |")
         print()
-        print("| target | position error before (mm) ours / paper | after ours / paper | advance (m) ours / paper |")
+        print("| target | position error before (mm) ours / paper | after ours / paper "
+              "| advance (m) ours / paper |")
         print("|---|---|---|---|")
         plates = {c.cycle: c.plates for c in cycles}
         for i, name in enumerate(names):
@@ -119,17 +120,19 @@ def part1(sc, base: ProcessingSettings) -> None:
                 print(f"| {name} | not located | | |")
                 continue
             adv = pb.position_m - pa.position_m
-            print(f"| {name} | {fmt3(pb.position_m - tb)} / {fmt3(pe[0], nd=0)} | {fmt3(pa.position_m - ta)} / "
-                  f"{fmt3(pe[1], nd=0)} | {fmt3(adv, 1, 4)} / {fmt3(pe[2], 1, 3)} |")
+            print(f"| {name} | {fmt3(pb.position_m - tb)} / {fmt3(pe[0], nd=0)} | "
+                  f"{fmt3(pa.position_m - ta)} / {fmt3(pe[1], nd=0)} | "
+                  f"{fmt3(adv, 1, 4)} / {fmt3(pe[2], 1, 3)} |")
         err = disp.advance_m - sc.advance_m(1)
-        print(f"\nadvance {fmt3(disp.advance_m, 1, 4)} m, error (retreat, creep, vertical) {fmt3(err, nd=2)} mm "
-              f"(paper {PAPER_MEAN_ERROR_MM[sc.name]} mm), {disp.n_targets} plates, status {disp.status}\n")
+        print(f"\nadvance {fmt3(disp.advance_m, 1, 4)} m, error (retreat, creep, vertical) "
+              f"{fmt3(err, nd=2)} mm (paper {PAPER_MEAN_ERROR_MM[sc.name]} mm), {disp.n_targets} plates, "
+              f"status {disp.status}\n")
 
 
 def part2(sc, seeds: int, extra_height: float, base: ProcessingSettings) -> None:
     print(f"\n## {sc.name}: SNR 10 dB per raw sample, +-10 % rail speed, {seeds} seeds\n")
-    print("| heights (m) | algorithm | RMS error retreat / creep / vertical (mm) | max abs retreat / creep (mm) "
-          "| failed |")
+    print("| heights (m) | algorithm | RMS error retreat / creep / vertical (mm) "
+          "| max abs retreat / creep (mm) | failed |")
     print("|---|---|---|---|---|")
     for heights in (sc.heights_m, tuple(sc.heights_m) + (extra_height,)):
         for alg, ac in (("nlcs", "exact"), ("bp", "exact")):
@@ -145,8 +148,9 @@ def part2(sc, seeds: int, extra_height: float, base: ProcessingSettings) -> None
             e = np.array(errs).reshape(-1, 3)
             rms = np.sqrt(np.mean(e**2, axis=0)) if len(e) else np.full(3, np.nan)
             mx = np.max(np.abs(e), axis=0) if len(e) else np.full(3, np.nan)
-            print(f"| {', '.join(f'{h:.2f}' for h in heights)} | {alg} | {1e3 * rms[0]:.1f} / {1e3 * rms[1]:.1f} / "
-                  f"{1e3 * rms[2]:.1f} | {1e3 * mx[0]:.1f} / {1e3 * mx[1]:.1f} | {failed} |")
+            print(f"| {', '.join(f'{h:.2f}' for h in heights)} | {alg} | "
+                  f"{1e3 * rms[0]:.1f} / {1e3 * rms[1]:.1f} / {1e3 * rms[2]:.1f} | "
+                  f"{1e3 * mx[0]:.1f} / {1e3 * mx[1]:.1f} | {failed} |")
     print()
 
 
@@ -161,11 +165,13 @@ def main() -> int:
     ap.add_argument("--backend", choices=BACKENDS, default="numpy",
                     help="focusing backend (default: the float64 numpy reference)")
     args = ap.parse_args()
-    detection = dataclasses.replace(DetectionSettings(), neighbour_cancellation_passes=args.cancellation_passes)
+    detection = dataclasses.replace(DetectionSettings(),
+                                    neighbour_cancellation_passes=args.cancellation_passes)
     base = ProcessingSettings(backend=args.backend, detection=detection)
     chosen = [s for s in (PAPER_SIM1, PAPER_SIM2) if args.scenario in ("both", s.name)]
     print("# uwbcl against the paper's simulations")
-    print("\nOurs: f_s = 4 GHz complex, antenna beam pattern, per-pulse positions. Paper: MATLAB, Tables 1-6.")
+    print("\nOurs: f_s = 4 GHz complex, antenna beam pattern, per-pulse positions. "
+          "Paper: MATLAB, Tables 1-6.")
     print(f"Backend {args.backend}, neighbour-cancellation passes {args.cancellation_passes}.")
     for sc in chosen:
         part1(sc, base)

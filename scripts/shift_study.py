@@ -1,11 +1,11 @@
 """Acceptance study of issue 4: `uwbcl process` on simulated production shifts.
 
 Phases (all by default):
-  clean  simulate RIGS x CYCLES at SNR / speed jitter, process it, compare with truth.csv: per-cycle retreat and
-         creep RMS error, the largest error of an unflagged cycle, cumulative drift per rig;
-  bad    the same archive plus a dozen bad files (junk, truncated, corrupt, missing dataset / attribute, NaN echo,
-         duplicate, single height, mismatched parameters): every good row identical to the clean run, every
-         bad file named in errors.csv, exit code non-zero, no input modified;
+  clean  simulate RIGS x CYCLES at SNR / speed jitter, process it, compare with truth.csv: per-cycle retreat
+         and creep RMS error, the largest error of an unflagged cycle, cumulative drift per rig;
+  bad    the same archive plus a dozen bad files (junk, truncated, corrupt, missing dataset / attribute, NaN
+         echo, duplicate, single height, mismatched parameters): every good row identical to the clean run,
+         every bad file named in errors.csv, exit code non-zero, no input modified;
   kill   kill `uwbcl process` (SIGKILL) at random points three times, restart, and compare the final outputs
          byte for byte with the uninterrupted clean run.
 
@@ -111,11 +111,13 @@ def evaluate(out: Path, truth_csv: Path) -> dict:
         "rms_ok_mm": [1e3 * rms(errs[ok, a]) for a in range(3)],
         "rms_trusted_mm": [1e3 * rms(errs[trusted, a]) for a in range(3)],
         "rms_all_finite_mm": [1e3 * rms(errs[finite, a]) for a in range(3)],
-        "max_abs_ok_mm": [1e3 * float(np.max(np.abs(errs[ok, a]))) if ok.any() else math.nan for a in range(3)],
+        "max_abs_ok_mm": [1e3 * float(np.max(np.abs(errs[ok, a]))) if ok.any() else math.nan
+                          for a in range(3)],
         "max_abs_flagged_mm": [1e3 * float(np.nanmax(np.abs(errs[~ok & finite, a])))
                                if (~ok & finite).any() else math.nan for a in range(3)],
         "unflagged_over_50mm": int(np.sum(ok & np.any(np.abs(errs[:, :2]) > 0.05, axis=1))),
-        "cumulative_drift_mm": {k: (c0, c, [round(1e3 * v, 2) for v in d]) for k, (c0, c, d) in cum_final.items()},
+        "cumulative_drift_mm": {k: (c0, c, [round(1e3 * v, 2) for v in d])
+                                for k, (c0, c, d) in cum_final.items()},
     }
 
 
@@ -257,7 +259,8 @@ def phase_kill(args, work: Path, archive_dir: Path, clean_wall_s: float) -> dict
         kills.append((round(delay, 1), finished, cached))
         print(f"  killed after {delay:.1f} s (finished before: {finished}); {cached} passes cached")
     r = run(process_cmd(args, archive_dir, out))
-    identical = {name: (out / name).read_bytes() == (work / "out-clean" / name).read_bytes() for name in OUTPUTS}
+    identical = {name: (out / name).read_bytes() == (work / "out-clean" / name).read_bytes()
+                 for name in OUTPUTS}
     print(f"\n== kill/restart: kills {kills}; final exit {r.returncode}; byte-identical: {identical}")
     return {"kills": kills, "identical": all(identical.values())}
 

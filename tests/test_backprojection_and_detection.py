@@ -79,8 +79,8 @@ def test_backprojection_locates_every_target_within_half_a_millimetre(focused, n
     for scan, _, by_bp in focused[name]:
         x, rc = _truth(scenario, scan)
         got = _match(scenario, scan, by_bp)
-        # BP is exact up to the sub-pixel peak search once the neighbours' responses are cancelled: measured max
-        # 0.13 mm (D of sim2 after the advance); 1.2 mm without cancellation (A of sim1 after the advance)
+        # BP is exact up to the sub-pixel peak search once the neighbours' responses are cancelled: measured
+        # max 0.13 mm (D of sim2 after the advance); 1.2 mm without cancellation (A of sim1 after the advance)
         np.testing.assert_allclose([d.x_m for d in got], x, rtol=0, atol=0.5e-3)
         np.testing.assert_allclose([d.rc_m for d in got], rc, rtol=0, atol=0.5e-3)
 
@@ -135,7 +135,8 @@ def test_under_ten_percent_rail_speed_jitter_targets_are_still_located_within_3m
 
 
 def test_ignoring_the_logged_rail_positions_under_jitter_spoils_the_image(jittered_sim1):
-    """Negative control: the same echo with nominal uniform positions no longer gives three accurate plates."""
+    """Negative control: the same echo with nominal uniform positions no longer gives three accurate
+    plates."""
     scan = jittered_sim1[0]
     nominal = np.linspace(scan.pulse_position_m[0], scan.pulse_position_m[-1], scan.n_pulses)
     assert np.max(np.abs(nominal - scan.pulse_position_m)) > 5e-3
@@ -147,18 +148,21 @@ def test_ignoring_the_logged_rail_positions_under_jitter_spoils_the_image(jitter
 
 
 # --------------------------------------------------------------------------------------------- neighbours
-STACKED = np.array([[1.678, -2.0, 1.2], [1.678, -2.0, 1.6]])  # sim 2's E and F: one column, 0.2 m apart in R_c
+# sim 2's E and F: one column, 0.2 m apart in R_c
+STACKED = np.array([[1.678, -2.0, 1.2], [1.678, -2.0, 1.6]])
 
 
 def _stacked_pass(targets):
-    geometry = PassGeometry(height_m=0.25, rotation_table_angle_deg=geo.rotation_table_angle_for(STACKED[0], 0.0),
+    geometry = PassGeometry(height_m=0.25,
+                            rotation_table_angle_deg=geo.rotation_table_angle_for(STACKED[0], 0.0),
                             reference_point_m=tuple(STACKED[0]))
     return simulate_pass(RadarParameters(), geometry, targets, aperture_length_m=1.8, speed_m_s=0.2,
                          rng=np.random.default_rng(0))
 
 
 def _echo_at(rc, grid, target, height_m):
-    t_n, r0 = geo.target_to_p1(target, grid.aperture_centre_m, height_m, math.asin(grid.sin_squint), grid.speed_m_s)
+    t_n, r0 = geo.target_to_p1(target, grid.aperture_centre_m, height_m, math.asin(grid.sin_squint),
+                               grid.speed_m_s)
     u = grid.speed_m_s * t_n
     return bp.point_target_echo(grid, rc.x_rel_m, rc.t_s, u, r0 + grid.sin_squint * u)
 
@@ -169,7 +173,8 @@ def test_a_lone_targets_range_compressed_echo_is_its_modelled_echo_times_the_bea
     rc = bp.range_compress(scan, grid)
     echo, in_band = _echo_at(rc, grid, STACKED[1], 0.25)
     (gain,) = cancel.fit_pulse_gains(rc.data, rc.x_rel_m, [(echo, in_band)], degree=8)
-    # the fitted gain is the simulator's two-way beam pattern (real: delay and carrier phase are modelled exactly)
+    # the fitted gain is the simulator's two-way beam pattern (real: delay and carrier phase are modelled
+    # exactly)
     psi = geo.horizontal_look_angle_rad(scan.pulse_position_m, STACKED[1], scan.geometry.boresight_y_sign)
     beam = geo.two_way_beam_gain(psi, scan.geometry.rotation_table_angle_rad, scan.radar.antenna_aperture_m,
                                  scan.radar.wavelength_m)
@@ -194,18 +199,20 @@ def _focus_and_detect(scan, algorithm: str, passes=(0, 1)) -> list[np.ndarray]:
 
 @pytest.fixture(scope="module")
 def stacked_pair():
-    """The pair's detections without and with cancellation, and each plate's when its echo is alone (same range
-    window: NLCS errors depend on the bins), for both algorithms."""
+    """The pair's detections without and with cancellation, and each plate's when its echo is alone (same
+    range window: NLCS errors depend on the bins), for both algorithms."""
     pair = _stacked_pass(STACKED)
     out = {}
     for algorithm in ("bp", "nlcs"):
         alone = []
         for target in STACKED:
             echo = simulate_echo(pair.radar, pair.geometry, pair.pulse_position_m, target[None, :], 1.0,
-                                 pair.range_window_start_s, pair.samples_per_pulse, None, np.random.default_rng(0))
+                                 pair.range_window_start_s, pair.samples_per_pulse, None,
+                                 np.random.default_rng(0))
             (lone,) = _focus_and_detect(dataclasses.replace(pair, echo=echo), algorithm, passes=(0,))
             alone.append(lone[0])
-        out[algorithm] = (*_focus_and_detect(pair, algorithm), np.array(sorted(map(tuple, alone), key=lambda p: p[1])))
+        out[algorithm] = (*_focus_and_detect(pair, algorithm),
+                          np.array(sorted(map(tuple, alone), key=lambda p: p[1])))
     return out
 
 
@@ -214,8 +221,8 @@ def test_with_neighbour_cancellation_each_of_two_stacked_plates_is_located_as_if
         stacked_pair, algorithm):
     without, with_, alone = stacked_pair[algorithm]
     assert without.shape == with_.shape == (2, 2)
-    # measured 0.73 mm (BP) / 0.63 mm (NLCS) without: each peak pulled towards the other by its range-migration
-    # arms; 0.005 / 0.006 mm with one pass of cancellation
+    # measured 0.73 mm (BP) / 0.63 mm (NLCS) without: each peak pulled towards the other by its
+    # range-migration arms; 0.005 / 0.006 mm with one pass of cancellation
     assert np.abs(without - alone).max() > 0.3e-3  # the interference is real in this geometry
     assert np.abs(with_ - alone).max() < 0.05e-3
 
@@ -244,8 +251,8 @@ def test_neighbour_models_are_focused_by_the_chain_of_nlcs_focus():
 
 
 def test_nlcs_peaks_searched_on_the_rail_rows_are_those_of_the_whole_image(monkeypatch):
-    """detect_nlcs crops the padded image to the rail's rows plus the separation ellipse's reach: the peaks and
-    the noise floor must be those the whole image gives."""
+    """detect_nlcs crops the padded image to the rail's rows plus the separation ellipse's reach: the peaks
+    and the noise floor must be those the whole image gives."""
     scan = PAPER_SIM1.simulate(snr_db=10, speed_jitter=0.1, seed=5)[1]
     products = nlcs.nlcs_focus(scan)
     g, s = products.grid, DetectionSettings()

@@ -2,9 +2,9 @@
 (`detect.refine.TrigInterpolant`) and the vectorised t_f(t_n) calibration
 (`detect.calibration.focus_position`).
 
-Both replaced derivative-free searches (Nelder-Mead on the interpolant, one bounded scalar search per simulated
-target). Those searches are kept here as references: the new refinements must find the same maxima, and the
-detections of whole paper passes must not move.
+Both replaced derivative-free searches (Nelder-Mead on the interpolant, one bounded scalar search per
+simulated target). Those searches are kept here as references: the new refinements must find the same maxima,
+and the detections of whole paper passes must not move.
 """
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ def nelder_mead_maximise(interpolant, a0, b0, step=0.5):
 
 
 def reference_columns(products, r_m, t_n_s):
-    """The former calibration chain, stage by stage: focused spectra (centred f_a) of targets at (r, t_n) through
-    the chain of the bin nearest r, their coarse t_f and the bin's H8 band."""
+    """The former calibration chain, stage by stage: focused spectra (centred f_a) of targets at (r, t_n)
+    through the chain of the bin nearest r, their coarse t_f and the bin's H8 band."""
     grid = products.grid
     bins = grid.range_bins_m
     j = int(np.clip(np.rint((r_m - bins[0]) / (bins[1] - bins[0])), 0, bins.size - 1))
@@ -47,19 +47,21 @@ def reference_columns(products, r_m, t_n_s):
 
 
 def scalar_search_focus_position(products, r_m, t_n_s):
-    """The former focus_position: one bounded scalar search of |Y(t)| per target, +-dt about the coarse peak."""
+    """The former focus_position: one bounded scalar search of |Y(t)| per target, +-dt about the coarse
+    peak."""
     grid = products.grid
     y, coarse, band = reference_columns(products, r_m, t_n_s)
     f = grid.f_azimuth_hz[band]
-    return np.array([optimize.minimize_scalar(lambda t, col=y[band, i]: -abs(np.exp(2j * np.pi * f * t) @ col),
-                                              bounds=(coarse[i] - grid.dt_s, coarse[i] + grid.dt_s),
-                                              method="bounded", options={"xatol": 1e-7}).x
-                     for i in range(y.shape[1])])
+    return np.array([
+        optimize.minimize_scalar(lambda t, col=y[band, i]: -abs(np.exp(2j * np.pi * f * t) @ col),
+                                 bounds=(coarse[i] - grid.dt_s, coarse[i] + grid.dt_s),
+                                 method="bounded", options={"xatol": 1e-7}).x
+        for i in range(y.shape[1])])
 
 
 def derivative_root_focus_position(products, r_m, t_n_s):
-    """t_f as the root of d|Y|^2/dt = 2 Re(Y* Y') in (t_c - dt, t_c + dt), by bracketing (brentq): resolves the
-    peak far below the ~1e-8 s that a search on the flat |Y| itself can."""
+    """t_f as the root of d|Y|^2/dt = 2 Re(Y* Y') in (t_c - dt, t_c + dt), by bracketing (brentq): resolves
+    the peak far below the ~1e-8 s that a search on the flat |Y| itself can."""
     grid = products.grid
     y, coarse, band = reference_columns(products, r_m, t_n_s)
     w = 2j * np.pi * grid.f_azimuth_hz[band]
@@ -149,7 +151,8 @@ def _peaks(products):
 
 def test_newton_maximum_of_a_focused_image_is_the_nelder_mead_maximum(paper_products):
     for _, products in paper_products:
-        interp = refine.TrigInterpolant.from_image(products.image, nlcs.spectrum_band(products.grid, products.compression))
+        interp = refine.TrigInterpolant.from_image(products.image,
+                                                   nlcs.spectrum_band(products.grid, products.compression))
         peaks = _peaks(products)
         assert len(peaks) == 3
         for i, j in peaks:

@@ -19,7 +19,8 @@ RADAR = RadarParameters()
 @pytest.mark.parametrize("theta_q_deg", [0.0, 13.0, 29.96, 37.16])
 def test_p1_parameterisation_round_trips_to_the_same_along_track_position_and_closest_range(theta_q_deg):
     rng = np.random.default_rng(7)
-    targets = np.column_stack([rng.uniform(-1.0, 3.0, 50), rng.uniform(-3.0, -1.5, 50), rng.uniform(0.0, 2.0, 50)])
+    targets = np.column_stack([rng.uniform(-1.0, 3.0, 50), rng.uniform(-3.0, -1.5, 50),
+                               rng.uniform(0.0, 2.0, 50)])
     x_c, h, v = 0.005, 0.15, 0.15
     theta_q = math.radians(theta_q_deg)
     t_n, r0 = geo.target_to_p1(targets, x_c, h, theta_q, v)
@@ -30,7 +31,8 @@ def test_p1_parameterisation_round_trips_to_the_same_along_track_position_and_cl
 
 
 def test_p1_range_at_azimuth_time_t_n_equals_r0_and_the_hyperbola_is_exact():
-    """Under P1 the exact range history is sqrt(r0^2 + (v tau)^2 - 2 r0 v tau sin(theta_q)), tau = t_a - t_n."""
+    """Under P1 the exact range history is sqrt(r0^2 + (v tau)^2 - 2 r0 v tau sin(theta_q)),
+    tau = t_a - t_n."""
     target = np.array([1.986, -2.4, 0.3])
     x_c, h, v = 0.0, 0.15, 0.15
     theta_q = math.radians(29.96)
@@ -97,8 +99,8 @@ def test_rotation_table_angle_is_atan_of_reference_offset_over_wall_distance(sce
 @pytest.mark.parametrize("scenario", [PAPER_SIM1, PAPER_SIM2], ids=lambda s: s.name)
 def test_rotation_table_angles_reproduce_the_papers_tables(scenario):
     got = [scenario.rotation_table_angle_deg(c) for c in range(len(scenario.rig_positions_m))]
-    # Paper prints 30.0 / 13.18 (sim1) and 40.0 / 27.24 (sim2). The exact atan(0.586 / 2.5) is 13.192 deg, 0.012
-    # from the printed 13.18 (the paper appears to truncate), so the tolerance is 0.015 deg, not 0.01.
+    # Paper prints 30.0 / 13.18 (sim1) and 40.0 / 27.24 (sim2). The exact atan(0.586 / 2.5) is 13.192 deg,
+    # 0.012 from the printed 13.18 (the paper appears to truncate), so the tolerance is 0.015 deg, not 0.01.
     assert got == pytest.approx(list(scenario.paper_rotation_table_deg), abs=0.015)
 
 

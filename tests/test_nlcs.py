@@ -79,15 +79,15 @@ def test_linear_range_walk_correction_removes_the_range_walk(centre_pass):
     s1 = nlcs.range_fft(echo, grid)
     before = _range_peaks(nlcs.range_ifft(s1, grid))
     after = _range_peaks(nlcs.range_ifft(nlcs.linear_range_walk_correction(s1, x_rel, grid), grid))
-    # Over the whole 2 m aperture the residual after LRWC is the range curvature k2 tau^2 (~0.13 m = 3.6 bins at
-    # the ends), which LRWC is not meant to remove; over the central 0.8 m the curvature is < 0.6 bin.
+    # Over the whole 2 m aperture the residual after LRWC is the range curvature k2 tau^2 (~0.13 m = 3.6 bins
+    # at the ends), which LRWC is not meant to remove; over the central 0.8 m the curvature is < 0.6 bin.
     central = np.abs(x_rel) <= 0.4
     aperture = np.ptp(x_rel[central])  # = v T
     expected_walk_bins = aperture * grid.sin_squint / RADAR.range_bin_m  # v sin(theta_q) T: 10.6 bins
     assert np.ptp(before[central]) == pytest.approx(expected_walk_bins, rel=0.05)  # curvature adds < 5 %
     assert np.ptp(after[central]) < 1.0
-    # The slope of range vs rail position is -sin(theta_q) before and ~0 after (the curvature is symmetric about
-    # the aperture centre, so it does not bias the slope; 0.01 allows for the asymmetric cubic term).
+    # The slope of range vs rail position is -sin(theta_q) before and ~0 after (the curvature is symmetric
+    # about the aperture centre, so it does not bias the slope; 0.01 allows for the asymmetric cubic term).
     slope_before = np.polyfit(x_rel[central], before[central] * RADAR.range_bin_m, 1)[0]
     slope_after = np.polyfit(x_rel[central], after[central] * RADAR.range_bin_m, 1)[0]
     assert slope_before == pytest.approx(-grid.sin_squint, abs=0.01)
@@ -231,7 +231,8 @@ def test_exact_and_series_azimuth_compression_both_focus_the_centre_target(centr
     assert d.rc_m == pytest.approx(geo.closest_approach_range_m(REF, H), abs=3e-3)
     image = products.image
     _, ir = np.unravel_index(np.argmax(np.abs(image)), image.shape)
-    assert _half_power_width(image[:, ir], products.grid.track_spacing_m) < 0.10  # a focused, not smeared, peak
+    # a focused, not smeared, peak
+    assert _half_power_width(image[:, ir], products.grid.track_spacing_m) < 0.10
 
 
 def test_an_unknown_azimuth_compression_mode_is_rejected(centre_pass):
@@ -261,9 +262,9 @@ def test_without_azimuth_compression_the_target_is_not_focused(centre_pass, cent
 
 # --------------------------------------------------------------------------------------------- H8 fit
 def _fit_azimuth_compression_loop(x_ref, k, grid, degree=8):
-    """The specification of nlcs.fit_azimuth_compression: one bin at a time, np.unwrap and polyfit on the bin's
-    own strong segment (the implementation before it was vectorised; that one raised on a bin with no strong
-    sample, here such a bin keeps the series like one whose segment misses f_a = 0)."""
+    """The specification of nlcs.fit_azimuth_compression: one bin at a time, np.unwrap and polyfit on the
+    bin's own strong segment (the implementation before it was vectorised; that one raised on a bin with no
+    strong sample, here such a bin keeps the series like one whose segment misses f_a = 0)."""
     f = grid.f_azimuth_hz
     f_scale = 0.5 / grid.dt_s
     n = k.r_m.size
@@ -293,7 +294,8 @@ def _grid_and_coefficients(scan):
 
 
 def _assert_same_compression(got, want, grid):
-    """Same bands bit for bit, the same series rows, and the fitted H8 phase within 1e-9 rad over each band."""
+    """Same bands bit for bit, the same series rows, and the fitted H8 phase within 1e-9 rad over each
+    band."""
     assert got.f_scale_hz == want.f_scale_hz
     np.testing.assert_array_equal(got.f_lo_hz, want.f_lo_hz)
     np.testing.assert_array_equal(got.f_hi_hz, want.f_hi_hz)
@@ -322,8 +324,9 @@ def test_the_vectorised_h8_fit_is_the_per_bin_fit_on_the_paper_reference_spectra
 def _synthetic_reference_spectra(grid, n, seed=0):
     """Gaussian |X| with a noisy polynomial phase (many wraps), the bump chosen per bin (j mod 8) so that the
     strong segment: 0 spans the whole band, 1/2 misses f_a = 0 above/below (series kept), 3/4 touches the
-    lower/upper band edge, 5 is two bumps with a weak stretch (holding f_a = 0) between them, 6 has fewer samples
-    than coefficients (polyfit's rank-deficient solution), 7 is a shifted noisy bump; bin 7 is all zero."""
+    lower/upper band edge, 5 is two bumps with a weak stretch (holding f_a = 0) between them, 6 has fewer
+    samples than coefficients (polyfit's rank-deficient solution), 7 is a shifted noisy bump; bin 7 is all
+    zero."""
     rng = np.random.default_rng(seed)
     f = grid.f_azimuth_hz[:, None]
     case = np.arange(n) % 8

@@ -1,8 +1,9 @@
-"""Specification of the OpenCL engine: every kernel agrees with its float64 numpy stage, the chains agree end to end.
+"""Specification of the OpenCL engine: every kernel agrees with its float64 numpy stage, the chains agree end
+to end.
 
-Tolerances are ||out - ref|| / ||ref|| on complex arrays: 1e-5 for a single float32 stage, 1e-4 for a whole chain
-(docs/opencl.md, error budget). Targets found on the engine's images lie within 0.5 mm of those found on the
-reference images; displacements within 0.2 mm.
+Tolerances are ||out - ref|| / ||ref|| on complex arrays: 1e-5 for a single float32 stage, 1e-4 for a whole
+chain (docs/opencl.md, error budget). Targets found on the engine's images lie within 0.5 mm of those found on
+the reference images; displacements within 0.2 mm.
 
 Without an OpenCL platform these tests skip, unless UWBCL_REQUIRE_OPENCL=1 (CI sets it), where they fail.
 """
@@ -79,7 +80,8 @@ def coefficients(grid):
 
 # ------------------------------------------------------------------------------------------------ stages
 @pytest.mark.parametrize("dtype,tol", [(np.complex64, 1e-6), (np.complex128, 1e-14)])
-@pytest.mark.parametrize("shape", [(2, 4), (4, 8), (8, 12), (64, 36), (512, 128), (4096, 16), (64, 33), (96, 5)])
+@pytest.mark.parametrize("shape", [(2, 4), (4, 8), (8, 12), (64, 36), (512, 128), (4096, 16), (64, 33),
+                                   (96, 5)])
 def test_azimuth_ffts_match_numpy_forward_and_inverse(engine, shape, dtype, tol):
     """complex64 powers of two with a multiple of 4 columns run fft.cl, the rest VkFFT."""
     if dtype == np.complex128 and not engine.fp64_phase:
@@ -145,7 +147,8 @@ def test_secondary_range_compression_and_range_ifft_match_the_reference(engine, 
 
 @pytest.mark.parametrize("n_range", [None, 131], ids=["128 bins", "131 bins"])
 def test_nlcs_filter_scaling_and_compression_match_the_reference(engine, grid, n_range):
-    """Also with a bin count that is not a multiple of the four bins a work item of the vector kernels does."""
+    """Also with a bin count that is not a multiple of the four bins a work item of the vector kernels
+    does."""
     grid = dataclasses.replace(grid, n_range=n_range or grid.n_range)
     k = coef.nlcs_coefficients(grid.range_bins_m, grid.speed_m_s, grid.sin_squint, grid.wavelength_m)
     x = noise((grid.n_azimuth, grid.n_range), 5)
@@ -169,7 +172,8 @@ def test_reference_point_response_matches_the_slow_time_model(engine, grid, n_ra
     ref = nlcs.slow_time_point_response(r_m, 0.0, grid, 0.14, rail_only=False)
     d = engine.point_response(r_m, np.zeros(r_m.size), grid, 0.14, "reference")
     assert rel_err(centred(d.get()), ref) < STAGE_TOL
-    t_n = np.linspace(-1.5, 1.5, r_m.size)  # rail-only targets across (and beyond) the rail, as the calibration
+    # rail-only targets across (and beyond) the rail, as the calibration
+    t_n = np.linspace(-1.5, 1.5, r_m.size)
     ref = nlcs.slow_time_point_response(r_m, t_n, grid, 0.14)
     d = engine.point_response(r_m, t_n, grid, 0.14, "calibration", rail_only=True)
     assert rel_err(centred(d.get()), ref) < STAGE_TOL
@@ -193,7 +197,8 @@ def test_reference_spectra_are_float64_where_a_band_edge_is_within_rounding_of_t
     out = engine.reference_spectra(coefficients, grid, 0.14)
     assert out.dtype == np.complex128 and rel_err(out, ref) < STAGE_TOL
     peak = np.abs(ref).max(axis=0)
-    assert np.max(np.abs(np.abs(out) - np.abs(ref)) / peak) < 0.2 * REFERENCE_EDGE_MARGIN  # the margin's premise
+    # the margin's premise
+    assert np.max(np.abs(np.abs(out) - np.abs(ref)) / peak) < 0.2 * REFERENCE_EDGE_MARGIN
     undecided = undecided_band_edges(np.abs(out), grid, REFERENCE_EDGE_MARGIN)
     assert rel_err(out[:, undecided], ref[:, undecided]) < 1e-12
 
@@ -211,16 +216,18 @@ def test_undecided_band_edges_flags_exactly_the_bins_a_small_change_can_move(gri
     assert undecided_band_edges(mag, grid, 1e-5).tolist() == [False, True, False]
 
 
-# Fresh passes with noise and rail-speed jitter. paper-sim1 seed 1 holds the two passes where complex64 reference
-# spectra put a band edge one sample off (pass 0 bin 14 with a complex64 host chain, pass 1 bin 44 on PoCL), an
-# image error of 2e-3.
-FRESH_PASSES = [(PAPER_SIM1, 1, 0), (PAPER_SIM1, 1, 1), (PAPER_SIM1, 4, 2), (PAPER_SIM2, 2, 0), (PAPER_SIM2, 3, 3)]
+# Fresh passes with noise and rail-speed jitter. paper-sim1 seed 1 holds the two passes where complex64
+# reference spectra put a band edge one sample off (pass 0 bin 14 with a complex64 host chain, pass 1 bin 44
+# on PoCL), an image error of 2e-3.
+FRESH_PASSES = [(PAPER_SIM1, 1, 0), (PAPER_SIM1, 1, 1), (PAPER_SIM1, 4, 2), (PAPER_SIM2, 2, 0),
+                (PAPER_SIM2, 3, 3)]
 
 
 @pytest.mark.parametrize("scenario,seed,index", FRESH_PASSES,
                          ids=[f"{s.name}-seed{seed}-pass{i}" for s, seed, i in FRESH_PASSES])
 def test_exact_reference_band_edges_equal_the_reference_on_fresh_passes(engine, scenario, seed, index):
-    """The fit picks each bin's band with a hard threshold on |X_ref|: the edges must be the reference's own."""
+    """The fit picks each bin's band with a hard threshold on |X_ref|: the edges must be the reference's
+    own."""
     scan = scenario.simulate(snr_db=10.0, speed_jitter=0.1, seed=seed)[index]
     g = nlcs.focus_grid(scan)
     k = coef.nlcs_coefficients(g.range_bins_m, g.speed_m_s, g.sin_squint, g.wavelength_m)
@@ -273,7 +280,8 @@ def test_the_engine_is_a_focuser(engine):
 
 
 def test_calibration_spectra_match_detections_numpy_simulation(engine, jittery_pass, grid):
-    """Detection's t_n(t_f) calibration simulated on the device: the same spectra, peaks and focus positions."""
+    """Detection's t_n(t_f) calibration simulated on the device: the same spectra, peaks and focus
+    positions."""
     products = nlcs.nlcs_focus(jittery_pass, grid=grid)
     r = grid.range_bins_m[[20, 21, 90]] + 0.003
     t_n = np.linspace(-3.0, 3.0, 13)
@@ -283,7 +291,8 @@ def test_calibration_spectra_match_detections_numpy_simulation(engine, jittery_p
     np.testing.assert_array_equal(coarse, coarse_ref)
     assert rel_err(y, y_ref) < STAGE_TOL
     t_f_ref = calibration.focus_position(products, r, t_n)
-    np.testing.assert_allclose(calibration.focus_position(products, r, t_n, engine), t_f_ref, rtol=0, atol=1e-6 * grid.dt_s)
+    np.testing.assert_allclose(calibration.focus_position(products, r, t_n, engine), t_f_ref, rtol=0,
+                               atol=1e-6 * grid.dt_s)
 
 
 def test_backprojection_image_matches_the_reference(engine, jittery_pass):
@@ -362,7 +371,8 @@ def test_unknown_device_spec_is_a_clear_error(engine):
 
 
 def test_a_pass_run_in_the_other_direction_gives_the_same_targets_on_both_backends(engine):
-    """The carriage runs both ways along the rail; the engine sorts pulses by logged position like the reference."""
+    """The carriage runs both ways along the rail; the engine sorts pulses by logged position like the
+    reference."""
     from uwbcl import simulate
     from uwbcl.model import PassGeometry, RadarParameters
 
@@ -520,7 +530,8 @@ def test_profiling_gives_a_table_of_the_stages_and_the_same_results_as_without(e
         engine.profile_summary()
 
 
-def test_process_with_profile_prints_the_stage_table_and_writes_the_same_outputs(tmp_path, monkeypatch, capsys):
+def test_process_with_profile_prints_the_stage_table_and_writes_the_same_outputs(tmp_path, monkeypatch,
+                                                                                 capsys):
     from uwbcl.cli import main
     from uwbcl.focus import engine as engine_module
 
@@ -532,7 +543,8 @@ def test_process_with_profile_prints_the_stage_table_and_writes_the_same_outputs
     assert main(["process", str(tmp_path / "in"), "--out", str(tmp_path / "profiled"), "--profile",
                  "--no-progress"]) == 0
     out = capsys.readouterr().out
-    for stage in ("reference spectra", "echo chain", "image", "calibration", "total ms", "azimuth_fft_radix8"):
+    for stage in ("reference spectra", "echo chain", "image", "calibration", "total ms",
+                  "azimuth_fft_radix8"):
         assert stage in out
     for name in ("displacements.csv", "targets.csv"):
         assert (tmp_path / "plain" / name).read_bytes() == (tmp_path / "profiled" / name).read_bytes()

@@ -396,12 +396,13 @@ def test_range_delay_s_is_a_record_of_a_correction_already_in_the_window_start_s
     uncalibrated = _simulated()
     uncalibrated.range_window_start_s = plain.range_window_start_s + delay
     archive.write_pass(tmp_path / "uncalibrated.h5", uncalibrated)
-    np.testing.assert_allclose(archive.read_pass(tmp_path / "uncalibrated.h5").range_axis_m - read.range_axis_m,
-                               SPEED_OF_LIGHT_M_S * delay / 2, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(archive.read_pass(tmp_path / "uncalibrated.h5").range_axis_m
+                               - read.range_axis_m, SPEED_OF_LIGHT_M_S * delay / 2, rtol=0, atol=1e-9)
     a = pipeline.detect_pass(archive.read_pass(tmp_path / "plain.h5"), NUMPY_NLCS)[0]
     b = pipeline.detect_pass(read, NUMPY_NLCS)[0]
     c = pipeline.detect_pass(archive.read_pass(tmp_path / "uncalibrated.h5"), NUMPY_NLCS)[0]
-    assert (b.x_m, b.rc_m) == pytest.approx((a.x_m, a.rc_m), abs=1e-9)  # the calibrated delay is fully removed
+    # the calibrated delay is fully removed
+    assert (b.x_m, b.rc_m) == pytest.approx((a.x_m, a.rc_m), abs=1e-9)
     # Uncalibrated, the envelope says R + c d / 2 and the phase history R: measured +0.30 m, not hidden.
     assert 0.15 < c.rc_m - a.rc_m < SPEED_OF_LIGHT_M_S * delay / 2 + 0.01
 

@@ -38,9 +38,9 @@ def test_image_matches_the_float64_reference(noisy_pass, ac_mode):
 
 
 def test_azimuth_compression_has_the_reference_band_edges():
-    """The H8 fit is discontinuous in its input (a hard magnitude threshold picks the band): the chain must hand
-    it reference spectra precise enough to select the same samples as the float64 chain. On this pass complex64
-    reference spectra move bin 14's lower edge by one sample (relative image error 2e-3)."""
+    """The H8 fit is discontinuous in its input (a hard magnitude threshold picks the band): the chain must
+    hand it reference spectra precise enough to select the same samples as the float64 chain. On this pass
+    complex64 reference spectra move bin 14's lower edge by one sample (relative image error 2e-3)."""
     scan = PAPER_SIM1.simulate(snr_db=10, speed_jitter=0.1, seed=1)[0]
     ref = nlcs.nlcs_focus(scan).compression
     out = nlcs_focus_scipy32(scan).compression

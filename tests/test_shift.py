@@ -62,7 +62,8 @@ def test_the_table_is_steered_each_cycle_and_the_plates_in_view_change(truths):
     assert np.all(np.abs(angles - CFG.look_angle_deg) <= CFG.steer_tolerance_deg + 1.0)
     assert np.ptp(angles) > 5.0
     rib = shift.rib(CFG, 0, shift._x_max(CFG, CFG.cycles))
-    ahead = [set(np.flatnonzero(np.abs(rib.plates_m[:, 0] - t.rig_position_m[0] - 1.3) < 1.5)) for t in truths[0]]
+    ahead = [set(np.flatnonzero(np.abs(rib.plates_m[:, 0] - t.rig_position_m[0] - 1.3) < 1.5))
+             for t in truths[0]]
     assert ahead[0] != ahead[10] and not ahead[0] & ahead[10]  # ten webs later, a different stretch of rib
 
 
@@ -72,7 +73,8 @@ def test_a_later_shift_continues_the_same_rib_and_motion():
     for a, b in zip(shift.cycle_truths(short, 0), shift.cycle_truths(longer, 0)):
         np.testing.assert_array_equal(a.rig_position_m, b.rig_position_m)
         assert a.rotation_table_angle_deg == b.rotation_table_angle_deg and a.start_time == b.start_time
-    p_short = list(shift.simulate_shift(shift.ShiftConfig(rigs=1, cycles=1, first_cycle=2, seed=3, snr_db=10)))
+    p_short = list(shift.simulate_shift(shift.ShiftConfig(rigs=1, cycles=1, first_cycle=2, seed=3,
+                                                          snr_db=10)))
     p_long = list(shift.simulate_shift(shift.ShiftConfig(rigs=1, cycles=3, seed=3, snr_db=10)))[4:]
     for a, b in zip(p_short, p_long):
         np.testing.assert_array_equal(a.echo, b.echo)
@@ -94,8 +96,8 @@ def test_cli_writes_the_archives_and_the_truth(tmp_path):
     with (tmp_path / "truth.csv").open() as f:
         truth = list(csv.DictReader(f))
     assert len(truth) == 4
-    for column in ("rig_id", "cycle", "start_time", "retreat_m", "creep_m", "vertical_m", "cumulative_retreat_m",
-                   "cumulative_creep_m"):
+    for column in ("rig_id", "cycle", "start_time", "retreat_m", "creep_m", "vertical_m",
+                   "cumulative_retreat_m", "cumulative_creep_m"):
         assert column in truth[0]
     assert truth[0]["retreat_m"] == "" and 0.8 <= float(truth[1]["retreat_m"]) <= 1.0
     assert (tmp_path / "truth_plates.csv").exists()

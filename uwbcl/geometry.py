@@ -1,8 +1,9 @@
 """Geometry of a squinted rail pass (paper section 2.1, eq. 1) and the P1 target parameterisation.
 
-A target M = (x, y, z) in the radar frame, seen from a rail at height h with aperture centre O_s = (x_c, 0, h),
-has closest-approach slant range R_c = sqrt(y^2 + (z - h)^2). Fixing a processing squint theta_q (the slant-plane
-squint of the scene reference point), every target is described exactly by (t_n, r0) with
+A target M = (x, y, z) in the radar frame, seen from a rail at height h with aperture centre
+O_s = (x_c, 0, h), has closest-approach slant range R_c = sqrt(y^2 + (z - h)^2). Fixing a processing squint
+theta_q (the slant-plane squint of the scene reference point), every target is described exactly by (t_n, r0)
+with
 
     r0 = R_c / cos(theta_q),    v t_n = (x - x_c) - R_c tan(theta_q)
 
@@ -70,7 +71,8 @@ def horizontal_look_angle_rad(positions_m, target_m, boresight_y_sign: int) -> n
 
 
 def two_way_beam_gain(look_angle_rad, boresight_rad: float, aperture_m: float, wavelength_m: float):
-    """Two-way amplitude pattern of a uniform aperture, main lobe only: sinc^2(D sin(psi - theta_h) / lambda)."""
+    """Two-way amplitude pattern of a uniform aperture, main lobe only:
+    sinc^2(D sin(psi - theta_h) / lambda)."""
     u = aperture_m * np.sin(np.asarray(look_angle_rad) - boresight_rad) / wavelength_m
     return np.where(np.abs(u) < 1.0, np.sinc(u) ** 2, 0.0)
 
@@ -80,7 +82,8 @@ def beam_half_width_rad(aperture_m: float, wavelength_m: float) -> float:
     return math.asin(min(1.0, wavelength_m / aperture_m))
 
 
-def rotation_table_angle_for(reference_point_m, aperture_centre_m: float, boresight_y_sign: int = -1) -> float:
+def rotation_table_angle_for(reference_point_m, aperture_centre_m: float,
+                             boresight_y_sign: int = -1) -> float:
     """Rotation-table angle that puts the reference point on boresight: tan(theta_h) = x_T / W (degrees)."""
     x, y, _ = reference_point_m
     return math.degrees(math.atan2(x - aperture_centre_m, boresight_y_sign * y))

@@ -76,7 +76,8 @@ class ScanPass:
     cycle: int = 0
     pass_start_time: str = "1970-01-01T00:00:00Z"  # ISO 8601, UTC
     source: str = ""  # file the pass was read from, for error messages
-    range_delay_s: float = 0.0  # the calibrated antenna/cable delay already removed from the window start (record)
+    # the calibrated antenna/cable delay already removed from the window start (record)
+    range_delay_s: float = 0.0
     raw_rf: RawRF | None = None  # the radar's real RF, when an importer kept it (archive 1.1)
 
     @property

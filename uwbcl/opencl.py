@@ -13,12 +13,15 @@ from pathlib import Path
 
 INSTALL_HINT = (
     "no usable OpenCL platform was found. On Debian/Ubuntu install a CPU runtime with "
-    "`sudo apt-get install pocl-opencl-icd` (or your GPU vendor's OpenCL driver), or run `bash scripts/install.sh`; "
+    "`sudo apt-get install pocl-opencl-icd` (or your GPU vendor's OpenCL driver), "
+    "or run `bash scripts/install.sh`; "
     "meanwhile every command works with `--backend numpy`."
 )
 FFT_HINT = (
-    "the OpenCL backend needs pyvkfft (VkFFT): `sudo apt-get install opencl-headers ocl-icd-opencl-dev g++ && "
-    "VKFFT_BACKEND=opencl pip install pyvkfft` (or `bash scripts/install.sh`); meanwhile use `--backend numpy`."
+    "the OpenCL backend needs pyvkfft (VkFFT): "
+    "`sudo apt-get install opencl-headers ocl-icd-opencl-dev g++ && "
+    "VKFFT_BACKEND=opencl pip install pyvkfft` (or `bash scripts/install.sh`); "
+    "meanwhile use `--backend numpy`."
 )
 
 

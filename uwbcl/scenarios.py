@@ -1,8 +1,9 @@
 """The paper's simulation scenarios (Tables 1 and 4) as data, and their passes.
 
-Roadway frame OXYZ: X along the panel (retreat), Y across (towards the rig), Z up. The rig (the rail's centre at
-height 0) sits at `rig_positions_m[cycle]` in the roadway frame with its axes parallel to OXYZ, so a target at
-roadway position M is at M - rig in the radar frame, and the advance between cycles is rig' - rig = -(P' - P).
+Roadway frame OXYZ: X along the panel (retreat), Y across (towards the rig), Z up. The rig (the rail's centre
+at height 0) sits at `rig_positions_m[cycle]` in the roadway frame with its axes parallel to OXYZ, so a target
+at roadway position M is at M - rig in the radar frame, and the advance between cycles is
+rig' - rig = -(P' - P).
 """
 
 from __future__ import annotations
@@ -58,8 +59,9 @@ class Scenario:
                                  reference_point_m=tuple(float(c) for c in self.reference_point_m(cycle)))
                 when = start + dt.timedelta(minutes=45 * cycle, seconds=30 * i)
                 passes.append(simulate_pass(
-                    self.radar, g, targets, aperture_length_m=self.aperture_length_m, speed_m_s=self.speed_m_s,
-                    snr_db=snr_db, speed_jitter=speed_jitter, rng=rng, rig_id=rig_id, cycle=cycle,
+                    self.radar, g, targets, aperture_length_m=self.aperture_length_m,
+                    speed_m_s=self.speed_m_s, snr_db=snr_db, speed_jitter=speed_jitter, rng=rng,
+                    rig_id=rig_id, cycle=cycle,
                     pass_start_time=when.strftime("%Y-%m-%dT%H:%M:%SZ")))
         return passes
 

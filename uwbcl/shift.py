@@ -6,19 +6,21 @@ Y = 0, the rig at Y = W > 0, Z up; radar frame = roadway frame shifted by the ri
 * **Bolt plates** in two or three rows (row heights ~0.5/1.1/1.7 m or ~0.6/1.3 m), each row with its own
   irregular spacing of 1.0-1.5 m, some plates missing, a few centimetres of rib roughness in Y and Z, and
   plate reflectivities of 0.6-1.0.
-* **Rib clutter**: many weak scatterers (about 8 per metre of rib, amplitudes ~0.01-0.05) over the rib surface.
+* **Rib clutter**: many weak scatterers (about 8 per metre of rib, amplitudes ~0.01-0.05) over the rib
+  surface.
 * **Motion per cycle**: a web of nominal depth (0.85-0.95 m per rig) with small variation, clipped to
   0.8-1.0 m; creep as a drift of 2-6 mm per cycle plus 1.5 mm noise, with occasional (8 %) jumps of 50-100 mm;
   a few millimetres of vertical change (floor undulation); a cycle every 20-60 minutes.
 * **Rotation table**: before each cycle's passes the rig steers the table at the plate whose bearing it
-  believes is closest to `look_angle_deg` (28 deg), or at the rib point on that bearing when no plate is within
-  `steer_tolerance_deg`. Its belief is dead reckoning (last position plus the nominal web), so the archived
-  reference point is a few centimetres off the plate, as on a real rig. As the rig retreats, the plates it
-  looks at change: new plates enter the beam ahead, old ones leave behind it.
+  believes is closest to `look_angle_deg` (28 deg), or at the rib point on that bearing when no plate is
+  within `steer_tolerance_deg`. Its belief is dead reckoning (last position plus the nominal web), so the
+  archived reference point is a few centimetres off the plate, as on a real rig. As the rig retreats, the
+  plates it looks at change: new plates enter the beam ahead, old ones leave behind it.
 
-Every random draw comes from a generator seeded by (seed, rig, purpose[, cycle]) and plates/clutter are drawn
-in a prefix-stable order, so cycle c of rig k is the same whichever `cycles`/`first_cycle` produced it: a later
-call with `first_cycle` appends the next shift to an archive tree without changing what is already there.
+Every random draw comes from a generator seeded by (seed, rig, purpose[, cycle]) and plates/clutter are
+drawn in a prefix-stable order, so cycle c of rig k is the same whichever `cycles`/`first_cycle` produced it:
+a later call with `first_cycle` appends the next shift to an archive tree without changing what is already
+there.
 """
 
 from __future__ import annotations
@@ -138,7 +140,8 @@ def rib(cfg: ShiftConfig, rig: int, x_max_m: float) -> Rib:
         clutter.append((x, dy, z))
         camps.append(amp)
     order = np.argsort([p[0] for p in plates], kind="stable")
-    return Rib(np.array(plates)[order], np.array(amps)[order], np.array(clutter).reshape(-1, 3), np.array(camps))
+    return Rib(np.array(plates)[order], np.array(amps)[order], np.array(clutter).reshape(-1, 3),
+               np.array(camps))
 
 
 def _format_time(t: dt.datetime) -> str:
@@ -206,7 +209,8 @@ def simulate_gated_pass(cfg: ShiftConfig, geometry: PassGeometry, targets_radar_
     prf = radar.pulse_repetition_frequency_hz
     n_intervals = 2 * round(0.5 * cfg.aperture_length_m / cfg.speed_m_s * prf)
     start = -direction * 0.5 * n_intervals * cfg.speed_m_s / prf
-    times, positions = rail_motion(n_intervals + 1, prf, cfg.speed_m_s, start, cfg.speed_jitter, rng, direction)
+    times, positions = rail_motion(n_intervals + 1, prf, cfg.speed_m_s, start, cfg.speed_jitter, rng,
+                                   direction)
     ranges = seen_ranges_m(radar, positions, targets_radar_m, geometry.height_m,
                            math.radians(geometry.rotation_table_angle_deg), -1)
     seen = np.isfinite(ranges[:, 0])
@@ -217,11 +221,13 @@ def simulate_gated_pass(cfg: ShiftConfig, geometry: PassGeometry, targets_radar_
     echo = simulate_echo(radar, geometry, positions, targets_radar_m[keep], amplitudes[keep], t0,
                          cfg.range_samples, cfg.snr_db, rng)
     return ScanPass(radar=radar, geometry=geometry, range_window_start_s=t0, pulse_time_s=times,
-                    pulse_position_m=positions, echo=echo, rig_id=rig, cycle=cycle, pass_start_time=start_time)
+                    pulse_position_m=positions, echo=echo, rig_id=rig, cycle=cycle,
+                    pass_start_time=start_time)
 
 
 def simulate_shift(cfg: ShiftConfig) -> Iterator[ScanPass]:
-    """Every pass of cycles first_cycle .. first_cycle + cycles - 1 of every rig, in (rig, cycle, height) order."""
+    """Every pass of cycles first_cycle .. first_cycle + cycles - 1 of every rig, in (rig, cycle, height)
+    order."""
     n = cfg.first_cycle + cfg.cycles
     for rig in range(cfg.rigs):
         rib_ = rib(cfg, rig, _x_max(cfg, n))
@@ -241,9 +247,9 @@ def simulate_shift(cfg: ShiftConfig) -> Iterator[ScanPass]:
                     start_time=_format_time(start + dt.timedelta(seconds=45 * i)))
 
 
-TRUTH_COLUMNS = ("rig_id", "cycle", "start_time", "retreat_m", "creep_m", "vertical_m", "cumulative_retreat_m",
-                 "cumulative_creep_m", "cumulative_vertical_m", "rig_x_m", "rig_y_m", "rig_z_m",
-                 "rotation_table_angle_deg")
+TRUTH_COLUMNS = ("rig_id", "cycle", "start_time", "retreat_m", "creep_m", "vertical_m",
+                 "cumulative_retreat_m", "cumulative_creep_m", "cumulative_vertical_m", "rig_x_m", "rig_y_m",
+                 "rig_z_m", "rotation_table_angle_deg")
 
 
 def truth_rows(cfg: ShiftConfig) -> list[dict]:

@@ -2,8 +2,8 @@
 
 * Gaussian pulse p(t) = exp(-t^2 / 2 sigma^2), sigma from the -10 dB bandwidth.
 * Two-way main-lobe beam pattern of the 0.14 m aperture, frequency independent (eq. 2's w_a).
-* Pulses at a fixed repetition frequency; the carriage speed fluctuates by up to +-speed_jitter (a smooth random
-  process), so the rail positions are not uniform. They are logged per pulse, as the encoder does.
+* Pulses at a fixed repetition frequency; the carriage speed fluctuates by up to +-speed_jitter (a smooth
+  random process), so the rail positions are not uniform. They are logged per pulse, as the encoder does.
 * Receiver noise: circular complex Gaussian, SNR defined per raw fast-time sample relative to a unit echo:
   SNR_dB = 10 log10(1 / E|n|^2), where a target of amplitude 1 on boresight gives a peak sample of modulus 1.
 """
@@ -22,8 +22,8 @@ def rail_motion(n_pulses: int, prf_hz: float, speed_m_s: float, start_m: float, 
                 rng: np.random.Generator, direction: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Pulse times (from pass start) and rail positions of a carriage whose speed wanders by +-speed_jitter.
 
-    The speed is v (1 + speed_jitter u(t)), u a sum of random sinusoids with 1-8 s periods scaled to max |u| = 1:
-    a motor controller hunting around its set speed, not white noise.
+    The speed is v (1 + speed_jitter u(t)), u a sum of random sinusoids with 1-8 s periods scaled to
+    max |u| = 1: a motor controller hunting around its set speed, not white noise.
     """
     t = np.arange(n_pulses) / prf_hz
     if speed_jitter > 0:
@@ -57,11 +57,13 @@ def gate_samples(r_lo_m: float, r_hi_m: float, range_bin_m: float, power_of_two:
 def seen_ranges_m(radar: RadarParameters, positions_m, targets_m, height_m: float, table_angle_rad: float,
                   boresight_y_sign: int) -> np.ndarray:
     """(n_targets, 2) min and max range of each target over the pulses whose beam sees it (gain above
-    BEAM_SEEN_GAIN); NaN for a target no pulse sees. positions_m (n_pulses,) along the rail, targets_m (n, 3)."""
+    BEAM_SEEN_GAIN); NaN for a target no pulse sees. positions_m (n_pulses,) along the rail,
+    targets_m (n, 3)."""
     out = np.full((len(targets_m), 2), np.nan)
     for i, t in enumerate(targets_m):
         psi = geo.horizontal_look_angle_rad(positions_m, t, boresight_y_sign)
-        seen = geo.two_way_beam_gain(psi, table_angle_rad, radar.antenna_aperture_m, radar.wavelength_m) > BEAM_SEEN_GAIN
+        seen = geo.two_way_beam_gain(psi, table_angle_rad, radar.antenna_aperture_m,
+                                     radar.wavelength_m) > BEAM_SEEN_GAIN
         if seen.any():
             r = geo.range_history_m(positions_m[seen], t, height_m)
             out[i] = r.min(), r.max()
@@ -87,7 +89,8 @@ def simulate_echo(radar: RadarParameters, geometry: PassGeometry, positions_m, t
     sigma = radar.pulse_sigma_s
     k = 4.0 * np.pi * radar.carrier_frequency_hz / SPEED_OF_LIGHT_M_S
     echo = np.zeros((positions_m.size, samples_per_pulse), dtype=np.complex128)
-    for target, amplitude in zip(np.atleast_2d(targets_m), np.broadcast_to(amplitudes, len(np.atleast_2d(targets_m)))):
+    for target, amplitude in zip(np.atleast_2d(targets_m),
+                                 np.broadcast_to(amplitudes, len(np.atleast_2d(targets_m)))):
         r = geo.range_history_m(positions_m, target, geometry.height_m)
         psi = geo.horizontal_look_angle_rad(positions_m, target, geometry.boresight_y_sign)
         gain = amplitude * geo.two_way_beam_gain(psi, geometry.rotation_table_angle_rad,
@@ -97,21 +100,24 @@ def simulate_echo(radar: RadarParameters, geometry: PassGeometry, positions_m, t
         echo[seen] += (gain[seen] * np.exp(-1j * k * r[seen]))[:, None] * pulse_envelope(delay, sigma)
     if snr_db is not None and np.isfinite(snr_db):
         noise_power = 10.0 ** (-snr_db / 10.0)
-        echo += math.sqrt(noise_power / 2.0) * (rng.standard_normal(echo.shape) + 1j * rng.standard_normal(echo.shape))
+        echo += math.sqrt(noise_power / 2.0) * (rng.standard_normal(echo.shape)
+                                                + 1j * rng.standard_normal(echo.shape))
     return echo
 
 
 def simulate_pass(radar: RadarParameters, geometry: PassGeometry, targets_m, *, aperture_length_m: float,
-                  speed_m_s: float, aperture_centre_m: float = 0.0, amplitudes=1.0, snr_db: float | None = None,
-                  speed_jitter: float = 0.0, rng: np.random.Generator | None = None, rig_id: str = "rig-1",
-                  cycle: int = 0, pass_start_time: str = "1970-01-01T00:00:00Z", direction: int = 1,
+                  speed_m_s: float, aperture_centre_m: float = 0.0, amplitudes=1.0,
+                  snr_db: float | None = None, speed_jitter: float = 0.0,
+                  rng: np.random.Generator | None = None, rig_id: str = "rig-1", cycle: int = 0,
+                  pass_start_time: str = "1970-01-01T00:00:00Z", direction: int = 1,
                   range_margin_m: float = 1.0) -> ScanPass:
     """One pass of the carriage over the nominal aperture, as the rig would record it."""
     rng = np.random.default_rng() if rng is None else rng
     # An even number of intervals (odd pulse count) centred on the nominal aperture centre.
     n_intervals = 2 * round(0.5 * aperture_length_m / speed_m_s * radar.pulse_repetition_frequency_hz)
     n_pulses = n_intervals + 1
-    start = aperture_centre_m - direction * 0.5 * n_intervals * speed_m_s / radar.pulse_repetition_frequency_hz
+    start = (aperture_centre_m
+             - direction * 0.5 * n_intervals * speed_m_s / radar.pulse_repetition_frequency_hz)
     times, positions = rail_motion(n_pulses, radar.pulse_repetition_frequency_hz, speed_m_s, start,
                                    speed_jitter, rng, direction)
     targets_m = np.atleast_2d(np.asarray(targets_m, dtype=float))

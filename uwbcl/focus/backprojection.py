@@ -1,9 +1,10 @@
-"""Time-domain backprojection onto the slant plane: the exact reference focuser (paper section 4.2, future work).
+"""Time-domain backprojection onto the slant plane: the exact reference focuser (paper section 4.2,
+future work).
 
 Pixels live on the same (u = v t_n, r_LRCM) axes as the NLCS image, so detection treats both alike:
-r0 = r_LRCM - s_q u, x_M = x_c + u + r0 s_q, R_c = r0 c_q (P1). Each pixel sums the range-compressed echo at its
-exact two-way delay over the logged rail positions, with the carrier phase restored, using only pulses whose
-slant squint lies in the beam's Doppler band (the same support as the NLCS band mask).
+r0 = r_LRCM - s_q u, x_M = x_c + u + r0 s_q, R_c = r0 c_q (P1). Each pixel sums the range-compressed echo at
+its exact two-way delay over the logged rail positions, with the carrier phase restored, using only pulses
+whose slant squint lies in the beam's Doppler band (the same support as the NLCS band mask).
 """
 
 from __future__ import annotations
@@ -51,7 +52,8 @@ def pixel_track_coordinates(u_m, r_lrcm_m, grid: nlcs.FocusGrid):
     return np.asarray(u_m) + r0 * grid.sin_squint, r0 * grid.cos_squint
 
 
-def backproject_points(rc: RangeCompressed, grid: nlcs.FocusGrid, u_m, r_lrcm_m, chunk: int = 4096) -> np.ndarray:
+def backproject_points(rc: RangeCompressed, grid: nlcs.FocusGrid, u_m, r_lrcm_m,
+                       chunk: int = 4096) -> np.ndarray:
     """Complex BP value at arbitrary (u, r_LRCM) points (any shape)."""
     u = np.asarray(u_m, dtype=float)
     r = np.asarray(r_lrcm_m, dtype=float)
@@ -80,9 +82,9 @@ def backproject_points(rc: RangeCompressed, grid: nlcs.FocusGrid, u_m, r_lrcm_m,
 
 def point_target_echo(grid: nlcs.FocusGrid, x_rel_m: np.ndarray, t_s: np.ndarray, u_m: float, r_lrcm_m: float,
                       *, matched: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """The echo (n_pulses, n_t) of a point target at (u, r_LRCM) with unit gain on every pulse, seen from the rail
-    positions x_rel_m at the absolute delays t_s, and the pulses whose slant squint to it lies in the Doppler band
-    (those `backproject_points` sums).
+    """The echo (n_pulses, n_t) of a point target at (u, r_LRCM) with unit gain on every pulse, seen from the
+    rail positions x_rel_m at the absolute delays t_s, and the pulses whose slant squint to it lies in the
+    Doppler band (those `backproject_points` sums).
 
     Per pulse exp(-j 4 pi f_c R / c) p(t - 2R / c), R exact, with p the Gaussian pulse of eq. (2),
     exp(-t^2 / 2 sigma^2), or with `matched` the pulse after its matched filter H4 (P(0) = 1),

@@ -68,11 +68,13 @@ COMPLEX64 = np.complex64
 # Every device buffer of the engine. Shapes are functions of the focus grid (for per-column arrays such as the
 # calibration's, of the grid with n_range = columns) and of the named extents the grid does not fix.
 BUFFERS = (
-    BufferSpec("echo", lambda g, n_pulses: (n_pulses, g.n_range), COMPLEX64, doc="an echo, then its range FFT"),
+    BufferSpec("echo", lambda g, n_pulses: (n_pulses, g.n_range), COMPLEX64,
+               doc="an echo, then its range FFT"),
     BufferSpec("x_rel", lambda g, n_pulses: (n_pulses,), REAL, True, "logged rail positions - centre (m)"),
     BufferSpec("first", lambda g: (g.n_track,), np.int32, True, "first Lagrange tap pulse per track sample"),
     BufferSpec("weights", lambda g, taps: (g.n_track, taps), REAL, True, "Lagrange weights per track sample"),
-    BufferSpec("azimuth", _full_shape, COMPLEX64, doc="the padded (range-)Doppler array of an echo, FFT order"),
+    BufferSpec("azimuth", _full_shape, COMPLEX64,
+               doc="the padded (range-)Doppler array of an echo, FFT order"),
     BufferSpec("doppler_rows", _band_shape, COMPLEX64, doc="the Doppler band's rows of `azimuth`"),
     BufferSpec("filter_src", _band_shape, COMPLEX64, doc="H3 * band mask * H4 * range-IFFT delay, band rows"),
     BufferSpec("filter_h5h6", _band_shape, COMPLEX64, doc="H5 H6 on the band rows"),
@@ -81,11 +83,14 @@ BUFFERS = (
     BufferSpec("ac_poly", lambda g, n_terms: (g.n_range, n_terms), REAL, True, "H8 polynomial per bin"),
     BufferSpec("ac_first", _per_bin, np.int32, True, "H8 band: first signed azimuth index per bin"),
     BufferSpec("ac_last", _per_bin, np.int32, True, "H8 band: last signed azimuth index per bin"),
-    BufferSpec("filter_h8", lambda g, rows: (rows, g.n_range), COMPLEX64, doc="H8 on the image spectrum's rows"),
-    BufferSpec("h8_rows", lambda g, rows: (padded_rows(rows, g), g.n_range), COMPLEX64, doc="image spectrum rows"),
+    BufferSpec("filter_h8", lambda g, rows: (rows, g.n_range), COMPLEX64,
+               doc="H8 on the image spectrum's rows"),
+    BufferSpec("h8_rows", lambda g, rows: (padded_rows(rows, g), g.n_range), COMPLEX64,
+               doc="image spectrum rows"),
     BufferSpec("model_rows", lambda g, rows: (padded_rows(rows, g), g.n_range), COMPLEX64,
                doc="a neighbour model's spectrum rows"),
-    *(BufferSpec(name, lambda g, columns: (g.n_azimuth, columns), COMPLEX64, doc="simulated targets per column")
+    *(BufferSpec(name, lambda g, columns: (g.n_azimuth, columns), COMPLEX64,
+                 doc="simulated targets per column")
       for name in ("reference", "calibration")),
     *(BufferSpec(f"{name}_{what}", lambda g, columns: (columns,), REAL, True, "per column")
       for name in ("reference", "calibration") for what in ("r", "t_n")),

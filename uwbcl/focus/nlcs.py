@@ -41,9 +41,9 @@ def az_ifft(x: np.ndarray) -> np.ndarray:
 
 
 def spectrum_rows_from_range_doppler(y_rows: np.ndarray, rows: np.ndarray, grid: FocusGrid) -> np.ndarray:
-    """fft2(image) / (n m) at the signed azimuth frequency indices `rows`, for the image az_ifft(Y), from those
-    rows of Y (shape (..., rows.size, n_range)): detection's band-limited interpolation needs only these, and
-    the azimuth IFFT then FFT cancel but for fft(fftshift(z)) = (-1)^k fft(z) (n even)."""
+    """fft2(image) / (n m) at the signed azimuth frequency indices `rows`, for the image az_ifft(Y), from
+    those rows of Y (shape (..., rows.size, n_range)): detection's band-limited interpolation needs only
+    these, and the azimuth IFFT then FFT cancel but for fft(fftshift(z)) = (-1)^k fft(z) (n even)."""
     return spectrum_rows_from_range_spectra(np.fft.fft(y_rows, axis=-1), rows, grid)
 
 
@@ -117,7 +117,8 @@ class FocusGrid:
     def nearest_bin(self, r_m) -> np.ndarray:
         """Index of the range bin nearest each range r_m (clipped to the window)."""
         bins = self.range_bins_m
-        return np.clip(np.rint((np.asarray(r_m) - bins[0]) / (bins[1] - bins[0])), 0, bins.size - 1).astype(int)
+        return np.clip(np.rint((np.asarray(r_m) - bins[0]) / (bins[1] - bins[0])), 0,
+                       bins.size - 1).astype(int)
 
 
 def focus_grid(scan: ScanPass, azimuth_oversampling: int = 8) -> FocusGrid:
@@ -183,8 +184,9 @@ def lagrange_weights(x_nodes: np.ndarray, x_out: np.ndarray, order: int = 6):
 
 
 def resample_to_uniform_track(s: np.ndarray, x_rel_m: np.ndarray, grid: FocusGrid) -> np.ndarray:
-    """Motion compensation for rail-speed fluctuation: resample pulses from the logged positions onto the uniform
-    track t_a = k dt. After LRWC the signal is slowly varying along the track, so 6-point Lagrange is accurate.
+    """Motion compensation for rail-speed fluctuation: resample pulses from the logged positions onto the
+    uniform track t_a = k dt. After LRWC the signal is slowly varying along the track, so 6-point Lagrange is
+    accurate.
     """
     idx, w = lagrange_weights(x_rel_m, grid.t_track_s * grid.speed_m_s)
     return np.einsum("km,kmr->kr", w, s[idx])
@@ -358,9 +360,9 @@ def exact_reference_azimuth_compression(k: coef.NlcsCoefficients, grid: FocusGri
 
 
 def _unwrap_from(p: np.ndarray, start: np.ndarray) -> np.ndarray:
-    """Column j of p unwrapped from row start[j] on, bit for bit np.unwrap(p[start[j]:, j]); rows above start[j]
-    are left as they are. np.unwrap's arithmetic (its default discont and period), but the mod 2 pi, most of
-    its time, only on the steps it corrects (|dp| >= pi)."""
+    """Column j of p unwrapped from row start[j] on, bit for bit np.unwrap(p[start[j]:, j]); rows above
+    start[j] are left as they are. np.unwrap's arithmetic (its default discont and period), but the mod 2 pi,
+    most of its time, only on the steps it corrects (|dp| >= pi)."""
     dd = np.diff(p, axis=0)
     jump = ~(np.abs(dd) < np.pi) & (np.arange(1, p.shape[0])[:, None] > start)
     d = dd[jump]
@@ -375,14 +377,15 @@ def _unwrap_from(p: np.ndarray, start: np.ndarray) -> np.ndarray:
 
 def fit_azimuth_compression(x_ref: np.ndarray, k: coef.NlcsCoefficients, grid: FocusGrid, degree: int = 8
                             ) -> AzimuthCompression:
-    """H8 polynomials from the reference spectra X_ref (centred f_a, one column per bin): a weighted fit of the
-    unwrapped phase over the strong part of the band. Shared by the numpy chain and the OpenCL engine, which
-    computes X_ref on the device."""
-    # Vectorised over the bins because every backend calls this once per pass and a loop of np.unwrap + polyfit
-    # per bin cost ~25 ms at 128 bins. Per bin it is the loop that tests/test_nlcs.py keeps as the
-    # specification: the strong segment [lo, hi] (|X| > STRONG_REFERENCE_FRACTION max|X| within [f_lo, f_hi])
-    # must contain f_a = 0, else the series H8 stays; the phase is np.unwrap'ed along the segment and referred to f_a = 0, and fitted
-    # by polyfit's weighted least squares (polyfit's w = sqrt|X| multiplies the residuals: weights |X|).
+    """H8 polynomials from the reference spectra X_ref (centred f_a, one column per bin): a weighted fit of
+    the unwrapped phase over the strong part of the band. Shared by the numpy chain and the OpenCL engine,
+    which computes X_ref on the device."""
+    # Vectorised over the bins because every backend calls this once per pass and a loop of np.unwrap +
+    # polyfit per bin cost ~25 ms at 128 bins. Per bin it is the loop that tests/test_nlcs.py keeps as the
+    # specification: the strong segment [lo, hi] (|X| > STRONG_REFERENCE_FRACTION max|X| within
+    # [f_lo, f_hi]) must contain f_a = 0, else the series H8 stays; the phase is np.unwrap'ed along the
+    # segment and referred to f_a = 0, and fitted by polyfit's weighted least squares (polyfit's
+    # w = sqrt|X| multiplies the residuals: weights |X|).
     f = grid.f_azimuth_hz
     f_scale = 0.5 / grid.dt_s
     n = k.r_m.size
@@ -401,15 +404,17 @@ def fit_azimuth_compression(x_ref: np.ndarray, k: coef.NlcsCoefficients, grid: F
         lo = b0 + np.argmax(strong, axis=0)
         hi = b0 + band.size - 1 - np.argmax(strong[::-1], axis=0)
         fitted &= (lo <= i0) & (i0 <= hi)
-    poly[~fitted, :5] = series.poly[~fitted] * f_scale ** np.arange(5)  # series powers of f_a -> of f_a / f_scale
+    # series powers of f_a -> of f_a / f_scale
+    poly[~fitted, :5] = series.poly[~fitted] * f_scale ** np.arange(5)
     bins = np.flatnonzero(fitted)
     if bins.size == 0:
         return AzimuthCompression(poly=poly, f_scale_hz=f_scale, f_lo_hz=f_lo, f_hi_hz=f_hi)
     lo, hi = lo[bins], hi[bins]
     f_lo[bins], f_hi[bins] = f[lo], f[hi]
-    # All bins on the union of their segments, a bin's rows outside its own with weight 0. The unwrap starts at
-    # each bin's lo: unwrapping from the union's first row instead would only add a multiple of 2 pi, which
-    # the reference to f_a = 0 removes, but with rounding (complex64 X_ref: ~3e-5 rad on the paper passes).
+    # All bins on the union of their segments, a bin's rows outside its own with weight 0. The unwrap starts
+    # at each bin's lo: unwrapping from the union's first row instead would only add a multiple of 2 pi,
+    # which the reference to f_a = 0 removes, but with rounding (complex64 X_ref: ~3e-5 rad on the paper
+    # passes).
     rows = slice(lo.min(), hi.max() + 1)
     cols = slice(None) if bins.size == n else bins
     phase = _unwrap_from(np.angle(x_ref[rows, cols]), lo - rows.start)
@@ -418,10 +423,11 @@ def fit_azimuth_compression(x_ref: np.ndarray, k: coef.NlcsCoefficients, grid: F
     w = np.where((r >= lo) & (r <= hi), np.sqrt(mag[rows, cols]), 0.0)  # polyfit's w, in X_ref's precision
     b = (w * phase).astype(np.float64)  # polyfit's right-hand side, rounded as polyfit rounds it
     w = w.astype(np.float64)
-    # Normal equations for all bins at once, G = V^T diag(w^2) V from one matmul, scaled to unit diagonal (as
-    # polyfit scales its columns), then one step of iterative refinement. The scaled weighted Vandermonde has
-    # condition ~150 on the paper passes (G: ~2e4); the H8 phase then agrees with polyfit's (SVD) to ~1e-12 rad
-    # over the band, as a batched Householder QR's did at ~3x the time. Bins with cond G > 1e10 go to polyfit.
+    # Normal equations for all bins at once, G = V^T diag(w^2) V from one matmul, scaled to unit diagonal
+    # (as polyfit scales its columns), then one step of iterative refinement. The scaled weighted Vandermonde
+    # has condition ~150 on the paper passes (G: ~2e4); the H8 phase then agrees with polyfit's (SVD) to
+    # ~1e-12 rad over the band, as a batched Householder QR's did at ~3x the time. Bins with cond G > 1e10
+    # go to polyfit.
     m = degree + 1
     v = np.polynomial.polynomial.polyvander(f[rows] / f_scale, degree)
     g = ((w * w).T @ (v[:, :, None] * v[:, None, :]).reshape(-1, m * m)).reshape(-1, m, m)
@@ -470,7 +476,8 @@ def spectrum_band(grid: FocusGrid, ac: AzimuthCompression) -> tuple[float, float
 
 
 def band_rows(n: int, band: tuple[float, float]) -> np.ndarray:
-    """Signed frequency indices, ascending, of the rows of an n-point DFT inside `band` (cycles per sample)."""
+    """Signed frequency indices, ascending, of the rows of an n-point DFT inside `band` (cycles per
+    sample)."""
     ka = np.fft.fftfreq(n)
     natural = np.flatnonzero((ka >= band[0]) & (ka <= band[1]))
     return np.sort(np.where(natural < (n + 1) // 2, natural, natural - n))
@@ -548,8 +555,8 @@ def calibration_spectra(products: NlcsProducts, r_m: np.ndarray, t_n_s: np.ndarr
     One target per (r, t_n), each through the azimuth chain (H6, H7, H8) of the range bin nearest its r, as
     `slow_time_point_response` (rail only), `_azimuth_nlcs_chain` and `azimuth_compression` give it, with the
     same numbers, arranged for speed: the point response is evaluated on the rail's rows alone (the rest are
-    zero), the FFTs run in their own (unshifted) order and in place, and H6, H7, H8 are computed once per bin (H8
-    on its band only).
+    zero), the FFTs run in their own (unshifted) order and in place, and H6, H7, H8 are computed once per bin
+    (H8 on its band only).
 
     Parameters
     ----------

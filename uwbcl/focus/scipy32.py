@@ -1,11 +1,12 @@
-"""The modified NLCS chain in float32 with scipy.fft: what a careful CPU user would write instead of the engine.
+"""The modified NLCS chain in float32 with scipy.fft: what a careful CPU user would write instead of the
+engine.
 
-The stages, coefficients and products are those of `nlcs` (the float64 reference, which documents the chain and
-its equation numbers); only the implementation differs:
+The stages, coefficients and products are those of `nlcs` (the float64 reference, which documents the chain
+and its equation numbers); only the implementation differs:
 
 * data are complex64; every phase is evaluated in float64 (its arguments reach hundreds of radians, beyond
-  float32's resolution), reduced modulo 2 pi and applied as complex64 (`cis`); only the data-independent H8 reference spectra stay
-  complex128 (see `exact_reference_azimuth_compression`);
+  float32's resolution), reduced modulo 2 pi and applied as complex64 (`cis`); only the data-independent H8
+  reference spectra stay complex128 (see `exact_reference_azimuth_compression`);
 * FFTs are `scipy.fft` on all cores (`workers=-1`), in place;
 * azimuth arrays stay in FFT (natural) order: the resampled track is written wrapped around index 0 and the
   frequency/time axes are permuted instead of the data, so the only shifts are of the final image and of the
@@ -70,7 +71,8 @@ def range_fft_walk_corrected(echo: np.ndarray, x_rel_m: np.ndarray, grid: nlcs.F
 
 
 def resample_padded(s: np.ndarray, x_rel_m: np.ndarray, grid: nlcs.FocusGrid) -> np.ndarray:
-    """`nlcs.resample_to_uniform_track` + ENLCS (eq. 6) + `pad_azimuth`, written in FFT order (t_a = 0 at 0)."""
+    """`nlcs.resample_to_uniform_track` + ENLCS (eq. 6) + `pad_azimuth`, written in FFT order
+    (t_a = 0 at 0)."""
     idx, w = nlcs.lagrange_weights(x_rel_m, grid.t_track_s * grid.speed_m_s)
     w = w.astype(np.float32)
     track = w[:, 0, None] * s[idx[:, 0]]
@@ -101,7 +103,8 @@ def secondary_range_compression_rows(s_rows: np.ndarray, rows: np.ndarray, x: np
     x0 = np.fft.ifftshift(nlcs.slant_squint_sine(grid, grid.carrier_frequency_hz), axes=0)[rows]
     phi = nlcs.reference_spectrum_phase(x, (grid.carrier_frequency_hz + f_r)[None, :], grid)
     phi0 = nlcs.reference_spectrum_phase(x0, grid.carrier_frequency_hz, grid)
-    phase = -(phi - phi0) + (2.0 * np.pi * (grid.range_window_start_s - 2.0 * grid.reference_range_m / C)) * f_r
+    phase = -(phi - phi0) + (2.0 * np.pi * (grid.range_window_start_s
+                                            - 2.0 * grid.reference_range_m / C)) * f_r
     gain = (mask * nlcs.pulse_spectrum(f_r, grid.pulse_sigma_s)[None, :]).astype(np.float32)
     s_rows *= cis(phase)
     s_rows *= gain
@@ -142,9 +145,9 @@ def reference_point_response(k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, ape
 
 def exact_reference_azimuth_compression(k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, aperture_m: float
                                         ) -> nlcs.AzimuthCompression:
-    """As `nlcs.exact_reference_azimuth_compression`. The reference spectra stay complex128: the fit keeps the
-    samples above a hard 1e-2 magnitude threshold, so float32 rounding can move a bin's band edge by one sample
-    and change that bin's H8 (seen: 2e-3 relative image error)."""
+    """As `nlcs.exact_reference_azimuth_compression`. The reference spectra stay complex128: the fit keeps
+    the samples above a hard 1e-2 magnitude threshold, so float32 rounding can move a bin's band edge by one
+    sample and change that bin's H8 (seen: 2e-3 relative image error)."""
     ref = _fft(reference_point_response(k, grid, aperture_m, np.complex128), 0)
     x_ref = azimuth_nlcs_chain(ref, np.arange(grid.n_azimuth), k, grid, with_h5=False)
     return nlcs.fit_azimuth_compression(np.fft.fftshift(x_ref, axes=0), k, grid)
@@ -193,9 +196,10 @@ def nlcs_focus_scipy32(scan: ScanPass, ac_mode: str = "exact", grid: nlcs.FocusG
     return nlcs.NlcsProducts(image=image, grid=grid, coefficients=k, compression=ac, aperture_m=aperture)
 
 
-def nlcs_model_spectra(products: nlcs.NlcsProducts, x_rel_m: np.ndarray, echoes, rows: np.ndarray) -> np.ndarray:
-    """As `FocusEngine.nlcs_model_spectra`: rows `rows` (signed azimuth indices) of fft2(image) / (n m) of each
-    model echo's image, from the range-Doppler array after H8 (no last IFFT)."""
+def nlcs_model_spectra(products: nlcs.NlcsProducts, x_rel_m: np.ndarray, echoes,
+                       rows: np.ndarray) -> np.ndarray:
+    """As `FocusEngine.nlcs_model_spectra`: rows `rows` (signed azimuth indices) of fft2(image) / (n m) of
+    each model echo's image, from the range-Doppler array after H8 (no last IFFT)."""
     grid, k, ac = products.grid, products.coefficients, products.compression
     y = np.array([_compressed_spectrum(e, x_rel_m, grid, k, ac)[np.asarray(rows) % grid.n_azimuth]
                   for e in echoes])
@@ -203,7 +207,8 @@ def nlcs_model_spectra(products: nlcs.NlcsProducts, x_rel_m: np.ndarray, echoes,
 
 
 class Scipy32Focuser:
-    """`Focuser` of the float32 scipy baseline: the NLCS image and the neighbour models by this module's chain.
+    """`Focuser` of the float32 scipy baseline: the NLCS image and the neighbour models by this module's
+    chain.
 
     Backprojection and the calibration targets have no float32 version here: they are the float64 reference's
     (`backprojection.backprojection_focus`, `nlcs.calibration_spectra`), as they were before this class when
