@@ -123,7 +123,10 @@ def evaluate(out: Path, truth_csv: Path) -> dict:
 
 def print_eval(title: str, e: dict) -> None:
     print(f"\n== {title}: {e['rows']} displacements, statuses {e['statuses']}")
-    f = lambda v: " / ".join(f"{x:.2f}" for x in v)
+
+    def f(v):
+        return " / ".join(f"{x:.2f}" for x in v)
+
     print(f"  RMS error, status ok      (retreat / creep / vertical, mm): {f(e['rms_ok_mm'])}")
     print(f"  RMS error, ok + low_conf. (retreat / creep / vertical, mm): {f(e['rms_trusted_mm'])}")
     print(f"  RMS error, every estimate (retreat / creep / vertical, mm): {f(e['rms_all_finite_mm'])}")

@@ -11,6 +11,7 @@ Without an OpenCL platform these tests skip, unless UWBCL_REQUIRE_OPENCL=1 (CI s
 from __future__ import annotations
 
 import dataclasses
+import operator
 import os
 
 import numpy as np
@@ -316,7 +317,7 @@ def test_targets_found_on_engine_images_agree_within_half_a_millimetre(engine, a
     ref = pipeline.detect_pass(scan, ProcessingSettings(algorithm=algorithm, backend="numpy"))
     out = pipeline.detect_pass(scan, ProcessingSettings(algorithm=algorithm, backend="opencl"))
     assert len(out) == len(ref) >= 3
-    key = (lambda d: d.x_m)
+    key = operator.attrgetter("x_m")
     for a, b in zip(sorted(out, key=key), sorted(ref, key=key)):
         assert abs(a.x_m - b.x_m) < 5e-4 and abs(a.rc_m - b.rc_m) < 5e-4
 
