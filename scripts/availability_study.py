@@ -258,6 +258,16 @@ def run_process(arch: Path, out: Path, s: Scenario, heights, prior: bool, jobs: 
     return time.perf_counter() - t
 
 
+def share_cache(src_out: Path, out: Path) -> None:
+    """A variant reprocessing its parent's archives: the parent's detections under the same (current) cache key
+    are exactly what `uwbcl process` would compute again."""
+    settings = config.override(config.SiteConfig(), backend="numpy").processing_settings()
+    key = batch.settings_key(settings)
+    src, dst = src_out / batch.CACHE_DIR / key, out / batch.CACHE_DIR / key
+    if src.is_dir() and not dst.is_dir():
+        shutil.copytree(src, dst)
+
+
 def copy_detections(src_out: Path, out: Path) -> None:
     """Detections cached by an earlier run (any code version) -> the cache key of the current code."""
     settings = config.override(config.SiteConfig(), backend="numpy").processing_settings()
@@ -362,6 +372,8 @@ def main(argv=None) -> int:
             reuse = next((p for p in sorted((args.work / name).glob("*/")) if (p / ".uwbcl-cache").is_dir()), None)
             reuse = reuse or next((p for p in sorted((args.work / parent).glob("*/"))
                                    if (p / ".uwbcl-cache").is_dir()), None)
+        if name != parent:
+            share_cache(args.work / parent / args.tag, out)
         secs = run_process(arch, out, s, heights, prior, args.jobs, reuse, args.config)
         results[name] = score(out, rig_m)
         print(f"  {name}: processed in {secs:.0f} s", flush=True)
