@@ -5,8 +5,8 @@ Gaussian pulse, point scatterers, demodulated at f_c), never with uwbcl's simula
 over N cycles: a rib of bolt plates in 2-3 rows on a 1.0-1.5 m grid with plates missing and centimetres of
 roughness, weak rib clutter, an antenna pattern of the real aperture, the rail run in both directions with a
 wobbling carriage speed (positions logged per pulse), receiver noise at a given SNR, cycles missed (no files,
-or one height only), with and without a web-depth prior. Then `uwbcl process --backend numpy` per scenario and,
-against the truth, per scenario:
+or one height only), with and without a web-depth prior. Then `uwbcl process --backend numpy` per scenario
+and, against the truth, per scenario:
 
   ok %        rows with status ok / rows written (missed cycles write no row: the next one bridges them)
   RMS, max    error of the ok rows in retreat and creep (mm), over each row's own span from_cycle -> cycle
@@ -15,7 +15,7 @@ against the truth, per scenario:
   drift       largest |error| of the cumulative retreat / creep (mm) against the truth from the chain's start
 
     python scripts/availability_study.py --work /tmp/avail --jobs 2            # full: 41 cycles per scenario
-    python scripts/availability_study.py --work /tmp/avail-quick --quick       # CI size: 6 cycles, 3 scenarios
+    python scripts/availability_study.py --work /tmp/avail-quick --quick       # CI size: 6 cycles
     python scripts/availability_study.py --work /tmp/avail --reuse-detections  # association only (see below)
 
 Archives are cached under WORK/<scenario>/archive (regenerated only when the scenario's parameters change).
@@ -87,8 +87,8 @@ SCENARIOS = [
     Scenario("dense-3h", squint_deg=35.0, rib_m=2.0, heights_m=(0.2, 0.45, 0.7), snr_db=10.0, grid_m=1.0,
              rows_z_m=(0.5, 1.1, 1.7), missing=0.2, side=+1, carrier_hz=4.0e9, bandwidth_hz=1.4e9, int16=True,
              seed=4, missed=(10,)),
-    Scenario("four-heights-snr10", squint_deg=20.0, rib_m=3.5, heights_m=(0.15, 0.35, 0.55, 0.75), snr_db=10.0,
-             wobble=0.15, grid_m=1.5, seed=5, missed=(7, 8)),
+    Scenario("four-heights-snr10", squint_deg=20.0, rib_m=3.5, heights_m=(0.15, 0.35, 0.55, 0.75),
+             snr_db=10.0, wobble=0.15, grid_m=1.5, seed=5, missed=(7, 8)),
 ]
 VARIANTS = {  # name: (parent, heights to keep or None, web-depth prior?)
     "dense-2h": ("dense-3h", (0.2, 0.7), True),
@@ -180,17 +180,21 @@ def write_archive(path: Path, s: Scenario, cycle: int, height_m: float, when: dt
     """One pass as docs/archive-format.md section 7, published by rename (section 1)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.parent / f".{path.name}.partial"
+    pass_id = f"rig-{s.name}-c{cycle:06d}-h{round(height_m * 1000):04d}"
     with h5py.File(tmp, "w", libver=("v110", "v110")) as f:
         f.attrs.update({"format": "uwbcl-scan", "format_version": np.int64(1), "rig_id": f"rig-{s.name}",
-                        "cycle": np.int64(cycle), "pass_id": f"rig-{s.name}-c{cycle:06d}-h{round(height_m * 1000):04d}",
+                        "cycle": np.int64(cycle), "pass_id": pass_id,
                         "pass_start_time": when.strftime("%Y-%m-%dT%H:%M:%SZ"),
                         "created_by": "scripts/availability_study.py"})
         f.create_group("radar").attrs.update({
-            "carrier_frequency_hz": s.carrier_hz, "bandwidth_hz": s.bandwidth_hz, "bandwidth_definition": "-10 dB",
+            "carrier_frequency_hz": s.carrier_hz, "bandwidth_hz": s.bandwidth_hz,
+            "bandwidth_definition": "-10 dB",
             "pulse_shape": "gaussian", "sample_rate_hz": fs, "pulse_repetition_frequency_hz": 20.0,
-            "antenna_aperture_m": 0.14, "range_window_start_s": t0, "samples_per_pulse": np.int64(echo.shape[1])})
+            "antenna_aperture_m": 0.14, "range_window_start_s": t0,
+            "samples_per_pulse": np.int64(echo.shape[1])})
         f.create_group("geometry").attrs.update({
-            "height_m": height_m, "rotation_table_angle_deg": s.squint_deg, "reference_point_m": np.asarray(ref_m),
+            "height_m": height_m, "rotation_table_angle_deg": s.squint_deg,
+            "reference_point_m": np.asarray(ref_m),
             "boresight_y_sign": np.int64(s.side)})
         f.create_dataset("pulses/time_s", data=t).attrs["units"] = "s"
         f.create_dataset("pulses/position_m", data=pos).attrs["units"] = "m"
@@ -208,7 +212,8 @@ def write_archive(path: Path, s: Scenario, cycle: int, height_m: float, when: dt
 def generate(s: Scenario, cycles: int, root: Path) -> Path:
     """Archives of one scenario under root/archive (cached) and root/truth.json."""
     arch, stamp = root / "archive", root / "scenario.json"
-    if arch.is_dir() and stamp.exists() and json.loads(stamp.read_text()) == json.loads(json.dumps(s.key(cycles))):
+    wanted = json.loads(json.dumps(s.key(cycles)))  # tuples as lists, as read back
+    if arch.is_dir() and stamp.exists() and json.loads(stamp.read_text()) == wanted:
         return arch
     shutil.rmtree(arch, ignore_errors=True)
     plates, amps, clutter, clutter_amp, truth = scene(s, cycles)
@@ -259,8 +264,8 @@ def run_process(arch: Path, out: Path, s: Scenario, heights, prior: bool, jobs: 
 
 
 def share_cache(src_out: Path, out: Path) -> None:
-    """A variant reprocessing its parent's archives: the parent's detections under the same (current) cache key
-    are exactly what `uwbcl process` would compute again."""
+    """A variant reprocessing its parent's archives: the parent's detections under the same (current) cache
+    key are exactly what `uwbcl process` would compute again."""
     settings = config.override(config.SiteConfig(), backend="numpy").processing_settings()
     key = batch.settings_key(settings)
     src, dst = src_out / batch.CACHE_DIR / key, out / batch.CACHE_DIR / key
@@ -331,14 +336,17 @@ def score(out: Path, rig_m: np.ndarray) -> dict:
 
 
 def table(results: dict) -> str:
-    head = (f"{'scenario':22s} {'rows':>4s} {'ok%':>6s} {'RMS x/y mm':>11s} {'max x/y mm':>11s} {'cover%':>6s} "
+    head = (f"{'scenario':22s} {'rows':>4s} {'ok%':>6s} {'RMS x/y mm':>11s} {'max x/y mm':>11s} "
+            f"{'cover%':>6s} "
             f"{'gross':>5s} {'drift x/y mm':>13s} {'cum cov%':>8s} chains  flagged")
     lines = [head]
     for name, r in results.items():
         flagged = ", ".join(f"{k} {v}" for k, v in sorted(r["statuses"].items()) if k != "ok")
-        lines.append(f"{name:22s} {r['rows']:4d} {r['ok_pct']:6.1f} {r['rms_mm'][0]:5.1f}/{r['rms_mm'][1]:<5.1f} "
+        lines.append(f"{name:22s} {r['rows']:4d} {r['ok_pct']:6.1f} "
+                     f"{r['rms_mm'][0]:5.1f}/{r['rms_mm'][1]:<5.1f} "
                      f"{r['max_mm'][0]:5.1f}/{r['max_mm'][1]:<5.1f} {r['cover']:6.1f} {r['gross']:5d} "
-                     f"{r['drift_mm'][0]:6.1f}/{r['drift_mm'][1]:<6.1f} {r['cum_cover']:8.1f} {r['chains']:6d}  "
+                     f"{r['drift_mm'][0]:6.1f}/{r['drift_mm'][1]:<6.1f} {r['cum_cover']:8.1f} "
+                     f"{r['chains']:6d}  "
                      f"{flagged}")
     return "\n".join(lines)
 
@@ -347,7 +355,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--work", type=Path, required=True)
     ap.add_argument("--cycles", type=int, default=None, help="cycles per scenario (default 41, quick 6)")
-    ap.add_argument("--quick", action="store_true", help="CI size: 6 cycles, the dense scenario and its variants")
+    ap.add_argument("--quick", action="store_true",
+                    help="CI size: 6 cycles, the base and dense scenarios and the dense variants")
     ap.add_argument("--only", nargs="+", help="scenario names")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--reuse-detections", action="store_true",
@@ -369,7 +378,8 @@ def main(argv=None) -> int:
         out = args.work / name / args.tag
         reuse = None
         if args.reuse_detections:
-            reuse = next((p for p in sorted((args.work / name).glob("*/")) if (p / ".uwbcl-cache").is_dir()), None)
+            reuse = next((p for p in sorted((args.work / name).glob("*/"))
+                          if (p / ".uwbcl-cache").is_dir()), None)
             reuse = reuse or next((p for p in sorted((args.work / parent).glob("*/"))
                                    if (p / ".uwbcl-cache").is_dir()), None)
         if name != parent:

@@ -1,11 +1,11 @@
-"""Issue 14 / issue 12 item 6: the association is never confidently wrong, says how wrong it may be, and says the
-same thing every run (displacement.estimate_advance, chain.RigChain)."""
+"""Issue 14 / issue 12 item 6: the association is never confidently wrong, says how wrong it may be, and says
+the same thing every run (displacement.estimate_advance, chain.RigChain)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from uwbcl import chain
+from uwbcl import chain, config
 from uwbcl.displacement import estimate_advance, location_covariance_m2
 from uwbcl.locate import locate_target
 from uwbcl.records import AssociationSettings, CycleResult, Located
@@ -43,8 +43,9 @@ STUDY_TRUE_ADVANCE = np.array([1.848049, 0.003495, -0.007123])
 
 
 def test_a_loose_two_plate_alignment_without_a_prior_is_not_reported_ok_when_one_plate_is_common():
-    d = estimate_advance([plate(p) for p in STUDY_BEFORE], [plate(q) for q in STUDY_AFTER], AssociationSettings(),
-                         before_cov_m2=covs(STUDY_BEFORE), after_cov_m2=covs(STUDY_AFTER))
+    d = estimate_advance([plate(p) for p in STUDY_BEFORE], [plate(q) for q in STUDY_AFTER],
+                         AssociationSettings(), before_cov_m2=covs(STUDY_BEFORE),
+                         after_cov_m2=covs(STUDY_AFTER))
     assert d.status != "ok" or np.max(np.abs(d.advance_m[:2] - STUDY_TRUE_ADVANCE[:2])) < 0.05, d
 
 
@@ -66,7 +67,7 @@ RIB = np.array([(0.1 + 1.23 * k + 0.2 * np.sin(k), -2.4, 0.5) for k in range(40)
 
 
 def noisy_cycles(n_cycles: int, seed: int, sigma: float = 0.002, window=(0.0, 3.0)):
-    """A rig retreating ~0.9 m per cycle with creep; plates located with range noise; the true rig positions."""
+    """A rig retreating ~0.9 m per cycle with creep, plates located with range noise; its positions."""
     rng = np.random.default_rng(seed)
     steps = np.column_stack([0.9 + rng.normal(0, 0.03, n_cycles), rng.normal(0.003, 0.004, n_cycles),
                              rng.normal(0, 0.003, n_cycles)])
@@ -120,7 +121,8 @@ def test_every_chained_row_carries_its_cumulative_uncertainty_and_an_untrusted_r
     rows = {r.cycle.cycle: r for r in chain.rig_series(cycles, PRIOR)}
     assert np.isnan(rows[4].cumulative_m).all() and np.isnan(rows[4].cumulative_bound_m).all()
     assert rows[5].reference.cycle == 3  # bridged from the last trusted cycle: no guessed step in the sum
-    chained = [rows[c] for c in sorted(rows) if rows[c].chain == 0 and np.isfinite(rows[c].cumulative_m).all()]
+    chained = [rows[c] for c in sorted(rows)
+               if rows[c].chain == 0 and np.isfinite(rows[c].cumulative_m).all()]
     b = [r.cumulative_bound_m[0] for r in chained]
     assert all(np.isfinite(b)) and b == sorted(b)  # grows along the chain
     for r in chained:
@@ -136,3 +138,26 @@ def test_the_motion_model_predicts_the_next_step_from_the_previous_ok_steps():
     prior = rc.prior(2)
     assert prior.prior_advance_m is not None
     assert abs(prior.prior_advance_m[0] - 2 * 0.9) < 0.1
+
+
+def test_the_site_configuration_sets_the_acceptance_limit_the_margin_and_the_motion_model(tmp_path):
+    site = tmp_path / "site.toml"
+    site.write_text("[association]\nmax_bound_m = 0.004\nmin_margin = 10.0\nmotion_model = false\n")
+    settings = config.load_config(site).association_settings()
+    assert (settings.max_bound_m, settings.min_margin, settings.motion_model) == (0.004, 10.0, False)
+    site.write_text("[association]\nmax_bound_m = 0.0\n")
+    try:
+        config.load_config(site)
+    except config.ConfigError as e:
+        assert e.key == "association.max_bound_m"
+    else:
+        raise AssertionError("max_bound_m = 0 accepted")
+
+
+def test_a_tighter_acceptance_limit_flags_rows_but_never_changes_their_values():
+    cycles, _ = noisy_cycles(10, seed=11)
+    loose = chain.rig_series(cycles, PRIOR)
+    tight = chain.rig_series(cycles, AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0), max_bound_m=1e-4))
+    assert all(r.displacement.status != "ok" for r in tight)
+    assert sum(r.displacement.status == "ok" for r in loose) >= 5
+    np.testing.assert_allclose(loose[0].displacement.advance_m, tight[0].displacement.advance_m)

@@ -60,11 +60,11 @@ def locate_cycle(rig_id: str, cycle: int, start_time: str, detections_by_height:
 def plate_covariances(cycle: CycleResult, range_sigma_m: float) -> np.ndarray:
     """(n, 3, 3) location covariance (m^2) of each plate of a cycle (displacement.location_covariance_m2).
 
-    A plate seen at fewer heights than the cycle has is uncertain twice over: its baseline may be shorter, and it
-    is often not one plate at all (a cross-height grouping of two plates, or clutter): in the availability study
-    41 % of such plates were > 3 cm off with three heights and 5 of 5 with four, against 5 % of the others. Its
-    covariance is that of the extreme heights widened by MISSED_HEIGHT_SIGMA_FACTOR, so it matches only
-    loosely and weighs little.
+    A plate seen at fewer heights than the cycle has is uncertain twice over: its baseline may be shorter, and
+    it is often not one plate at all (a cross-height grouping of two plates, or clutter): in the availability
+    study 41 % of such plates were > 3 cm off with three heights and 5 of 5 with four, against 5 % of the
+    others. Its covariance is that of the extreme heights widened by MISSED_HEIGHT_SIGMA_FACTOR, so it matches
+    only loosely and weighs little.
     """
     heights = np.asarray(cycle.heights_m)
     out = []
@@ -111,17 +111,17 @@ class RigChain:
         self._reserve: tuple[int, CycleResult, np.ndarray, np.ndarray] | None = None
         self._covs: dict[int, np.ndarray] = {}
         self._anchor_var = np.zeros(3)  # variance (m^2) of the anchor's cumulative position
-        self._steps: list[np.ndarray] = []  # per-cycle advance of the ok rows, oldest first (the motion model)
+        self._steps: list[np.ndarray] = []  # per-cycle advance of the ok rows, oldest first: the motion model
         self._fits: list[tuple[float, int]] = []  # (chi2, dof) of the ok rows' fits (the covariance scale)
 
     def prior(self, gap: int) -> AssociationSettings:
         """The association settings for a displacement spanning `gap` cycles: the motion model's prediction.
 
-        With MOTION_MIN_STEPS ok steps or more, the prior is gap x the median of the last MOTION_HISTORY per-cycle
-        steps, with a per-cycle standard deviation of their scaled MAD (floored at MOTION_SIGMA_FLOOR_M) that
-        grows as sqrt(gap) (independent cycles) plus gap x the median's own uncertainty; its window is three
-        standard deviations, never wider than the configured one. Otherwise the configured prior (web depth)
-        scaled by the gap, or none.
+        With MOTION_MIN_STEPS ok steps or more, the prior is gap x the median of the last MOTION_HISTORY
+        per-cycle steps, with a per-cycle standard deviation of their scaled MAD (floored at
+        MOTION_SIGMA_FLOOR_M) that grows as sqrt(gap) (independent cycles) plus gap x the median's own
+        uncertainty; its window is three standard deviations, never wider than the configured one. Otherwise
+        the configured prior (web depth) scaled by the gap, or none.
         """
         base = self.association.for_gap(gap)
         steps = np.array(self._steps[-MOTION_HISTORY:])
@@ -146,7 +146,8 @@ class RigChain:
     def _measure(self, a: CycleResult, b: CycleResult) -> Displacement:
         scale = self.covariance_scale()
         return estimate_advance(a.plates, b.plates, self.prior(b.cycle - a.cycle),
-                                before_cov_m2=scale * self._covs[a.cycle], after_cov_m2=scale * self._covs[b.cycle])
+                                before_cov_m2=scale * self._covs[a.cycle],
+                                after_cov_m2=scale * self._covs[b.cycle])
 
     def _restart(self, cur: CycleResult) -> None:
         self._anchor, self._anchor_cum, self._reserve = cur, np.zeros(3), None

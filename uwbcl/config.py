@@ -183,7 +183,8 @@ def validate(cfg: SiteConfig, path=None) -> None:
         raise ConfigError(path, "site.heights_m", "needs two or more distinct heights")
     positive("association.max_bound_m", cfg.association.get("max_bound_m"))
     if cfg.association.get("min_margin", 0.0) < 0:
-        raise ConfigError(path, "association.min_margin", f"must be >= 0, got {cfg.association['min_margin']}")
+        raise ConfigError(path, "association.min_margin",
+                          f"must be >= 0, got {cfg.association['min_margin']}")
     if cfg.max_bridge_cycles < 1:
         raise ConfigError(path, "association.max_bridge_cycles", f"must be >= 1, got {cfg.max_bridge_cycles}")
     try:

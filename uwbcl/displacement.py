@@ -15,16 +15,17 @@ import dataclasses
 
 import numpy as np
 
-from .records import CHAINABLE_STATUSES, STATUSES, TRUSTED_STATUSES, AssociationSettings, Displacement, Located  # noqa: F401 - re-exported
+from .records import (CHAINABLE_STATUSES, STATUSES, TRUSTED_STATUSES,  # noqa: F401 - re-exported
+                      AssociationSettings, Displacement, Located)
 
 # A chance alignment competes with the plates of the rib: about 1.7 plates per m^2 for a 1.0 m grid in 3 rows
 # 0.6 m apart; 2 is the denser bound (eq. M1: a match's gain is ln of its likelihood over this density).
 PLATE_DENSITY_PER_M2 = 2.0
-# Location error the range precision does not describe (focusing, detection): added to every pair's covariance.
+# Location error the range precision does not describe (focusing, detection): added to each pair's covariance.
 MODEL_SIGMA_M = 0.001
-# The translations a search without prior admits, m^2 of (x, z): a prior density is counted against it (eq. M2).
+# The translations a search without prior admits, m^2 of (x, z): a prior density is counted against it (M2).
 BLIND_AREA_M2 = 9.0
-# Probability that the prior is wrong (a wrong web depth, a cycle number that skipped): beyond about 4.3 sigma a
+# Probability that the prior is wrong (a wrong web depth, a cycle number that skipped): beyond ~4.3 sigma a
 # translation pays ln(1 / 1e-4) = 9.2 instead of the Gaussian's penalty, so data can beat the prior (eq. M2).
 PRIOR_OUTLIER_PROBABILITY = 1e-4
 # A translation outside the prior window must lead by this many times the ambiguity margin to be trusted.
@@ -131,7 +132,8 @@ def _prior_log(shift: np.ndarray, settings: AssociationSettings) -> tuple[float,
     m2 = float(np.sum(((shift - mu) / sigma) ** 2))
     peak = BLIND_AREA_M2 / (2.0 * np.pi * sigma[0] * sigma[2])
     eps = PRIOR_OUTLIER_PROBABILITY
-    return float(np.log((1.0 - eps) * peak * np.exp(-0.5 * m2) + eps)), bool(np.all(np.abs(shift - mu) <= window))
+    inside = bool(np.all(np.abs(shift - mu) <= window))
+    return float(np.log((1.0 - eps) * peak * np.exp(-0.5 * m2) + eps)), inside
 
 
 def _greedy(chi2: np.ndarray, gate: float) -> list[tuple[int, int]]:
@@ -157,11 +159,11 @@ def _chi2(diff: np.ndarray, shift: np.ndarray, cov: np.ndarray) -> np.ndarray:
 
 def _hypotheses(diff: np.ndarray, cov: np.ndarray, gain: np.ndarray, settings: AssociationSettings
                 ) -> list[_Hypothesis]:
-    """Every translation proposed by a plate pair, refined and scored, best first, distinct (beyond tolerance).
+    """Every translation proposed by a plate pair, refined and scored; best first, distinct beyond tolerance.
 
     diff (n, m, 3): P_i - P'_j; cov (n, m, 3, 3): covariance of each difference; gain (n, m): ln of a match's
-    likelihood over a chance plate (eq. M1). A proposal is refined twice: match one-to-one within the chi-square
-    gate of (difference covariance + the translation's own), GLS over the matches. Its score is
+    likelihood over a chance plate (eq. M1). A proposal is refined twice: match one-to-one within the
+    chi-square gate of (difference covariance + the translation's own), GLS over the matches. Its score is
     sum over its matches of (gain - chi2 / 2) (eq. M1) plus the log prior (eq. M2).
     """
     gate = settings.outlier_chi2
@@ -196,8 +198,8 @@ def _hypotheses(diff: np.ndarray, cov: np.ndarray, gain: np.ndarray, settings: A
     return distinct
 
 
-def fit_chi2(before: list[Located], after: list[Located], pairs, advance_m: np.ndarray, before_cov_m2: np.ndarray,
-             after_cov_m2: np.ndarray) -> tuple[float, int]:
+def fit_chi2(before: list[Located], after: list[Located], pairs, advance_m: np.ndarray,
+             before_cov_m2: np.ndarray, after_cov_m2: np.ndarray) -> tuple[float, int]:
     """Chi-square of the matched plates about a common advance, and its degrees of freedom 3 (n - 1).
 
     With correct covariances its expectation is the dof: RigChain pools it over recent rows to calibrate the
@@ -228,14 +230,14 @@ def estimate_advance(before: list[Located], after: list[Located],
     before, after : the located plates of the two cycles (radar frames), n and m plates.
     settings : tolerances, the prior (already scaled to the gap: AssociationSettings.for_gap), the margins.
     before_cov_m2, after_cov_m2 : (n, 3, 3), (m, 3, 3) location covariances (location_covariance_m2), m^2.
-        Without them each plate gets diag((tolerance / 3)^2 / 2) and the bound's scale comes from the residuals.
+        Without them each plate gets diag((tolerance / 3)^2 / 2) and the bound's scale comes from the fit.
 
     Returns
     -------
     Displacement. Status:
       ok              unique (margin >= min_margin over every distinct competitor and over "no plate in
                       common"), consistent, >= min_confident_targets plates, bound <= max_bound_m;
-      low_confidence  unique and consistent, but fewer plates or a bound above max_bound_m (trusted in the chain);
+      low_confidence  unique and consistent, but fewer plates or a bound above max_bound_m (not chained);
       ambiguous       a competitor (another translation, or no match at all) is within min_margin;
       prior_conflict  the best translation lies outside the prior window without leading by
                       DATA_BEATS_PRIOR x min_margin: the prior or the data is wrong;

@@ -25,7 +25,7 @@ DISPLACEMENT_COLUMNS = (
     "rig_id", "cycle", "from_cycle", "start_time", "retreat_m", "creep_m", "vertical_m",
     "cumulative_retreat_m", "cumulative_creep_m", "cumulative_vertical_m", "chain", "n_targets", "n_plates",
     "residual_m", "retreat_spread_m", "creep_spread_m", "vertical_spread_m", "runner_up_targets", "status",
-    # Added in displacements format 1.1 (docs/outputs.md section 2.1): appended, the order above is a contract.
+    # Added in displacements format 1.1 (docs/outputs.md section 2.1), appended: the order above is fixed.
     "retreat_bound_m", "creep_bound_m", "cumulative_retreat_bound_m", "cumulative_creep_bound_m",
     "association_margin",
 )

@@ -58,7 +58,7 @@ class DetectionSettings:
 
 @dataclasses.dataclass(frozen=True)
 class AssociationSettings:
-    tolerance_m: tuple[float, float, float] = (0.05, 0.10, 0.25)  # |P - P' - dP| per axis: 3 sigma without covs
+    tolerance_m: tuple[float, float, float] = (0.05, 0.10, 0.25)  # |P - P' - dP| per axis; 3 sigma, no covs
     prior_advance_m: tuple[float, float, float] | None = None  # e.g. (web depth, 0, 0), per cycle
     # Half-width around the prior per cycle: three standard deviations of a Gaussian prior (section 6 of
     # docs/method.md); a displacement spanning g cycles gets g times the advance and sqrt(g) times the window
@@ -183,7 +183,8 @@ class SeriesRow:
     displacement: Displacement
     cumulative_m: np.ndarray  # (3,) rig position relative to the chain's first cycle; NaN: not in the chain
     chain: int = 0  # 0, then +1 each time the chain of trusted matches had to start again
-    cumulative_bound_m: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, np.nan))  # (3,) 1 sigma
+    # (3,) one-standard-deviation bound of cumulative_m, m; NaN where it is NaN
+    cumulative_bound_m: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
 
 
 @dataclasses.dataclass(frozen=True)
