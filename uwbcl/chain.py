@@ -85,15 +85,16 @@ def trusted(d: Displacement) -> bool:
 class RigChain:
     """The displacements of one rig's cycles, fed in cycle order, and the chain of cumulative positions.
 
-    Each cycle is measured from the last cycle in the chain (the anchor), with the prior scaled by the cycles
-    spanned. A trusted match (ok, low_confidence) extends the chain. An untrusted one leaves the row flagged
-    with a NaN cumulative and the next cycle is measured from the anchor again, bridging the gap, so a cycle
-    matched to the wrong plates never enters the cumulative values. An "inconsistent" match (unique plates that
-    disagree by centimetres) is held in reserve: if the next cycle cannot be bridged from the anchor but matches
-    the inconsistent cycle, the chain runs through it (and the reserve row gets its cumulative value). After
-    max_bridge_cycles without a trusted match the chain is broken and starts again at the current cycle
-    (`chain` + 1, cumulative from 0): the break is visible, never bridged by a guess that may be off by a plate
-    spacing.
+    Each cycle is measured from the last cycle in the chain (the anchor), with the prior of `prior` (motion
+    model or web depth, scaled by the cycles spanned). A trusted match (ok) extends the chain. An untrusted one
+    leaves the row flagged with a NaN cumulative and the next cycle is measured from the anchor again, bridging
+    the gap, so a cycle matched to the wrong plates never enters the cumulative values. An "inconsistent" match
+    (unique plates that disagree by centimetres) is held in reserve: if the next cycle cannot be bridged from the
+    anchor but matches the inconsistent cycle, the chain runs through it (and the reserve row gets its
+    cumulative value). If the next cycle cannot be bridged but matches the untrusted cycle just before it, the
+    chain starts again at that cycle (`chain` + 1, its row cumulative 0). After max_bridge_cycles without a
+    trusted match the chain is broken and starts again at the current cycle (`chain` + 1, cumulative from 0):
+    the break is visible, never bridged by a guess that may be off by a plate spacing.
 
     State is real here: a row depends only on the cycles before it, so `uwbcl acquire --process` feeding the
     cycles one at a time gets exactly the rows that `uwbcl process` gets from the whole series.
@@ -189,6 +190,19 @@ class RigChain:
                 self.rows[index].cumulative_m = via_cum
                 self.rows[index].cumulative_bound_m = np.sqrt(via_var)
                 return self._extend(cur, via, d2, via_cum, via_var)
+        last = self.rows[-1] if self.rows else None
+        if last is not None and last.cycle.cycle != anchor.cycle and last.cycle.plates:
+            d3 = self._measure(last.cycle, cur)
+            if trusted(d3):
+                # The cycle matches the untrusted one before it, not the chain: the chain starts again there
+                # (chain + 1, visible) instead of bridging a gap that the plates seen by both may not span.
+                self._chain += 1
+                log.warning("rig %s: cycle %d matches cycle %d but not the chain at cycle %d; the cumulative "
+                            "values start again from 0 at cycle %d (chain %d)", cur.rig_id, cur.cycle,
+                            last.cycle.cycle, anchor.cycle, last.cycle.cycle, self._chain)
+                last.cumulative_m, last.cumulative_bound_m, last.chain = np.zeros(3), np.zeros(3), self._chain
+                self._restart(last.cycle)
+                return self._extend(cur, last.cycle, d3, np.zeros(3), np.zeros(3))
         row = self._append(SeriesRow(cur, anchor, d, np.full(3, np.nan), self._chain))
         if d.status == "inconsistent" and self._reserve is None:
             self._reserve = (len(self.rows) - 1, cur, self._anchor_cum + d.advance_m,
