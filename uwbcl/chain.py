@@ -9,20 +9,33 @@ covariance; a rig's cycles are chained so a cycle whose match cannot be trusted 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-import math
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from .displacement import estimate_advance, location_covariance_m2
+from .displacement import estimate_advance, fit_chi2, location_covariance_m2
 from .locate import locate_plates
 from .records import TRUSTED_STATUSES, AssociationSettings, CycleResult, Detection, Displacement, SeriesRow
 
 log = logging.getLogger("uwbcl")
 
 DEFAULT_MAX_BRIDGE_CYCLES = 3  # how many cycles a displacement may span after an untrusted one
+MOTION_HISTORY = 8  # the motion model predicts from the last this many ok steps
+MOTION_MIN_STEPS = 3  # and only once it has this many
+# Per cycle, the motion model's standard deviation is never below this (m): the web varies by centimetres, the
+# creep jumps by up to ~10 cm, the floor undulates. Wrong matches are a plate spacing (>= 0.8 m) away in x or
+# a row (>= 0.5 m) away in z, so a prior this wide still tells them apart without forcing the creep.
+MOTION_SIGMA_FLOOR_M = np.array([0.05, 0.15, 0.10])
+MISSED_HEIGHT_SIGMA_FACTOR = 3.0  # range sigma of a plate missed at some of its cycle's heights (see below)
+# Covariance calibration: the location covariances (range_sigma_m) are scaled by the pooled chi2 / dof of the
+# last SCALE_HISTORY ok rows with two or more plates, once they have SCALE_MIN_DOF degrees of freedom, within
+# SCALE_LIMITS (a variance factor): the range precision the data show, not the configured guess.
+SCALE_HISTORY = 20
+SCALE_MIN_DOF = 15
+SCALE_LIMITS = (0.25, 4.0)
 
 
 def locate_cycle(rig_id: str, cycle: int, start_time: str, detections_by_height: Mapping[float, Sequence[Detection]],
@@ -45,15 +58,22 @@ def locate_cycle(rig_id: str, cycle: int, start_time: str, detections_by_height:
 
 
 def plate_covariances(cycle: CycleResult, range_sigma_m: float) -> np.ndarray:
-    """(n, 3, 3) location covariance (m^2) of each plate of a cycle (displacement.location_covariance_m2)."""
+    """(n, 3, 3) location covariance (m^2) of each plate of a cycle (displacement.location_covariance_m2).
+
+    A plate seen at fewer heights than the cycle has is uncertain twice over: its baseline may be shorter, and
+    it is often not one plate at all (a cross-height grouping of two plates, or clutter): in the availability
+    study 41 % of such plates were > 3 cm off with three heights and 5 of 5 with four, against 5 % of the
+    others. Its covariance is that of the extreme heights widened by MISSED_HEIGHT_SIGMA_FACTOR, so it matches
+    only loosely and weighs little.
+    """
     heights = np.asarray(cycle.heights_m)
     out = []
     for p in cycle.plates:
-        # A plate seen at fewer heights than the cycle has: the extreme heights' baseline is an optimistic
-        # stand-in, widened by the missing passes.
-        hs = heights if p.n_passes >= heights.size else heights[[0, -1]]
-        scale = math.sqrt(heights.size / max(p.n_passes, 1)) if p.n_passes < heights.size else 1.0
-        out.append(location_covariance_m2(p.position_m, hs, range_sigma_m * scale))
+        if p.n_passes >= heights.size:
+            out.append(location_covariance_m2(p.position_m, heights, range_sigma_m))
+        else:
+            out.append(location_covariance_m2(p.position_m, heights[[0, -1]],
+                                              range_sigma_m * MISSED_HEIGHT_SIGMA_FACTOR))
     return np.array(out).reshape(-1, 3, 3)
 
 
@@ -65,15 +85,16 @@ def trusted(d: Displacement) -> bool:
 class RigChain:
     """The displacements of one rig's cycles, fed in cycle order, and the chain of cumulative positions.
 
-    Each cycle is measured from the last cycle in the chain (the anchor), with the prior scaled by the cycles
-    spanned. A trusted match (ok, low_confidence) extends the chain. An untrusted one leaves the row flagged
-    with a NaN cumulative and the next cycle is measured from the anchor again, bridging the gap, so a cycle
-    matched to the wrong plates never enters the cumulative values. An "inconsistent" match (unique plates that
-    disagree by centimetres) is held in reserve: if the next cycle cannot be bridged from the anchor but matches
-    the inconsistent cycle, the chain runs through it (and the reserve row gets its cumulative value). After
-    max_bridge_cycles without a trusted match the chain is broken and starts again at the current cycle
-    (`chain` + 1, cumulative from 0): the break is visible, never bridged by a guess that may be off by a plate
-    spacing.
+    Each cycle is measured from the last cycle in the chain (the anchor), with the prior of `prior` (motion
+    model or web depth, scaled by the cycles spanned). A trusted match (ok) extends the chain. An untrusted one
+    leaves the row flagged with a NaN cumulative and the next cycle is measured from the anchor again, bridging
+    the gap, so a cycle matched to the wrong plates never enters the cumulative values. An "inconsistent" match
+    (unique plates that disagree by centimetres) is held in reserve: if the next cycle cannot be bridged from the
+    anchor but matches the inconsistent cycle, the chain runs through it (and the reserve row gets its
+    cumulative value). If the next cycle cannot be bridged but matches the untrusted cycle just before it, the
+    chain starts again at that cycle (`chain` + 1, its row cumulative 0). After max_bridge_cycles without a
+    trusted match the chain is broken and starts again at the current cycle (`chain` + 1, cumulative from 0):
+    the break is visible, never bridged by a guess that may be off by a plate spacing.
 
     State is real here: a row depends only on the cycles before it, so `uwbcl acquire --process` feeding the
     cycles one at a time gets exactly the rows that `uwbcl process` gets from the whole series.
@@ -87,15 +108,65 @@ class RigChain:
         self._chain = 0
         self._anchor: CycleResult | None = None
         self._anchor_cum = np.zeros(3)
-        self._reserve: tuple[int, CycleResult, np.ndarray] | None = None  # (row index, cycle, cumulative)
+        # (row index, cycle, cumulative, its variance) of an "inconsistent" cycle held in reserve
+        self._reserve: tuple[int, CycleResult, np.ndarray, np.ndarray] | None = None
         self._covs: dict[int, np.ndarray] = {}
+        self._anchor_var = np.zeros(3)  # variance (m^2) of the anchor's cumulative position
+        self._steps: list[np.ndarray] = []  # per-cycle advance of the ok rows, oldest first: the motion model
+        self._fits: list[tuple[float, int]] = []  # (chi2, dof) of the ok rows' fits (the covariance scale)
+
+    def prior(self, gap: int) -> AssociationSettings:
+        """The association settings for a displacement spanning `gap` cycles: the motion model's prediction.
+
+        With MOTION_MIN_STEPS ok steps or more, the prior is gap x the median of the last MOTION_HISTORY
+        per-cycle steps, with a per-cycle standard deviation of their scaled MAD (floored at
+        MOTION_SIGMA_FLOOR_M) that grows as sqrt(gap) (independent cycles) plus gap x the median's own
+        uncertainty; its window is three standard deviations, never wider than the configured one. Otherwise
+        the configured prior (web depth) scaled by the gap, or none.
+        """
+        base = self.association.for_gap(gap)
+        steps = np.array(self._steps[-MOTION_HISTORY:])
+        if not self.association.motion_model or len(steps) < MOTION_MIN_STEPS:
+            return base
+        mu = np.median(steps, axis=0)
+        sigma = np.maximum(1.4826 * np.median(np.abs(steps - mu), axis=0), MOTION_SIGMA_FLOOR_M)
+        window = 3.0 * np.sqrt(gap * sigma**2 + (gap * sigma) ** 2 / len(steps))
+        if base.prior_advance_m is not None:
+            window = np.minimum(window, base.prior_window_m)
+        return dataclasses.replace(base, prior_advance_m=tuple(float(v) for v in gap * mu),
+                                   prior_window_m=tuple(float(v) for v in window))
+
+    def covariance_scale(self) -> float:
+        """Variance factor for the location covariances from the recent ok rows' fit (1 until enough dof)."""
+        fits = self._fits[-SCALE_HISTORY:]
+        dof = sum(f[1] for f in fits)
+        if dof < SCALE_MIN_DOF:
+            return 1.0
+        return float(np.clip(sum(f[0] for f in fits) / dof, *SCALE_LIMITS))
 
     def _measure(self, a: CycleResult, b: CycleResult) -> Displacement:
-        return estimate_advance(a.plates, b.plates, self.association.for_gap(b.cycle - a.cycle),
-                                before_cov_m2=self._covs[a.cycle], after_cov_m2=self._covs[b.cycle])
+        scale = self.covariance_scale()
+        return estimate_advance(a.plates, b.plates, self.prior(b.cycle - a.cycle),
+                                before_cov_m2=scale * self._covs[a.cycle],
+                                after_cov_m2=scale * self._covs[b.cycle])
 
     def _restart(self, cur: CycleResult) -> None:
         self._anchor, self._anchor_cum, self._reserve = cur, np.zeros(3), None
+        self._anchor_var = np.zeros(3)
+
+    def _extend(self, cur: CycleResult, via: CycleResult, d: Displacement, cum_via: np.ndarray,
+                var_via: np.ndarray) -> SeriesRow:
+        """A trusted displacement from `via` (in the chain) to `cur`: the anchor moves to `cur`."""
+        cum, var = cum_via + d.advance_m, var_via + d.bound_m**2
+        row = self._append(SeriesRow(cur, via, d, cum, self._chain, np.sqrt(var)))
+        self._anchor, self._anchor_cum, self._anchor_var, self._reserve = cur, cum, var, None
+        if d.status == "ok":
+            self._steps.append(d.advance_m / (cur.cycle - via.cycle))
+            chi2, dof = fit_chi2(via.plates, cur.plates, d.pairs, d.advance_m, self._covs[via.cycle],
+                                 self._covs[cur.cycle])
+            if dof:
+                self._fits.append((chi2, dof))
+        return row
 
     def add(self, cur: CycleResult) -> SeriesRow | None:
         """Measure the next cycle (higher cycle number than every cycle before); None for the rig's first."""
@@ -109,31 +180,40 @@ class RigChain:
         anchor = self._anchor
         d = self._measure(anchor, cur)
         if not anchor.plates:  # nothing to measure from (an empty first cycle, or a restart on one)
-            return self._append(SeriesRow(cur, anchor, d, np.zeros(3), self._chain), restart=cur)
+            return self._append(SeriesRow(cur, anchor, d, np.zeros(3), self._chain, np.zeros(3)), restart=cur)
         if trusted(d):
-            cum = self._anchor_cum + d.advance_m
-            row = self._append(SeriesRow(cur, anchor, d, cum, self._chain))
-            self._anchor, self._anchor_cum, self._reserve = cur, cum, None
-            return row
+            return self._extend(cur, anchor, d, self._anchor_cum, self._anchor_var)
         if self._reserve is not None:
-            index, via, via_cum = self._reserve
+            index, via, via_cum, via_var = self._reserve
             d2 = self._measure(via, cur)
             if trusted(d2):
                 self.rows[index].cumulative_m = via_cum
-                cum = via_cum + d2.advance_m
-                row = self._append(SeriesRow(cur, via, d2, cum, self._chain))
-                self._anchor, self._anchor_cum, self._reserve = cur, cum, None
-                return row
+                self.rows[index].cumulative_bound_m = np.sqrt(via_var)
+                return self._extend(cur, via, d2, via_cum, via_var)
+        last = self.rows[-1] if self.rows else None
+        if last is not None and last.cycle.cycle != anchor.cycle and last.cycle.plates:
+            d3 = self._measure(last.cycle, cur)
+            if trusted(d3):
+                # The cycle matches the untrusted one before it, not the chain: the chain starts again there
+                # (chain + 1, visible) instead of bridging a gap that the plates seen by both may not span.
+                self._chain += 1
+                log.warning("rig %s: cycle %d matches cycle %d but not the chain at cycle %d; the cumulative "
+                            "values start again from 0 at cycle %d (chain %d)", cur.rig_id, cur.cycle,
+                            last.cycle.cycle, anchor.cycle, last.cycle.cycle, self._chain)
+                last.cumulative_m, last.cumulative_bound_m, last.chain = np.zeros(3), np.zeros(3), self._chain
+                self._restart(last.cycle)
+                return self._extend(cur, last.cycle, d3, np.zeros(3), np.zeros(3))
         row = self._append(SeriesRow(cur, anchor, d, np.full(3, np.nan), self._chain))
         if d.status == "inconsistent" and self._reserve is None:
-            self._reserve = (len(self.rows) - 1, cur, self._anchor_cum + d.advance_m)
+            self._reserve = (len(self.rows) - 1, cur, self._anchor_cum + d.advance_m,
+                             self._anchor_var + d.bound_m**2)
         if cur.cycle - anchor.cycle >= self.max_bridge_cycles:
             # Start a new chain here: its cumulative values count from this cycle, not from the rig's first.
             log.warning("rig %s: no trusted match for %d cycles up to cycle %d; the cumulative values start "
                         "again from 0 at cycle %d (chain %d)", cur.rig_id, cur.cycle - anchor.cycle, cur.cycle,
                         cur.cycle, self._chain + 1)
             self._chain += 1
-            row.cumulative_m, row.chain = np.zeros(3), self._chain
+            row.cumulative_m, row.cumulative_bound_m, row.chain = np.zeros(3), np.zeros(3), self._chain
             self._restart(cur)
         return row
 

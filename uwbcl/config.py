@@ -124,7 +124,8 @@ _SCHEMA = {
              "prior_window_m": _triple, "heights_m": _number_list, "height_tolerance_m": _number},
     "association": {"tolerance_m": _triple, "min_targets": _int, "min_confident_targets": _int,
                     "weighted": _bool, "range_sigma_m": _number, "outlier_chi2": _number,
-                    "max_bridge_cycles": _int},
+                    "max_bridge_cycles": _int, "min_margin": _number, "max_bound_m": _number,
+                    "motion_model": _bool},
     "output": {f.name: _bool for f in dataclasses.fields(OutputOptions)},
     "limits": {f.name: _int for f in dataclasses.fields(ReadLimits)},
 }
@@ -226,6 +227,10 @@ def validate(cfg: SiteConfig, path=None) -> None:
         raise ConfigError(path, "site.heights_m", f"must be finite, got {list(cfg.heights_m)}")
     if cfg.heights_m is not None and len(set(cfg.heights_m)) < 2:
         raise ConfigError(path, "site.heights_m", "needs two or more distinct heights")
+    positive("association.max_bound_m", cfg.association.get("max_bound_m"))
+    if cfg.association.get("min_margin", 0.0) < 0:
+        raise ConfigError(path, "association.min_margin",
+                          f"must be >= 0, got {cfg.association['min_margin']}")
     if cfg.max_bridge_cycles < 1:
         raise ConfigError(path, "association.max_bridge_cycles", f"must be >= 1, got {cfg.max_bridge_cycles}")
     try:

@@ -1,8 +1,11 @@
 """Advance between two cycles from the located bolt plates: Delta P = -(P' - P) (paper section 3).
 
 The rig moves, the plates do not, so every plate seen in both cycles satisfies P_i - P'_j = Delta P. Plates look
-alike, so the correspondence is found as the translation that the most plate pairs agree on (a consensus over
-all pairwise candidates, optionally restricted by a prior on the advance), then refined by a robust mean.
+alike, so the correspondence is chosen by likelihood (docs/method.md section 6): every plate pair proposes a
+translation, each proposal is refined by generalised least squares over the plates it matches within their
+3-D location covariances, and scored by the log-likelihood ratio of its matches against chance alignments plus
+the log prior of the translation (web depth, or the motion model of the previous cycles); the lead of the best
+over its best distinct competitor (or over "no plate in common") is the association margin.
 retreat = Delta P.x, creep = Delta P.y, vertical = Delta P.z.
 """
 
@@ -12,31 +15,23 @@ import dataclasses
 
 import numpy as np
 
-from .records import AssociationSettings, Displacement, Located
+from .records import (CHAINABLE_STATUSES, STATUSES, TRUSTED_STATUSES,  # noqa: F401 - re-exported
+                      AssociationSettings, Displacement, Located)
 
-AMBIGUITY_MARGIN = 0.5  # a competitor within half a well-matched plate of the best: can't tell them apart
-CONFLICT_MARGIN = 1.0  # outside the prior window, a translation must beat the best inside by a whole plate
-CONFLICT_MIN_TARGETS = 3  # and explain at least this many plates
-STATUSES = ("ok", "low_confidence", "ambiguous", "prior_conflict", "inconsistent", "too_few_targets")
-TRUSTED_STATUSES = ("ok", "low_confidence")  # a unique, consistent match; the others may be the wrong plates
-# Unique plate correspondence, but the plates disagree: off by centimetres at worst, never by a plate spacing.
-CHAINABLE_STATUSES = (*TRUSTED_STATUSES, "inconsistent")
-
-
-def _match(before: np.ndarray, after: np.ndarray, shift: np.ndarray, tol: np.ndarray):
-    """One-to-one greedy matching of before_i to after_j with |before_i - after_j - shift| / tol < 1."""
-    cost = np.abs((before[:, None, :] - after[None, :, :] - shift) / tol).max(axis=2)
-    pairs = []
-    free_b, free_a = set(range(len(before))), set(range(len(after)))
-    for flat in np.argsort(cost, axis=None, kind="stable"):
-        i, j = np.unravel_index(flat, cost.shape)
-        if cost[i, j] >= 1.0:
-            break
-        if i in free_b and j in free_a:
-            pairs.append((int(i), int(j)))
-            free_b.discard(i)
-            free_a.discard(j)
-    return pairs
+# A chance alignment competes with the plates of the rib: about 1.7 plates per m^2 for a 1.0 m grid in 3 rows
+# 0.6 m apart; 2 is the denser bound (eq. M1: a match's gain is ln of its likelihood over this density).
+PLATE_DENSITY_PER_M2 = 2.0
+# Location error the range precision does not describe (focusing, detection): added to each pair's covariance.
+MODEL_SIGMA_M = 0.001
+# The translations a search without prior admits, m^2 of (x, z): a prior density is counted against it (M2).
+BLIND_AREA_M2 = 9.0
+# Probability that the prior is wrong (a wrong web depth, a cycle number that skipped): beyond ~4.3 sigma a
+# translation pays ln(1 / 1e-4) = 9.2 instead of the Gaussian's penalty, so data can beat the prior (eq. M2).
+PRIOR_OUTLIER_PROBABILITY = 1e-4
+# A translation outside the prior window must lead by this many times the ambiguity margin to be trusted.
+DATA_BEATS_PRIOR = 2.0
+# Offset of a wrong match when the competitor is "no plate in common": about a plate spacing (x, y, z), m.
+NULL_OFFSET_M = np.array([1.0, 0.1, 0.6])
 
 
 def robust_mean(samples: np.ndarray, floor: np.ndarray | float, k: float = 3.0) -> np.ndarray:
@@ -114,106 +109,205 @@ def consistent_pairs(d: np.ndarray, cov: np.ndarray, chi2_max: float) -> tuple[n
     return keep, True
 
 
+
 @dataclasses.dataclass(frozen=True)
 class _Hypothesis:
-    n: int  # plates matched inside the tolerance
-    score: float  # soft support: sum over the matched pairs of exp(-r^2 / 2), r = residual / (tolerance / 3)
-    shift: np.ndarray
-    pairs: list[tuple[int, int]]
+    score: float  # data log-likelihood ratio (eq. M1) + log prior (eq. M2)
+    shift: np.ndarray  # (3,) GLS translation over its matched pairs, m
+    cov: np.ndarray  # (3, 3) its GLS covariance, m^2
+    pairs: tuple[tuple[int, int], ...]
+    inside: bool  # within the prior window (always True without a prior)
 
 
-def _hypotheses(p: np.ndarray, q: np.ndarray, candidates: np.ndarray, tol: np.ndarray) -> list[_Hypothesis]:
-    """Distinct translations proposed by plate pairs, best supported first (consensus over all pairings).
+def _prior_log(shift: np.ndarray, settings: AssociationSettings) -> tuple[float, bool]:
+    """Log prior of a translation against the blind search (eq. M2) and whether it lies inside the window.
 
-    Support is soft: a pair that only just fits the tolerance box counts little. Plates in rows spaced about a
-    web depth apart line up loosely under a wrong translation (shifted by one plate), but only the true one
-    lines them all up to within the location precision.
+    M2: ln[(1 - eps) N(t; mu, Sigma) * A_blind + eps], Sigma = diag(window / 3)^2, normalised in (x, z): the
+    rib's plates share y, so y discriminates nothing and only penalises. Without a prior: 0, inside.
     """
-    scored = []
-    for c in candidates:
-        pairs = _match(p, q, c, tol)
-        if not pairs:
+    if settings.prior_advance_m is None:
+        return 0.0, True
+    mu = np.asarray(settings.prior_advance_m, dtype=float)
+    window = np.asarray(settings.prior_window_m, dtype=float)
+    sigma = window / 3.0
+    m2 = float(np.sum(((shift - mu) / sigma) ** 2))
+    peak = BLIND_AREA_M2 / (2.0 * np.pi * sigma[0] * sigma[2])
+    eps = PRIOR_OUTLIER_PROBABILITY
+    inside = bool(np.all(np.abs(shift - mu) <= window))
+    return float(np.log((1.0 - eps) * peak * np.exp(-0.5 * m2) + eps)), inside
+
+
+def _greedy(chi2: np.ndarray, gate: float) -> list[tuple[int, int]]:
+    """One-to-one pairs with chi2 < gate, best first (stable order: the same input, the same pairs)."""
+    pairs: list[tuple[int, int]] = []
+    used_b: set[int] = set()
+    used_a: set[int] = set()
+    for flat in np.argsort(chi2, axis=None, kind="stable"):
+        i, j = (int(v) for v in np.unravel_index(flat, chi2.shape))
+        if not chi2[i, j] < gate:
+            break
+        if i not in used_b and j not in used_a:
+            pairs.append((i, j))
+            used_b.add(i)
+            used_a.add(j)
+    return sorted(pairs)
+
+
+def _chi2(diff: np.ndarray, shift: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    r = diff - shift
+    return np.einsum("...i,...i->...", r, np.linalg.solve(cov, r[..., None])[..., 0])
+
+
+def _hypotheses(diff: np.ndarray, cov: np.ndarray, gain: np.ndarray, settings: AssociationSettings
+                ) -> list[_Hypothesis]:
+    """Every translation proposed by a plate pair, refined and scored; best first, distinct beyond tolerance.
+
+    diff (n, m, 3): P_i - P'_j; cov (n, m, 3, 3): covariance of each difference; gain (n, m): ln of a match's
+    likelihood over a chance plate (eq. M1). A proposal is refined twice: match one-to-one within the
+    chi-square gate of (difference covariance + the translation's own), GLS over the matches. Its score is
+    sum over its matches of (gain - chi2 / 2) (eq. M1) plus the log prior (eq. M2).
+    """
+    gate = settings.outlier_chi2
+    seen: set[tuple[tuple[int, int], ...]] = set()
+    out = []
+    for i0, j0 in np.ndindex(diff.shape[:2]):
+        shift, s_cov = diff[i0, j0], cov[i0, j0]
+        pairs: list[tuple[int, int]] = []
+        for _ in range(3):
+            new = _greedy(_chi2(diff, shift, cov + s_cov), gate)
+            if not new:
+                break
+            idx = tuple(np.array(new).T)
+            shift, s_cov = gls_advance(diff[idx], cov[idx])
+            if new == pairs:
+                break
+            pairs = new
+        key = tuple(pairs)
+        if not pairs or key in seen:
             continue
-        shift = np.median(np.array([p[i] - q[j] for i, j in pairs]), axis=0)
-        pairs = _match(p, q, shift, tol)
-        if not pairs:
-            continue
-        r = (np.array([p[i] - q[j] for i, j in pairs]) - shift) / (tol / 3.0)
-        scored.append(_Hypothesis(len(pairs), float(np.sum(np.exp(-0.5 * np.sum(r**2, axis=1)))), shift, pairs))
-    scored.sort(key=lambda h: (-h.score, -h.n, tuple(h.shift)))
+        seen.add(key)
+        idx = tuple(np.array(pairs).T)
+        data = float(np.sum(gain[idx] - 0.5 * _chi2(diff[idx], shift, cov[idx])))
+        prior, inside = _prior_log(shift, settings)
+        out.append(_Hypothesis(data + prior, shift, s_cov, key, inside))
+    out.sort(key=lambda h: (-h.score, -len(h.pairs), h.pairs))
+    tol = np.asarray(settings.tolerance_m, dtype=float)
     distinct: list[_Hypothesis] = []
-    for h in scored:
+    for h in out:
         if all(np.any(np.abs(h.shift - k.shift) > tol) for k in distinct):
             distinct.append(h)
     return distinct
+
+
+def fit_chi2(before: list[Located], after: list[Located], pairs, advance_m: np.ndarray,
+             before_cov_m2: np.ndarray, after_cov_m2: np.ndarray) -> tuple[float, int]:
+    """Chi-square of the matched plates about a common advance, and its degrees of freedom 3 (n - 1).
+
+    With correct covariances its expectation is the dof: RigChain pools it over recent rows to calibrate the
+    range precision (the covariance scale) from the data.
+    """
+    if len(pairs) < 2:
+        return 0.0, 0
+    i, j = np.array(pairs).T
+    d = np.array([t.position_m for t in before])[i] - np.array([t.position_m for t in after])[j]
+    cov = np.asarray(before_cov_m2)[i] + np.asarray(after_cov_m2)[j] + np.eye(3) * MODEL_SIGMA_M**2
+    return float(np.sum(_chi2(d, advance_m, cov))), 3 * (len(pairs) - 1)
+
+
+def _box_match(p: np.ndarray, q: np.ndarray, shift: np.ndarray, tol: np.ndarray) -> list[tuple[int, int]]:
+    """One-to-one pairs with every |P_i - P'_j - shift| within the tolerance box, closest first."""
+    cost = np.abs((p[:, None, :] - q[None, :, :] - shift) / tol).max(axis=2)
+    return _greedy(cost, 1.0)
 
 
 def estimate_advance(before: list[Located], after: list[Located],
                      settings: AssociationSettings = AssociationSettings(), *,
                      before_cov_m2: np.ndarray | None = None, after_cov_m2: np.ndarray | None = None
                      ) -> Displacement:
-    """Delta P between two cycles, with a status saying how far the plate correspondence can be trusted.
+    """Delta P between two cycles, its error bound, and a status saying how far the match can be trusted.
 
-    Every pair (P_i, P'_j) proposes a translation; each is scored by how many plates it matches one-to-one in
-    3-D within the tolerance (the pattern of the plates, not one plate, decides). With a prior, only
-    translations inside the prior window compete. Status:
-      ok              the best translation explains >= min_confident_targets plates and no other explains as many;
-      low_confidence  unique, but fewer plates than min_confident_targets;
-      ambiguous       another translation explains as many plates (plate spacing ~ web depth): may be wrong;
-      prior_conflict  a translation outside the prior window explains more plates than any inside: the prior
-                      (or the rig) is off; the better-supported translation outside is reported;
-      too_few_targets no plate pair is consistent: no estimate (NaN).
-      inconsistent    the matched plates disagree beyond their location precision and nothing says which is
-                      wrong (two plates left).
-    before_cov_m2 / after_cov_m2 (n, 3, 3): per-plate location covariances (location_covariance_m2). With them
-    the advance is the generalised least squares over the matched plates after leave-one-out rejection of
-    plates beyond outlier_chi2; without them, a per-axis robust mean.
+    Parameters
+    ----------
+    before, after : the located plates of the two cycles (radar frames), n and m plates.
+    settings : tolerances, the prior (already scaled to the gap: AssociationSettings.for_gap), the margins.
+    before_cov_m2, after_cov_m2 : (n, 3, 3), (m, 3, 3) location covariances (location_covariance_m2), m^2.
+        Without them each plate gets diag((tolerance / 3)^2 / 2) and the bound's scale comes from the fit.
+
+    Returns
+    -------
+    Displacement. Status:
+      ok              unique (margin >= min_margin over every distinct competitor and over "no plate in
+                      common"), consistent, >= min_confident_targets plates, bound <= max_bound_m;
+      low_confidence  unique and consistent, but fewer plates or a bound above max_bound_m (not chained);
+      ambiguous       a competitor (another translation, or no match at all) is within min_margin;
+      prior_conflict  the best translation lies outside the prior window without leading by
+                      DATA_BEATS_PRIOR x min_margin: the prior or the data is wrong;
+      inconsistent    the matched plates disagree beyond their location precision and two plates cannot say
+                      which is wrong;
+      too_few_targets no plate pair matches: no estimate (NaN).
+    The bound (eq. M3): sqrt(f^2 diag(Sigma_GLS) + exp(-margin) offset^2), f^2 = max(1, chi2 / dof) (with
+    covariances) or chi2 / dof (without), 1 for one plate (no redundancy: an outlying single plate is not
+    caught, see docs/method.md section 6.1); offset = the competitor's translation minus the best's
+    (NULL_OFFSET_M against "no plate in common").
     """
     tol = np.asarray(settings.tolerance_m, dtype=float)
     nan3 = np.full(3, np.nan)
     none = Displacement(nan3, nan3, 0, float("nan"), "too_few_targets", [])
     if not before or not after:
         return none
-    p = np.array([t.position_m for t in before])
-    q = np.array([t.position_m for t in after])
-    candidates = (p[:, None, :] - q[None, :, :]).reshape(-1, 3)
-    status = None
-    if settings.prior_advance_m is not None:
-        inside = np.all(np.abs(candidates - settings.prior_advance_m) <= np.asarray(settings.prior_window_m), axis=1)
-        hyps = _hypotheses(p, q, candidates[inside], tol)
-        free = _hypotheses(p, q, candidates[~inside], tol)
-        inside_score = hyps[0].score if hyps else 0.0
-        # Two plates line up by chance somewhere among all the pairings; a conflict needs more than that.
-        if free and free[0].n >= CONFLICT_MIN_TARGETS and free[0].score > inside_score + CONFLICT_MARGIN:
-            hyps, status = free + hyps, "prior_conflict"
-            hyps.sort(key=lambda h: (-h.score, -h.n, tuple(h.shift)))
+    p = np.array([t.position_m for t in before], dtype=float)
+    q = np.array([t.position_m for t in after], dtype=float)
+    have_cov = before_cov_m2 is not None and after_cov_m2 is not None
+    if have_cov:
+        pc, qc = np.asarray(before_cov_m2, dtype=float), np.asarray(after_cov_m2, dtype=float)
     else:
-        hyps = _hypotheses(p, q, candidates, tol)
-    if not hyps or hyps[0].n < settings.min_targets:
+        pc = np.broadcast_to(np.diag((tol / 3.0) ** 2 / 2.0), (len(p), 3, 3))
+        qc = np.broadcast_to(np.diag((tol / 3.0) ** 2 / 2.0), (len(q), 3, 3))
+    diff = p[:, None, :] - q[None, :, :]
+    cov = pc[:, None] + qc[None, :] + np.eye(3) * MODEL_SIGMA_M**2
+    # M1: ln N_xz(0; C) - ln(rho): a match's likelihood over a chance plate within the same (x, z) cell.
+    det_xz = cov[..., 0, 0] * cov[..., 2, 2] - cov[..., 0, 2] ** 2
+    gain = np.maximum(-np.log(PLATE_DENSITY_PER_M2 * 2.0 * np.pi * np.sqrt(det_xz)), 0.5)
+    hyps = _hypotheses(diff, cov, gain, settings)
+    if not hyps or len(hyps[0].pairs) < settings.min_targets:
         return none
     best = hyps[0]
     runner_up = hyps[1] if len(hyps) > 1 else None
-    if status is None:
-        if runner_up is not None and runner_up.score >= best.score - AMBIGUITY_MARGIN:
-            status = "ambiguous"
-        elif best.n < settings.min_confident_targets:
-            status = "low_confidence"
-        else:
-            status = "ok"
-    pairs = best.pairs
-    d = np.array([p[i] - q[j] for i, j in pairs])
-    if settings.weighted and before_cov_m2 is not None and after_cov_m2 is not None:
-        cov = np.array([np.asarray(before_cov_m2)[i] + np.asarray(after_cov_m2)[j] for i, j in pairs])
-        keep, consistent = consistent_pairs(d, cov, settings.outlier_chi2)
-        pairs = [pr for pr, k in zip(pairs, keep) if k]
-        d, cov = d[keep], cov[keep]
-        advance, _ = gls_advance(d, cov)
-        if not consistent and status in ("ok", "low_confidence"):
-            status = "inconsistent"
-        elif status == "ok" and len(pairs) < settings.min_confident_targets:
-            status = "low_confidence"
+    # The competitor: the best distinct translation, or "no plate in common" (score 0), whichever is higher.
+    if runner_up is not None and runner_up.score > 0.0:
+        margin, offset = best.score - runner_up.score, np.abs(runner_up.shift - best.shift)
     else:
-        advance = robust_mean(d, floor=tol / 4)
+        margin, offset = best.score, NULL_OFFSET_M
+
+    # The reported estimate: every plate within the tolerance box of the best translation, leave-one-out
+    # rejection beyond outlier_chi2, GLS (so two plates that disagree are seen, not silently dropped).
+    pairs = _box_match(p, q, best.shift, tol) or list(best.pairs)
+    idx = tuple(np.array(pairs).T)
+    d, c = diff[idx], cov[idx]
+    keep, consistent = consistent_pairs(d, c, settings.outlier_chi2)
+    pairs = [pr for pr, k in zip(pairs, keep) if k]
+    d, c = d[keep], c[keep]
+    gls, gls_cov = gls_advance(d, c)
+    advance = gls if settings.weighted or len(d) < 2 else robust_mean(d, floor=tol / 4)
+    dof = 3 * (len(d) - 1)
+    chi2_fit = float(np.sum(_chi2(d, gls, c))) if dof > 0 else 0.0
+    if have_cov:
+        scale2 = max(1.0, chi2_fit / dof) if dof > 0 else 1.0
+    else:
+        scale2 = chi2_fit / dof if dof > 0 else 1.0
+    bound = np.sqrt(scale2 * np.diag(gls_cov) + np.exp(-min(margin, 700.0)) * offset**2)  # eq. M3
+
+    if not best.inside and margin < DATA_BEATS_PRIOR * settings.min_margin:
+        status = "prior_conflict"
+    elif margin < settings.min_margin:
+        status = "ambiguous"
+    elif not consistent:
+        status = "inconsistent"
+    elif len(pairs) < settings.min_confident_targets or max(bound[0], bound[1]) > settings.max_bound_m:
+        status = "low_confidence"
+    else:
+        status = "ok"
     spread = d.std(axis=0) if len(d) > 1 else np.zeros(3)
     residual = float(np.sqrt(np.mean(np.sum((d - advance) ** 2, axis=1))))
-    return Displacement(advance, spread, len(pairs), residual, status, pairs, runner_up.n if runner_up else 0)
+    return Displacement(advance, spread, len(pairs), residual, status, pairs,
+                        len(runner_up.pairs) if runner_up else 0, bound, float(margin))

@@ -28,6 +28,9 @@ DISPLACEMENT_COLUMNS = (
     "rig_id", "cycle", "from_cycle", "start_time", "retreat_m", "creep_m", "vertical_m",
     "cumulative_retreat_m", "cumulative_creep_m", "cumulative_vertical_m", "chain", "n_targets", "n_plates",
     "residual_m", "retreat_spread_m", "creep_spread_m", "vertical_spread_m", "runner_up_targets", "status",
+    # Added in displacements format 1.1 (docs/outputs.md section 2.1), appended: the order above is fixed.
+    "retreat_bound_m", "creep_bound_m", "cumulative_retreat_bound_m", "cumulative_creep_bound_m",
+    "association_margin",
 )
 TARGET_COLUMNS = (
     "rig_id", "cycle", "plate", "track", "x_m", "y_m", "z_m", "residual_m", "n_passes", "amplitude",
@@ -38,7 +41,8 @@ H5_FORMAT = "uwbcl-displacements"
 H5_FORMAT_VERSION = 1
 UNITS = {"_m": "m", "cycle": "1", "from_cycle": "1", "chain": "1", "n_targets": "1", "n_plates": "1", "runner_up_targets": "1",
          "plate": "1", "track": "1", "n_passes": "1", "matched_plate": "1", "inlier": "1", "amplitude": "arb",
-         "start_time": "ISO 8601 UTC", "rig_id": "", "status": ""}
+         "start_time": "ISO 8601 UTC", "rig_id": "", "status": "",
+         "association_margin": "ln(likelihood ratio)"}
 
 
 def _m(v: float) -> str:
@@ -60,6 +64,9 @@ def displacement_records(rows: list[SeriesRow]) -> list[dict]:
             "retreat_spread_m": float(d.spread_m[0]), "creep_spread_m": float(d.spread_m[1]),
             "vertical_spread_m": float(d.spread_m[2]), "runner_up_targets": d.runner_up_targets,
             "status": d.status,
+            "retreat_bound_m": float(d.bound_m[0]), "creep_bound_m": float(d.bound_m[1]),
+            "cumulative_retreat_bound_m": float(r.cumulative_bound_m[0]),
+            "cumulative_creep_bound_m": float(r.cumulative_bound_m[1]), "association_margin": float(d.margin),
         })
     return out
 

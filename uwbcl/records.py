@@ -7,6 +7,7 @@ none of these types drags a computation (or an import cycle) along with it.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from collections.abc import Callable
 
@@ -17,7 +18,9 @@ BACKENDS = ("opencl", "numpy")  # the OpenCL engine, and the float64 numpy refer
 AC_MODES = ("exact", "series")  # NLCS azimuth compression: exact reference, or the series of eq. 17
 
 STATUSES = ("ok", "low_confidence", "ambiguous", "prior_conflict", "inconsistent", "too_few_targets")
-TRUSTED_STATUSES = ("ok", "low_confidence")  # a unique, consistent match; the others may be the wrong plates
+# Enters the cumulative values: a unique, consistent match with its error bound within max_bound_m. The others
+# may be the wrong plates (ambiguous, prior_conflict) or carry an error the bound says is too large.
+TRUSTED_STATUSES = ("ok",)
 # Unique plate correspondence, but the plates disagree: off by centimetres at worst, never by a plate spacing.
 CHAINABLE_STATUSES = (*TRUSTED_STATUSES, "inconsistent")
 
@@ -63,20 +66,31 @@ class DetectionSettings:
 
 @dataclasses.dataclass(frozen=True)
 class AssociationSettings:
-    tolerance_m: tuple[float, float, float] = (0.05, 0.10, 0.25)  # |P - P' - dP| per axis for an inlier
-    prior_advance_m: tuple[float, float, float] | None = None  # e.g. (web depth, 0, 0)
-    prior_window_m: tuple[float, float, float] = (0.4, 0.3, 0.5)  # half-width around the prior
+    tolerance_m: tuple[float, float, float] = (0.05, 0.10, 0.25)  # |P - P' - dP| per axis; 3 sigma, no covs
+    prior_advance_m: tuple[float, float, float] | None = None  # e.g. (web depth, 0, 0), per cycle
+    # Half-width around the prior per cycle: three standard deviations of a Gaussian prior (section 6 of
+    # docs/method.md); a displacement spanning g cycles gets g times the advance and sqrt(g) times the window
+    # (independent per-cycle variations add up as a random walk).
+    prior_window_m: tuple[float, float, float] = (0.4, 0.3, 0.5)
     min_targets: int = 1  # fewer matched plates: no estimate ("too_few_targets")
-    min_confident_targets: int = 2  # fewer: the estimate is given but flagged "low_confidence"
+    min_confident_targets: int = 1  # fewer: the estimate is given but flagged "low_confidence"
     weighted: bool = True  # generalised least squares with the plates' location covariances, when supplied
     range_sigma_m: float = 0.003  # per-pass range (and along-track) precision of a plate, for the covariances
     outlier_chi2: float = 16.27  # chi-square (3 dof, p = 0.001) beyond which a matched plate is rejected
+    # The association margin: log-likelihood by which the best translation must beat every distinct competitor
+    # (8 = about 3000 : 1); less is "ambiguous".
+    min_margin: float = 8.0
+    # A row is "ok" only when its error bound (one standard deviation, retreat and creep) is at most this.
+    max_bound_m: float = 0.01
+    motion_model: bool = True  # the previous trusted cycles' steps predict the next (RigChain)
 
     def for_gap(self, cycles: int) -> AssociationSettings:
-        """The prior for a displacement spanning `cycles` cutting cycles (after a missing or rejected one)."""
+        """The prior for a displacement spanning `cycles` cutting cycles (after a missing or rejected one):
+        the advance scales with the gap, the window with its square root."""
         if self.prior_advance_m is None or cycles == 1:
             return self
-        return dataclasses.replace(self, prior_advance_m=tuple(cycles * v for v in self.prior_advance_m))
+        return dataclasses.replace(self, prior_advance_m=tuple(cycles * v for v in self.prior_advance_m),
+                                   prior_window_m=tuple(math.sqrt(cycles) * v for v in self.prior_window_m))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -155,6 +169,10 @@ class Displacement:
     status: str  # one of STATUSES
     pairs: list[tuple[int, int]]  # (index before, index after) of the inlier plates
     runner_up_targets: int = 0  # plates explained by the best competing translation (0: none)
+    # (3,) one-standard-deviation error bound of advance_m (GLS covariance, inflated by the fit and by the
+    # association margin); NaN when there is no estimate
+    bound_m: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
+    margin: float = float("nan")  # log-likelihood lead of the best translation over its best competitor
 
     @property
     def retreat_m(self) -> float:
@@ -187,6 +205,8 @@ class SeriesRow:
     displacement: Displacement
     cumulative_m: np.ndarray  # (3,) rig position relative to the chain's first cycle; NaN: not in the chain
     chain: int = 0  # 0, then +1 each time the chain of trusted matches had to start again
+    # (3,) one-standard-deviation bound of cumulative_m, m; NaN where it is NaN
+    cumulative_bound_m: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
 
 
 @dataclasses.dataclass(frozen=True)

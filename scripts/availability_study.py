@@ -1,0 +1,397 @@
+"""Availability study (issue 14): `uwbcl process` on gate-road scenarios generated independently of uwbcl.
+
+The archives are written here with h5py from docs/archive-format.md alone (section 2, the signal model: a
+Gaussian pulse, point scatterers, demodulated at f_c), never with uwbcl's simulator. Each scenario is one rig
+over N cycles: a rib of bolt plates in 2-3 rows on a 1.0-1.5 m grid with plates missing and centimetres of
+roughness, weak rib clutter, an antenna pattern of the real aperture, the rail run in both directions with a
+wobbling carriage speed (positions logged per pulse), receiver noise at a given SNR, cycles missed (no files,
+or one height only), with and without a web-depth prior. Then `uwbcl process --backend numpy` per scenario
+and, against the truth, per scenario:
+
+  ok %        rows with status ok / rows written (missed cycles write no row: the next one bridges them)
+  RMS, max    error of the ok rows in retreat and creep (mm), over each row's own span from_cycle -> cycle
+  cover       fraction of ok rows with |error| <= 3 x bound on both axes (when the outputs have a bound)
+  gross       ok rows with an error > 50 mm (confidently wrong): must be 0
+  drift       largest |error| of the cumulative retreat / creep (mm) against the truth from the chain's start
+
+    python scripts/availability_study.py --work /tmp/avail --jobs 2            # full: 41 cycles per scenario
+    python scripts/availability_study.py --work /tmp/avail-quick --quick       # CI size: 6 cycles
+    python scripts/availability_study.py --work /tmp/avail --reuse-detections  # association only (see below)
+
+Archives are cached under WORK/<scenario>/archive (regenerated only when the scenario's parameters change).
+`--reuse-detections` copies the per-pass detection cache of an earlier run (OUT/.uwbcl-cache) to the current
+code's cache key before running `uwbcl process`: detections depend only on the focuser and detector, which
+this study does not change, so a changed association is measured in seconds instead of refocusing every pass.
+A "-2h" / "-noprior" variant reprocesses its parent's archives with the extra heights excluded (`--heights`)
+or without `--web-depth`: the same data, one thing changed.
+
+Measured results: docs/method.md section 6.1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import datetime as dt
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from uwbcl import batch, config
+
+C_M_S = 299_792_458.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Scenario:
+    name: str
+    squint_deg: float = 30.0
+    rib_m: float = 2.5  # horizontal distance rail -> rib
+    heights_m: tuple[float, ...] = (0.2, 0.6)
+    snr_db: float = 15.0  # per raw sample, relative to the strongest plate's peak echo
+    wobble: float = 0.10  # carriage speed fluctuation, fraction of the nominal speed
+    grid_m: float = 1.2  # nominal plate spacing along the rib
+    rows_z_m: tuple[float, ...] = (0.6, 1.3)
+    missing: float = 0.15  # fraction of plates missing
+    side: int = -1  # boresight_y_sign
+    web_m: float = 0.9  # nominal retreat per cycle
+    carrier_hz: float = 4.3e9
+    bandwidth_hz: float = 1.7e9
+    int16: bool = False
+    missed: tuple[int, ...] = ()  # cycles with no archives
+    single_height: tuple[int, ...] = ()  # cycles with only their lowest height's pass
+    seed: int = 0
+
+    def key(self, cycles: int) -> dict:
+        return {**dataclasses.asdict(self), "cycles": cycles, "generator": 1}
+
+
+# The parent scenarios (archives generated) and the variants that reprocess a parent's archives.
+SCENARIOS = [
+    Scenario("base", missed=(9, 17, 18)),
+    Scenario("wide-45deg-4.5m", squint_deg=45.0, rib_m=4.5, heights_m=(0.2, 0.45, 0.7), snr_db=10.0, side=+1,
+             grid_m=1.3, missed=(12,), seed=1),
+    Scenario("near-15deg-1.5m", squint_deg=15.0, rib_m=1.5, snr_db=20.0, grid_m=1.0, rows_z_m=(0.5, 1.1, 1.7),
+             wobble=0.05, seed=2, single_height=(20,)),
+    Scenario("snr5-wobble15", squint_deg=25.0, rib_m=3.0, snr_db=5.0, wobble=0.15, grid_m=1.4, seed=3,
+             missed=(15, 16, 17)),
+    Scenario("dense-3h", squint_deg=35.0, rib_m=2.0, heights_m=(0.2, 0.45, 0.7), snr_db=10.0, grid_m=1.0,
+             rows_z_m=(0.5, 1.1, 1.7), missing=0.2, side=+1, carrier_hz=4.0e9, bandwidth_hz=1.4e9, int16=True,
+             seed=4, missed=(10,)),
+    Scenario("four-heights-snr10", squint_deg=20.0, rib_m=3.5, heights_m=(0.15, 0.35, 0.55, 0.75),
+             snr_db=10.0, wobble=0.15, grid_m=1.5, seed=5, missed=(7, 8)),
+]
+VARIANTS = {  # name: (parent, heights to keep or None, web-depth prior?)
+    "dense-2h": ("dense-3h", (0.2, 0.7), True),
+    "dense-3h-noprior": ("dense-3h", None, False),
+    "base-noprior": ("base", None, False),
+    "four-heights-2h": ("four-heights-snr10", (0.15, 0.75), True),
+}
+QUICK = ["base", "dense-3h", "dense-2h", "dense-3h-noprior"]
+
+
+# ----------------------------------------------------------------------------------------------- the scene
+@dataclasses.dataclass
+class Truth:
+    rig_m: np.ndarray  # (cycles, 3) rig position in the roadway frame; advance = rig' - rig
+
+
+def scene(s: Scenario, cycles: int):
+    """Plates and clutter in the roadway frame (rib surface at Y = 0), and the rig's positions per cycle."""
+    rng = np.random.default_rng([s.seed, 1])
+    x_end = s.web_m * 1.15 * cycles + 20.0
+    plates, amps = [], []
+    for z in s.rows_z_m:
+        x = -10.0 + rng.uniform(0, s.grid_m)
+        while x < x_end:
+            if rng.uniform() >= s.missing:
+                plates.append((x, rng.normal(0, 0.02), z + rng.normal(0, 0.04)))
+                amps.append(rng.uniform(0.6, 1.0))
+            x += s.grid_m * rng.uniform(0.85, 1.15)
+    n_clutter = int(8 * (x_end + 10))
+    clutter = np.column_stack([rng.uniform(-10, x_end, n_clutter), rng.normal(0, 0.03, n_clutter),
+                               rng.uniform(0.0, 2.2, n_clutter)])
+    clutter_amp = rng.uniform(0.01, 0.05, n_clutter)
+    # Motion: web with variation, creep drift + noise + rare jumps, a few mm of floor undulation.
+    steps = np.zeros((cycles, 3))
+    steps[1:, 0] = np.clip(s.web_m + rng.normal(0, 0.04, cycles - 1), s.web_m - 0.1, s.web_m + 0.1)
+    drift = rng.uniform(-0.005, 0.005)
+    steps[1:, 1] = drift + rng.normal(0, 0.002, cycles - 1)
+    jumps = rng.uniform(size=cycles - 1) < 0.06
+    steps[1:, 1] += jumps * rng.choice([-1, 1], cycles - 1) * rng.uniform(0.03, 0.08, cycles - 1)
+    steps[1:, 2] = rng.normal(0, 0.003, cycles - 1)
+    rig = np.cumsum(steps, axis=0) + np.array([0.0, -s.side * s.rib_m, 0.0])
+    return np.array(plates), np.array(amps), clutter, clutter_amp, Truth(rig)
+
+
+def pass_echo(s: Scenario, rng, scat_m: np.ndarray, amp: np.ndarray, height_m: float, decreasing: bool):
+    """Complex baseband echo of one pass (archive-format section 2), positions and times per pulse."""
+    prf, v0, rail = 20.0, 0.25, 3.0
+    lam = C_M_S / s.carrier_hz
+    # Carriage speed: a slow hunting oscillation plus a random walk, positions logged per pulse.
+    n_max = int(rail / (v0 * (1 - s.wobble)) * prf) + 2
+    t = np.arange(n_max) / prf
+    speed = v0 * (1 + s.wobble * (0.7 * np.sin(2 * np.pi * t / rng.uniform(3, 8) + rng.uniform(0, 6.3))
+                                  + 0.3 * np.clip(np.cumsum(rng.normal(0, 0.15, n_max)), -1, 1)))
+    travelled = np.concatenate([[0.0], np.cumsum(speed[:-1] / prf)])
+    n = int(np.searchsorted(travelled, rail, side="right"))
+    t, travelled = t[:n], travelled[:n]
+    pos = (rail / 2 - travelled) if decreasing else (travelled - rail / 2)
+    # Antenna: boresight (sin th, s cos th, 0); two-way pattern of a uniform aperture D in azimuth.
+    th = math.radians(s.squint_deg)
+    bore = np.array([math.sin(th), s.side * math.cos(th), 0.0])
+    rel = scat_m[None, :, :] - np.column_stack([pos, np.zeros(n), np.full(n, height_m)])[:, None, :]
+    rng_m = np.linalg.norm(rel, axis=2)
+    horiz = np.linalg.norm(rel[:, :, :2], axis=2)
+    sin_off = np.clip((bore[0] * rel[:, :, 1] - bore[1] * rel[:, :, 0]) / horiz, -1, 1)
+    front = (rel[:, :, :2] @ bore[:2]) > 0
+    gain = np.where(front, np.sinc(0.14 * sin_off / lam) ** 2, 0.0) * (horiz / rng_m)  # elevation: cos
+    a = amp[None, :] * gain / rng_m**2
+    seen = a.max(axis=0) > 0.02 * a.max()
+    r_lo, r_hi = rng_m[:, seen].min() - 0.4, rng_m[:, seen].max() + 0.4
+    fs = 4.0e9
+    m = int(math.ceil((r_hi - r_lo) * 2 / C_M_S * fs / 32)) * 32
+    t0 = 2 * r_lo / C_M_S
+    tn = t0 + np.arange(m) / fs
+    sigma = math.sqrt(math.log(10)) / (math.pi * s.bandwidth_hz)
+    echo = np.zeros((n, m), complex)
+    strong = a.max(axis=0) > 1e-4 * a.max()
+    for i in np.flatnonzero(strong):
+        delay = 2 * rng_m[:, i] / C_M_S
+        echo += (a[:, i] * np.exp(-4j * np.pi * s.carrier_hz * rng_m[:, i] / C_M_S))[:, None] * \
+            np.exp(-((tn[None, :] - delay[:, None]) ** 2) / (2 * sigma**2))
+    peak = a.max()  # the strongest plate (clutter is 20x weaker)
+    noise = peak * 10 ** (-s.snr_db / 20)
+    echo += noise / math.sqrt(2) * (rng.standard_normal(echo.shape) + 1j * rng.standard_normal(echo.shape))
+    return t, pos, echo, t0, fs, bore
+
+
+def write_archive(path: Path, s: Scenario, cycle: int, height_m: float, when: dt.datetime, t, pos, echo, t0,
+                  fs, ref_m) -> None:
+    """One pass as docs/archive-format.md section 7, published by rename (section 1)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.parent / f".{path.name}.partial"
+    pass_id = f"rig-{s.name}-c{cycle:06d}-h{round(height_m * 1000):04d}"
+    with h5py.File(tmp, "w", libver=("v110", "v110")) as f:
+        f.attrs.update({"format": "uwbcl-scan", "format_version": np.int64(1), "rig_id": f"rig-{s.name}",
+                        "cycle": np.int64(cycle), "pass_id": pass_id,
+                        "pass_start_time": when.strftime("%Y-%m-%dT%H:%M:%SZ"),
+                        "created_by": "scripts/availability_study.py"})
+        f.create_group("radar").attrs.update({
+            "carrier_frequency_hz": s.carrier_hz, "bandwidth_hz": s.bandwidth_hz,
+            "bandwidth_definition": "-10 dB",
+            "pulse_shape": "gaussian", "sample_rate_hz": fs, "pulse_repetition_frequency_hz": 20.0,
+            "antenna_aperture_m": 0.14, "range_window_start_s": t0,
+            "samples_per_pulse": np.int64(echo.shape[1])})
+        f.create_group("geometry").attrs.update({
+            "height_m": height_m, "rotation_table_angle_deg": s.squint_deg,
+            "reference_point_m": np.asarray(ref_m),
+            "boresight_y_sign": np.int64(s.side)})
+        f.create_dataset("pulses/time_s", data=t).attrs["units"] = "s"
+        f.create_dataset("pulses/position_m", data=pos).attrs["units"] = "m"
+        if s.int16:
+            scale = float(np.abs(np.stack([echo.real, echo.imag])).max()) / 32767
+            iq = np.round(np.stack([echo.real, echo.imag], axis=-1) / scale).astype(np.int16)
+            ds = f.create_dataset("echo", data=iq, chunks=True, compression="gzip")
+            ds.attrs.update({"units": "arb", "layout": "int16_iq", "scale": scale})
+        else:
+            ds = f.create_dataset("echo", data=echo.astype(np.complex64), chunks=True, compression="gzip")
+            ds.attrs.update({"units": "arb", "layout": "complex", "scale": 1.0})
+    os.replace(tmp, path)
+
+
+def generate(s: Scenario, cycles: int, root: Path) -> Path:
+    """Archives of one scenario under root/archive (cached) and root/truth.json."""
+    arch, stamp = root / "archive", root / "scenario.json"
+    wanted = json.loads(json.dumps(s.key(cycles)))  # tuples as lists, as read back
+    if arch.is_dir() and stamp.exists() and json.loads(stamp.read_text()) == wanted:
+        return arch
+    shutil.rmtree(arch, ignore_errors=True)
+    plates, amps, clutter, clutter_amp, truth = scene(s, cycles)
+    scat = np.vstack([plates, clutter])
+    amp = np.concatenate([amps, clutter_amp])
+    start = dt.datetime(2026, 11, 2, 6, 0, tzinfo=dt.timezone.utc)
+    th = math.radians(s.squint_deg)
+    t_start = time.perf_counter()
+    for c in range(cycles):
+        if c in s.missed:
+            continue
+        radar_frame = scat - truth.rig_m[c]
+        near = np.abs(radar_frame[:, 0] - s.rib_m * math.tan(th)) < 8.0
+        heights = s.heights_m[:1] if c in s.single_height else s.heights_m
+        for k, h in enumerate(heights):
+            rng = np.random.default_rng([s.seed, 2, c, k])
+            t, pos, echo, t0, fs, _ = pass_echo(s, rng, radar_frame[near], amp[near], h, (c + k) % 2 == 1)
+            ref = (s.rib_m * math.tan(th), s.side * s.rib_m, float(np.mean(s.rows_z_m)))
+            when = start + dt.timedelta(minutes=40 * c, seconds=40 * k)
+            name = f"rig-{s.name}_c{c:06d}_h{round(h * 1000):04d}.h5"
+            write_archive(arch / when.strftime("%Y-%m-%d") / name, s, c, h, when, t, pos, echo, t0, fs, ref)
+    (root / "truth.json").write_text(json.dumps({"rig_m": truth.rig_m.tolist()}) + "\n")
+    stamp.write_text(json.dumps(s.key(cycles)) + "\n")
+    print(f"  generated {s.name}: {cycles} cycles in {time.perf_counter() - t_start:.0f} s", flush=True)
+    return arch
+
+
+# ----------------------------------------------------------------------------------------------- process
+def run_process(arch: Path, out: Path, s: Scenario, heights, prior: bool, jobs: int, reuse: Path | None,
+                config: Path | None) -> float:
+    out.mkdir(parents=True, exist_ok=True)
+    if reuse is not None:
+        copy_detections(reuse, out)
+    cmd = [sys.executable, "-m", "uwbcl.cli", "process", str(arch), "--out", str(out), "--backend", "numpy",
+           "--jobs", str(jobs), "--no-progress"]
+    if prior:
+        cmd += ["--web-depth", str(s.web_m)]
+    if heights:
+        cmd += ["--heights", *map(str, heights)]
+    if config:
+        cmd += ["--config", str(config)]
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
+    t = time.perf_counter()
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
+    if r.returncode not in (0, 1):
+        raise SystemExit(f"uwbcl process failed ({r.returncode}):\n{r.stderr[-3000:]}")
+    return time.perf_counter() - t
+
+
+def share_cache(src_out: Path, out: Path) -> None:
+    """A variant reprocessing its parent's archives: the parent's detections under the same (current) cache
+    key are exactly what `uwbcl process` would compute again."""
+    settings = config.override(config.SiteConfig(), backend="numpy").processing_settings()
+    key = batch.settings_key(settings)
+    src, dst = src_out / batch.CACHE_DIR / key, out / batch.CACHE_DIR / key
+    if src.is_dir() and not dst.is_dir():
+        shutil.copytree(src, dst)
+
+
+def copy_detections(src_out: Path, out: Path) -> None:
+    """Detections cached by an earlier run (any code version) -> the cache key of the current code."""
+    settings = config.override(config.SiteConfig(), backend="numpy").processing_settings()
+    dst = out / batch.CACHE_DIR / batch.settings_key(settings)
+    if dst.is_dir():
+        return
+    srcs = sorted((src_out / batch.CACHE_DIR).glob("*/"), key=lambda p: p.stat().st_mtime)
+    if not srcs:
+        return
+    dst.mkdir(parents=True, exist_ok=True)
+    for src in srcs:  # newest last: wins
+        for f in src.glob("*.json"):
+            shutil.copyfile(f, dst / f.name)
+
+
+# ----------------------------------------------------------------------------------------------- scoring
+def score(out: Path, rig_m: np.ndarray) -> dict:
+    with (out / "displacements.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    ok = [r for r in rows if r["status"] == "ok"]
+    err, cover, gross = [], [], 0
+    bound_cols = ("retreat_bound_m", "creep_bound_m") if rows and "retreat_bound_m" in rows[0] else None
+    for r in ok:
+        c, c0 = int(r["cycle"]), int(r["from_cycle"])
+        true = rig_m[c] - rig_m[c0]
+        e = np.array([float(r["retreat_m"]) - true[0], float(r["creep_m"]) - true[1]])
+        err.append(e)
+        gross += bool(np.max(np.abs(e)) > 0.05)
+        if bound_cols:
+            b = np.array([float(r[k]) for k in bound_cols])
+            cover.append(bool(np.all(np.abs(e) <= 3 * b)))
+    # Cumulative drift: against the truth from the first cycle of each row's chain.
+    chain_start: dict[int, int] = {}
+    drift, cum_cover = np.zeros(2), []
+    first_cycle = int(np.flatnonzero(np.isfinite(rig_m[:, 0]))[0])
+    for r in rows:
+        ch = int(r["chain"])
+        if ch not in chain_start:
+            chain_start[ch] = first_cycle if ch == 0 else int(r["cycle"])
+        cum = np.array([float(r["cumulative_retreat_m"]), float(r["cumulative_creep_m"])])
+        if np.all(np.isfinite(cum)):
+            c = int(r["cycle"])
+            e = cum - (rig_m[c] - rig_m[chain_start[ch]])[:2]
+            drift = np.maximum(drift, np.abs(e))
+            if "cumulative_retreat_bound_m" in r:
+                b = np.array([float(r["cumulative_retreat_bound_m"]), float(r["cumulative_creep_bound_m"])])
+                cum_cover.append(bool(np.all(np.abs(e) <= 3 * b)))
+    err = np.array(err).reshape(-1, 2)
+    statuses: dict[str, int] = {}
+    for r in rows:
+        statuses[r["status"]] = statuses.get(r["status"], 0) + 1
+    return {
+        "rows": len(rows), "ok": len(ok), "ok_pct": 100.0 * len(ok) / max(len(rows), 1),
+        "rms_mm": (1e3 * np.sqrt(np.mean(err**2, axis=0))).tolist() if len(err) else [math.nan] * 2,
+        "max_mm": (1e3 * np.max(np.abs(err), axis=0)).tolist() if len(err) else [math.nan] * 2,
+        "cover": (100.0 * np.mean(cover)) if cover else math.nan,
+        "cum_cover": (100.0 * np.mean(cum_cover)) if cum_cover else math.nan,
+        "gross": gross, "drift_mm": (1e3 * drift).tolist(), "chains": len(chain_start), "statuses": statuses,
+        "statuses_in_order": [r["status"] for r in rows],
+    }
+
+
+def table(results: dict) -> str:
+    head = (f"{'scenario':22s} {'rows':>4s} {'ok%':>6s} {'RMS x/y mm':>11s} {'max x/y mm':>11s} "
+            f"{'cover%':>6s} "
+            f"{'gross':>5s} {'drift x/y mm':>13s} {'cum cov%':>8s} chains  flagged")
+    lines = [head]
+    for name, r in results.items():
+        flagged = ", ".join(f"{k} {v}" for k, v in sorted(r["statuses"].items()) if k != "ok")
+        lines.append(f"{name:22s} {r['rows']:4d} {r['ok_pct']:6.1f} "
+                     f"{r['rms_mm'][0]:5.1f}/{r['rms_mm'][1]:<5.1f} "
+                     f"{r['max_mm'][0]:5.1f}/{r['max_mm'][1]:<5.1f} {r['cover']:6.1f} {r['gross']:5d} "
+                     f"{r['drift_mm'][0]:6.1f}/{r['drift_mm'][1]:<6.1f} {r['cum_cover']:8.1f} "
+                     f"{r['chains']:6d}  "
+                     f"{flagged}")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--work", type=Path, required=True)
+    ap.add_argument("--cycles", type=int, default=None, help="cycles per scenario (default 41, quick 6)")
+    ap.add_argument("--quick", action="store_true",
+                    help="CI size: 6 cycles, the base and dense scenarios and the dense variants")
+    ap.add_argument("--only", nargs="+", help="scenario names")
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--reuse-detections", action="store_true",
+                    help="reuse the detections of the previous run in WORK (association changes only)")
+    ap.add_argument("--config", type=Path, default=None, help="site configuration passed to uwbcl process")
+    ap.add_argument("--tag", default="out", help="output directory name per scenario (default: out)")
+    ap.add_argument("--json", type=Path, default=None, help="write the results here")
+    args = ap.parse_args(argv)
+    cycles = args.cycles or (6 if args.quick else 41)
+    names = args.only or (QUICK if args.quick else [s.name for s in SCENARIOS] + list(VARIANTS))
+    by_name = {s.name: s for s in SCENARIOS}
+    results = {}
+    for name in names:
+        parent, heights, prior = VARIANTS.get(name, (name, None, True))
+        s = by_name[parent]
+        root = args.work / parent
+        arch = generate(s, cycles, root)
+        rig_m = np.array(json.loads((root / "truth.json").read_text())["rig_m"])
+        out = args.work / name / args.tag
+        reuse = None
+        if args.reuse_detections:
+            reuse = next((p for p in sorted((args.work / name).glob("*/"))
+                          if (p / ".uwbcl-cache").is_dir()), None)
+            reuse = reuse or next((p for p in sorted((args.work / parent).glob("*/"))
+                                   if (p / ".uwbcl-cache").is_dir()), None)
+        if name != parent:
+            share_cache(args.work / parent / args.tag, out)
+        secs = run_process(arch, out, s, heights, prior, args.jobs, reuse, args.config)
+        results[name] = score(out, rig_m)
+        print(f"  {name}: processed in {secs:.0f} s", flush=True)
+    print(table(results))
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
