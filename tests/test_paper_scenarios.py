@@ -32,8 +32,8 @@ def results():
             settings = ProcessingSettings(algorithm=alg, backend="numpy", ac_mode="exact")
             cycles = [pipeline.locate_cycle([p for p in passes if p.cycle == c], settings)
                       for c in range(len(scenario.rig_positions_m))]
-            # The site's web depth (0.8 / 0.7 m) as prior: sim1's three plates form a regular row 0.6 m apart, which
-            # without a prior is one missed detection from a tie and flagged ambiguous (issue 14).
+            # The site's web depth (0.8 / 0.7 m) as prior: sim1's three plates form a regular row 0.6 m apart,
+            # which without a prior is one missed detection from a tie and flagged ambiguous (issue 14).
             web = round(float(scenario.advance_m(1)[0]), 1)
             association = dataclasses.replace(settings.association, prior_advance_m=(web, 0.0, 0.0))
             (row,) = chain.series(cycles, association)

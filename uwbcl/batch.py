@@ -42,6 +42,7 @@ from .records import (
     BatchReport,
     CycleResult,
     Detection,
+    DetectionSettings,
     LimitExceeded,
     PassRecord,
     Problem,
@@ -371,12 +372,13 @@ def group_cycles(records: list[PassRecord], options: BatchOptions) -> tuple[dict
 
 
 # ----------------------------------------------------------------------------------------------- cycles
-def locate_records(recs: dict[int, PassRecord]) -> CycleResult:
+def locate_records(recs: dict[int, PassRecord], detection: DetectionSettings = DetectionSettings()
+                   ) -> CycleResult:
     """The located plates of one cycle from its passes' records (keyed by height in mm)."""
     first = min(recs.values(), key=lambda r: (r.pass_start_time, r.file))
     return chain.locate_cycle(first.rig_id, first.cycle, first.pass_start_time,
                               {r.height_m: r.detections for r in recs.values()},
-                              int(first.parameters["boresight_y_sign"]))
+                              int(first.parameters["boresight_y_sign"]), detection)
 
 
 # ----------------------------------------------------------------------------------------------- the job
@@ -605,7 +607,7 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
             log.error("%s: %s", p.file, p.reason)
         cycles = []
         for (rig, cycle), recs in sorted(groups.items()):
-            result = locate_records(recs)
+            result = locate_records(recs, settings.detection)
             log.info("rig %s cycle %d: %d plates located from %d heights", rig, cycle, len(result.plates),
                      len(result.heights_m))
             cycles.append(result)

@@ -18,7 +18,15 @@ import numpy as np
 
 from .displacement import estimate_advance, fit_chi2, location_covariance_m2
 from .locate import locate_plates
-from .records import TRUSTED_STATUSES, AssociationSettings, CycleResult, Detection, Displacement, SeriesRow
+from .records import (
+    TRUSTED_STATUSES,
+    AssociationSettings,
+    CycleResult,
+    Detection,
+    DetectionSettings,
+    Displacement,
+    SeriesRow,
+)
 
 log = logging.getLogger("uwbcl")
 
@@ -38,8 +46,9 @@ SCALE_MIN_DOF = 15
 SCALE_LIMITS = (0.25, 4.0)
 
 
-def locate_cycle(rig_id: str, cycle: int, start_time: str, detections_by_height: Mapping[float, Sequence[Detection]],
-                 boresight_y_sign: int) -> CycleResult:
+def locate_cycle(rig_id: str, cycle: int, start_time: str,
+                 detections_by_height: Mapping[float, Sequence[Detection]],
+                 boresight_y_sign: int, detection: DetectionSettings = DetectionSettings()) -> CycleResult:
     """The 3-D plates of one cycle from its passes' detections.
 
     Parameters
@@ -47,6 +56,7 @@ def locate_cycle(rig_id: str, cycle: int, start_time: str, detections_by_height:
     rig_id, cycle, start_time : the cycle's identity; start_time is the earliest pass's ISO 8601 UTC start.
     detections_by_height : {rail height (m): detections of the pass at that height}, two or more heights.
     boresight_y_sign : -1 when the rib is on the -Y side of the rail, +1 on the +Y side.
+    detection : its cross-height gates (cross_height_x_tol_m, cross_height_rc_tol_m) group the detections.
 
     Returns
     -------
@@ -54,7 +64,9 @@ def locate_cycle(rig_id: str, cycle: int, start_time: str, detections_by_height:
     """
     heights = sorted(detections_by_height)
     by_height = {h: list(detections_by_height[h]) for h in heights}
-    return CycleResult(rig_id, int(cycle), start_time, tuple(heights), locate_plates(by_height, boresight_y_sign))
+    plates = locate_plates(by_height, boresight_y_sign, detection.cross_height_x_tol_m,
+                           detection.cross_height_rc_tol_m)
+    return CycleResult(rig_id, int(cycle), start_time, tuple(heights), plates)
 
 
 def plate_covariances(cycle: CycleResult, range_sigma_m: float) -> np.ndarray:
@@ -86,15 +98,16 @@ class RigChain:
     """The displacements of one rig's cycles, fed in cycle order, and the chain of cumulative positions.
 
     Each cycle is measured from the last cycle in the chain (the anchor), with the prior of `prior` (motion
-    model or web depth, scaled by the cycles spanned). A trusted match (ok) extends the chain. An untrusted one
-    leaves the row flagged with a NaN cumulative and the next cycle is measured from the anchor again, bridging
-    the gap, so a cycle matched to the wrong plates never enters the cumulative values. An "inconsistent" match
-    (unique plates that disagree by centimetres) is held in reserve: if the next cycle cannot be bridged from the
-    anchor but matches the inconsistent cycle, the chain runs through it (and the reserve row gets its
-    cumulative value). If the next cycle cannot be bridged but matches the untrusted cycle just before it, the
-    chain starts again at that cycle (`chain` + 1, its row cumulative 0). After max_bridge_cycles without a
-    trusted match the chain is broken and starts again at the current cycle (`chain` + 1, cumulative from 0):
-    the break is visible, never bridged by a guess that may be off by a plate spacing.
+    model or web depth, scaled by the cycles spanned). A trusted match (ok) extends the chain. An untrusted
+    one leaves the row flagged with a NaN cumulative and the next cycle is measured from the anchor again,
+    bridging the gap, so a cycle matched to the wrong plates never enters the cumulative values. An
+    "inconsistent" match (unique plates that disagree by centimetres) is held in reserve: if the next cycle
+    cannot be bridged from the anchor but matches the inconsistent cycle, the chain runs through it (and the
+    reserve row gets its cumulative value). If the next cycle cannot be bridged but matches the untrusted
+    cycle just before it, the chain starts again at that cycle (`chain` + 1, its row cumulative 0). After
+    max_bridge_cycles without a trusted match the chain is broken and starts again at the current cycle
+    (`chain` + 1, cumulative from 0): the break is visible, never bridged by a guess that may be off by a
+    plate spacing.
 
     State is real here: a row depends only on the cycles before it, so `uwbcl acquire --process` feeding the
     cycles one at a time gets exactly the rows that `uwbcl process` gets from the whole series.
@@ -210,8 +223,8 @@ class RigChain:
         if cur.cycle - anchor.cycle >= self.max_bridge_cycles:
             # Start a new chain here: its cumulative values count from this cycle, not from the rig's first.
             log.warning("rig %s: no trusted match for %d cycles up to cycle %d; the cumulative values start "
-                        "again from 0 at cycle %d (chain %d)", cur.rig_id, cur.cycle - anchor.cycle, cur.cycle,
-                        cur.cycle, self._chain + 1)
+                        "again from 0 at cycle %d (chain %d)", cur.rig_id, cur.cycle - anchor.cycle,
+                        cur.cycle, cur.cycle, self._chain + 1)
             self._chain += 1
             row.cumulative_m, row.cumulative_bound_m, row.chain = np.zeros(3), np.zeros(3), self._chain
             self._restart(cur)

@@ -1,4 +1,5 @@
-"""Site configuration for `uwbcl process` (TOML, docs/configuration.md): file values, then command-line overrides.
+"""Site configuration for `uwbcl process` (TOML, docs/configuration.md): file values, then command-line
+overrides.
 
 Every key is checked: an unknown section or key, or a value of the wrong type, is an error naming the file and
 the key, so a typo cannot silently fall back to a default.
@@ -69,7 +70,8 @@ class SiteConfig:
 
     def processing_settings(self):
         if self.backend is not None and self.backend not in BACKENDS:
-            raise ConfigError(None, "processing.backend", f"{self.backend!r} is not one of {', '.join(BACKENDS)}")
+            raise ConfigError(None, "processing.backend",
+                              f"{self.backend!r} is not one of {', '.join(BACKENDS)}")
         if self.algorithm is not None and self.algorithm not in ALGORITHMS:
             raise ConfigError(None, "processing.algorithm",
                               f"{self.algorithm!r} is not one of {', '.join(ALGORITHMS)}")
@@ -82,7 +84,8 @@ class SiteConfig:
 
     def batch_options(self, **extra):
         return BatchOptions(jobs=self.jobs, cache=self.cache, heights_m=self.heights_m,
-                            height_tolerance_m=self.height_tolerance_m, max_bridge_cycles=self.max_bridge_cycles,
+                            height_tolerance_m=self.height_tolerance_m,
+                            max_bridge_cycles=self.max_bridge_cycles,
                             outputs=self.output, **extra)
 
 
@@ -222,7 +225,8 @@ def validate(cfg: SiteConfig, path=None) -> None:
         if not math.isfinite(getattr(cfg, key.split(".")[1])):
             raise ConfigError(path, key, "must be finite")
     if cfg.prior_window_m is not None and not _positive(tuple(cfg.prior_window_m)):
-        raise ConfigError(path, "site.prior_window_m", f"must be finite and > 0, got {list(cfg.prior_window_m)}")
+        raise ConfigError(path, "site.prior_window_m",
+                          f"must be finite and > 0, got {list(cfg.prior_window_m)}")
     if cfg.heights_m is not None and not all(math.isfinite(h) for h in cfg.heights_m):
         raise ConfigError(path, "site.heights_m", f"must be finite, got {list(cfg.heights_m)}")
     if cfg.heights_m is not None and len(set(cfg.heights_m)) < 2:
@@ -243,8 +247,8 @@ def validate(cfg: SiteConfig, path=None) -> None:
 
 
 def parse_heights(values) -> tuple[float, ...] | None:
-    """Rail heights from command-line words, `0.2 0.6` or `0.2,0.6`; ConfigError (a usage error) for anything but
-    finite numbers."""
+    """Rail heights from command-line words, `0.2 0.6` or `0.2,0.6`; ConfigError (a usage error) for
+    anything but finite numbers."""
     if not values:
         return None
     out = []
@@ -275,7 +279,8 @@ def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(path, "-", f"not valid TOML: {e}") from e
     except UnicodeDecodeError as e:  # binary, UTF-16, Latin-1: TOML is UTF-8
-        raise ConfigError(path, "-", f"not a UTF-8 text file (TOML must be UTF-8): {e.reason} at byte {e.start}") from e
+        raise ConfigError(path, "-", f"not a UTF-8 text file (TOML must be UTF-8): {e.reason} at byte "
+                                     f"{e.start}") from e
     return data
 
 

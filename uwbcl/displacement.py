@@ -1,11 +1,11 @@
 """Advance between two cycles from the located bolt plates: Delta P = -(P' - P) (paper section 3).
 
-The rig moves, the plates do not, so every plate seen in both cycles satisfies P_i - P'_j = Delta P. Plates look
-alike, so the correspondence is chosen by likelihood (docs/method.md section 6): every plate pair proposes a
-translation, each proposal is refined by generalised least squares over the plates it matches within their
-3-D location covariances, and scored by the log-likelihood ratio of its matches against chance alignments plus
-the log prior of the translation (web depth, or the motion model of the previous cycles); the lead of the best
-over its best distinct competitor (or over "no plate in common") is the association margin.
+The rig moves, the plates do not, so every plate seen in both cycles satisfies P_i - P'_j = Delta P. Plates
+look alike, so the correspondence is chosen by likelihood (docs/method.md section 6): every plate pair
+proposes a translation, each proposal is refined by generalised least squares over the plates it matches
+within their 3-D location covariances, and scored by the log-likelihood ratio of its matches against chance
+alignments plus the log prior of the translation (web depth, or the motion model of the previous cycles); the
+lead of the best over its best distinct competitor (or over "no plate in common") is the association margin.
 retreat = Delta P.x, creep = Delta P.y, vertical = Delta P.z.
 """
 
@@ -15,8 +15,14 @@ import dataclasses
 
 import numpy as np
 
-from .records import (CHAINABLE_STATUSES, STATUSES, TRUSTED_STATUSES,  # noqa: F401 - re-exported
-                      AssociationSettings, Displacement, Located)
+from .records import (  # noqa: F401 - re-exported
+    CHAINABLE_STATUSES,
+    STATUSES,
+    TRUSTED_STATUSES,
+    AssociationSettings,
+    Displacement,
+    Located,
+)
 
 # A chance alignment competes with the plates of the rib: about 1.7 plates per m^2 for a 1.0 m grid in 3 rows
 # 0.6 m apart; 2 is the denser bound (eq. M1: a match's gain is ln of its likelihood over this density).
@@ -71,7 +77,8 @@ def location_covariance_m2(position_m, heights_m, range_sigma_m: float, along_si
 
 
 def gls_advance(d: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Generalised least squares of a common translation from differences d_i (n, 3) with covariances (n, 3, 3).
+    """Generalised least squares of a common translation from differences d_i (n, 3) with covariances
+    (n, 3, 3).
 
     With full covariances the z residual of a plate corrects its y: each plate errs along its own dilution
     direction, and plates at different heights pin the common (creep, vertical) where those directions cross

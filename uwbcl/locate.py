@@ -17,15 +17,12 @@ import math
 import numpy as np
 from scipy import optimize
 
-from .records import Detection, Located
+from .records import Detection, DetectionSettings, Located
 
-# Cross-height association (`associate_across_heights`). A plate's along-track x is the same from every
-# height: the x gate admits the per-pass x errors (millimetres) with a wide margin and stays far below the
-# along-track plate spacing (1-1.5 m on a rib, docs/configuration.md).
-CROSS_HEIGHT_X_TOL_M = 0.08
-# Its R_c changes between two passes by at most their height difference |dh|: the R_c gate is |dh| plus this
-# margin for the per-pass R_c errors.
-CROSS_HEIGHT_RC_TOL_M = 0.05
+# Cross-height association gates (`associate_across_heights`): their one home is DetectionSettings, where a
+# site can set them ([detection] cross_height_x_tol_m, cross_height_rc_tol_m).
+CROSS_HEIGHT_X_TOL_M = DetectionSettings.cross_height_x_tol_m
+CROSS_HEIGHT_RC_TOL_M = DetectionSettings.cross_height_rc_tol_m
 _GATED = 1e6  # the assignment cost of a pair outside either gate: never chosen over a gated-in pair
 
 

@@ -39,7 +39,8 @@ TARGET_COLUMNS = (
 ERROR_COLUMNS = ("file", "kind", "reason")
 H5_FORMAT = "uwbcl-displacements"
 H5_FORMAT_VERSION = 1
-UNITS = {"_m": "m", "cycle": "1", "from_cycle": "1", "chain": "1", "n_targets": "1", "n_plates": "1", "runner_up_targets": "1",
+UNITS = {"_m": "m", "cycle": "1", "from_cycle": "1", "chain": "1", "n_targets": "1", "n_plates": "1",
+         "runner_up_targets": "1",
          "plate": "1", "track": "1", "n_passes": "1", "matched_plate": "1", "inlier": "1", "amplitude": "arb",
          "start_time": "ISO 8601 UTC", "rig_id": "", "status": "",
          "association_margin": "ln(likelihood ratio)"}
@@ -163,7 +164,8 @@ def write_all(out_dir: Path, rows: list[SeriesRow], cycles: list[CycleResult], p
             write_bytes_atomic(gen / "targets.csv", csv_bytes(TARGET_COLUMNS, _text(targets)))
         if opts.hdf5:
             write_h5_atomic(gen / "displacements.h5",
-                            {"displacements": (DISPLACEMENT_COLUMNS, disp), "targets": (TARGET_COLUMNS, targets)})
+                            {"displacements": (DISPLACEMENT_COLUMNS, disp),
+                             "targets": (TARGET_COLUMNS, targets)})
         write_bytes_atomic(gen / "errors.csv",
                            csv_bytes(ERROR_COLUMNS, [dataclasses.asdict(p) for p in problems]))
         if opts.plots:
@@ -247,7 +249,7 @@ def _adopt_plain_outputs(out_dir: Path) -> None:
     """Outputs of a version before generations (plain files): moved into a generation of their own first, so
     that replacing them by links never shows a mixed set."""
     current = out_dir / CURRENT_LINK
-    if current.exists() and not current.is_symlink():  # copied with links dereferenced: keep it as a generation
+    if current.exists() and not current.is_symlink():  # copied with links dereferenced: keep it
         os.rename(current, new_generation(out_dir))
     plain = [n for n in OUTPUT_NAMES if (out_dir / n).exists() and not (out_dir / n).is_symlink()]
     if not plain:
@@ -368,7 +370,8 @@ def plot_time_series(plot_dir: Path, records: list[dict]) -> None:
 
 
 def plot_cycle_images(plot_dir: Path, groups: dict, in_dir: Path, settings) -> None:
-    """plots/cycles/<rig>/c<cycle>_h<mm>.png: |image| in dB with the detections marked; existing files are kept.
+    """plots/cycles/<rig>/c<cycle>_h<mm>.png: |image| in dB with the detections marked; existing files are
+    kept.
 
     Refocuses every pass with the numpy reference (the engine's image is the same within its tolerance).
     """
@@ -389,7 +392,8 @@ def plot_cycle_images(plot_dir: Path, groups: dict, in_dir: Path, settings) -> N
             fig, ax = plt.subplots(figsize=(7, 5))
             ax.imshow(mag.T, origin="lower", aspect="auto", vmin=-40, vmax=0, cmap="viridis",
                       extent=(az[0], az[-1], rg[0], rg[-1]))
-            ax.plot([d.image_azimuth_m for d in rec.detections], [d.image_range_m for d in rec.detections], "o",
+            ax.plot([d.image_azimuth_m for d in rec.detections],
+                    [d.image_range_m for d in rec.detections], "o",
                     mfc="none", mec="red", ms=10)
             half = 0.5 * (scan.pulse_position_m.max() - scan.pulse_position_m.min())
             ax.set_xlim(-1.2 * half, 1.2 * half)

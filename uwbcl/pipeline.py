@@ -16,7 +16,15 @@ from .focus.engine import shared_engine  # pyopencl and pyvkfft are imported whe
 from .focus.protocol import Focuser
 from .focus.reference import NUMPY_FOCUSER
 from .model import ScanPass
-from .records import ALGORITHMS, BACKENDS, CycleResult, Detection, LimitExceeded, ProcessingSettings
+from .records import (
+    ALGORITHMS,
+    BACKENDS,
+    CycleResult,
+    Detection,
+    DetectionSettings,
+    LimitExceeded,
+    ProcessingSettings,
+)
 
 log = logging.getLogger("uwbcl")
 
@@ -74,12 +82,13 @@ def detect_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSetting
     return detect.detect_bp(focuser.backprojection_focus(scan), settings.detection)
 
 
-def locate_detections(passes: Sequence[ScanPass], detections: Sequence[Sequence[Detection]]) -> CycleResult:
+def locate_detections(passes: Sequence[ScanPass], detections: Sequence[Sequence[Detection]],
+                      detection: DetectionSettings = DetectionSettings()) -> CycleResult:
     """The plates of one cycle from its passes and each pass's detections (same order)."""
     first = min(passes, key=lambda p: p.pass_start_time)
     by_height = {p.geometry.height_m: list(d) for p, d in zip(passes, detections)}
     return chain.locate_cycle(first.rig_id, first.cycle, first.pass_start_time, by_height,
-                              passes[0].geometry.boresight_y_sign)
+                              passes[0].geometry.boresight_y_sign, detection)
 
 
 def locate_cycle(passes: Sequence[ScanPass], settings: ProcessingSettings = ProcessingSettings()
@@ -87,4 +96,4 @@ def locate_cycle(passes: Sequence[ScanPass], settings: ProcessingSettings = Proc
     """All passes of one rig and cycle (one per height) -> the 3-D plates of that cycle."""
     if len({p.geometry.height_m for p in passes}) < 2:
         raise ValueError("a cycle needs passes at two or more heights")
-    return locate_detections(passes, [detect_pass(p, settings) for p in passes])
+    return locate_detections(passes, [detect_pass(p, settings) for p in passes], settings.detection)

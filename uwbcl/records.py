@@ -1,7 +1,7 @@
 """Data-only records: the settings, options, results and errors that the layers above pass to each other.
 
-The bottom layer of docs/architecture.md: it imports nothing of uwbcl but `model`, so every layer may use it and
-none of these types drags a computation (or an import cycle) along with it.
+The bottom layer of docs/architecture.md: it imports nothing of uwbcl but `model`, so every layer may use it
+and none of these types drags a computation (or an import cycle) along with it.
 """
 
 from __future__ import annotations
@@ -47,7 +47,8 @@ class LimitExceeded(ValueError):
 
 
 class OutputError(RuntimeError):
-    """The outputs could not be written (disk full, permissions); the previous complete set is still in place."""
+    """The outputs could not be written (disk full, permissions); the previous complete set is still in
+    place."""
 
 
 # ----------------------------------------------------------------------------------------------- settings
@@ -61,7 +62,14 @@ class DetectionSettings:
     # CLEAN-like re-refinements of every peak with the other targets' modelled responses removed (0: off)
     neighbour_cancellation_passes: int = 1
     neighbour_cancellation_tol_m: float = 1e-5  # stop early once no peak moves more than this
-    neighbour_gain_degree: int = 8  # Legendre degree of a modelled target's gain along the rail (beam pattern)
+    # Legendre degree of a modelled target's gain along the rail (beam pattern)
+    neighbour_gain_degree: int = 8
+    # Cross-height association of one plate's detections (locate.associate_across_heights). Its along-track x
+    # is the same from every height: the gate admits the per-pass x errors (millimetres) with a wide margin
+    # and stays far below the along-track plate spacing (1-1.5 m). Its R_c changes between two passes by at
+    # most their height difference |dh|: the R_c gate is |dh| plus this margin for the per-pass R_c errors.
+    cross_height_x_tol_m: float = 0.08
+    cross_height_rc_tol_m: float = 0.05
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,14 +103,16 @@ class AssociationSettings:
 
 @dataclasses.dataclass(frozen=True)
 class ReadLimits:
-    """What one archive may declare before anything is read (docs/configuration.md [limits]): a pass larger than
-    this is refused by name instead of exhausting memory. The defaults admit 8x the largest rail the method
-    needs (about 8,000 pulses of 4,096 samples) and keep one pass under ~0.5 GB as complex128."""
+    """What one archive may declare before anything is read (docs/configuration.md [limits]): a pass larger
+    than this is refused by name instead of exhausting memory. The defaults admit 8x the largest rail the
+    method needs (about 8,000 pulses of 4,096 samples) and keep one pass under ~0.5 GB as complex128."""
 
     max_pulses: int = 1 << 20
     max_samples_per_pulse: int = 1 << 16
     max_echo_samples: int = 1 << 25  # pulses x samples
-    max_focus_cells: int = 1 << 26  # cells of a pass's focus grid (azimuth rows x range bins), checked before focusing
+    # cells of a pass's focus grid (azimuth rows x range bins), BP image or detection window, checked before
+    # focusing
+    max_focus_cells: int = 1 << 26
 
 
 @dataclasses.dataclass(frozen=True)
