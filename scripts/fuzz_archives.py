@@ -38,7 +38,8 @@ from uwbcl import archive, shift
 
 KINDS = ("attr_removed", "attr_retyped", "attr_nonfinite", "attr_huge", "dataset_reshaped", "dataset_retyped",
          "soft_link", "soft_loop", "external_link", "external_passwd", "virtual", "external_storage",
-         "truncated", "bit_flips", "bomb", "huge_declared", "lossy_filter", "fifo", "directory", "empty")
+         "truncated", "bit_flips", "bomb", "huge_declared", "lossy_filter", "fifo", "directory", "empty",
+         "symlink_loop", "outside_symlink", "broken_symlink")
 TIMEOUT_S = 120.0
 RSS_LIMIT_KB = 1 << 20  # 1 GiB
 
@@ -95,9 +96,28 @@ def _directory(path: Path, rng: np.random.Generator) -> str:
     return "directory"
 
 
+def _symlink_loop(path: Path, rng: np.random.Generator) -> str:
+    path.unlink()
+    os.symlink(path.name, path)
+    return "a symbolic link to itself"
+
+
+def _outside_symlink(path: Path, rng: np.random.Generator) -> str:
+    path.unlink()
+    os.symlink(path.parent.parent / "outside.h5", path)  # a valid archive outside the tree
+    return "a symbolic link to an archive outside the tree"
+
+
+def _broken_symlink(path: Path, rng: np.random.Generator) -> str:
+    path.unlink()
+    os.symlink("nowhere.h5", path)
+    return "a symbolic link to nothing"
+
+
 # Mutations of the file as a whole, without opening it as HDF5.
 FILE_MUTATIONS = {"truncated": _truncate, "bit_flips": _flip_bits, "empty": _empty, "fifo": _fifo,
-                  "directory": _directory}
+                  "directory": _directory, "symlink_loop": _symlink_loop, "outside_symlink": _outside_symlink,
+                  "broken_symlink": _broken_symlink}
 
 
 def _remove_attr(obj: h5py.HLObject, name: str, rng: np.random.Generator) -> None:
@@ -264,8 +284,9 @@ def mutate(path: Path, kind: str, rng: np.random.Generator, outside: Path) -> st
 def opened_outside(strace_log: Path, allowed: list[Path]) -> list[str]:
     """Paths the run opened that lie under none of `allowed` and are not the interpreter's own files."""
     ok = [str(p.resolve()) for p in allowed]
+    inside = tuple(a + "/" for a in ok)  # ".../out/" so that ".../outside.h5" is not taken for ".../out"
     system = ("/usr/", "/lib", "/etc/ld.so", "/proc/", "/sys/", "/dev/", sys.prefix, sys.base_prefix,
-              os.path.dirname(os.__file__), str(Path(archive.__file__).resolve().parents[1]), "/tmp/",
+              os.path.dirname(os.__file__), str(Path(archive.__file__).resolve().parents[1]),
               "/etc/localtime", "/etc/nsswitch", "/etc/host", "/etc/resolv", "/etc/ssl", "/etc/OpenCL",
               "/root/.cache", "/etc/pocl")
     out = []
@@ -274,8 +295,10 @@ def opened_outside(strace_log: Path, allowed: list[Path]) -> list[str]:
         if not m or "ENOENT" in line:
             continue
         p = m.group(1)
-        if p.startswith(tuple(ok)) or p.startswith(system) or not p.startswith("/"):
+        if p in ok or p.startswith(inside) or p.startswith(system) or not p.startswith("/"):
             continue
+        if "O_DIRECTORY" in line or any(a.startswith(p.rstrip("/") + "/") for a in ok):
+            continue  # listing a directory (the working directory, a parent of the tree) reads no file
         out.append(p)
     return sorted(set(out))
 
@@ -303,7 +326,7 @@ def _build_tree(cases: list[Case], good: Path, rng: np.random.Generator, work: P
 def _broken_rules(proc: subprocess.CompletedProcess, rss_before: int, rss: int, log: Path,
                   work: Path) -> list[str]:
     """The rules the run broke: a traceback, an unexpected exit, too much memory, an open outside the tree."""
-    tree, out, outside = work / "tree", work / "out", work / "outside.h5"
+    tree, out = work / "tree", work / "out"
     broken = []
     if "Traceback" in proc.stderr:
         broken.append("TRACEBACK")
@@ -311,8 +334,9 @@ def _broken_rules(proc: subprocess.CompletedProcess, rss_before: int, rss: int, 
         broken.append(f"EXIT_{proc.returncode}")
     if rss > RSS_LIMIT_KB and rss > rss_before:
         broken.append("MEMORY")
-    outside_opens = opened_outside(log, [tree, out, work]) if log.exists() else []
-    if any(p == str(outside.resolve()) or p.startswith("/etc/passwd") for p in outside_opens):
+    # Anything opened beyond the tree, OUT_DIR and the interpreter's own files: the outside archive and its
+    # raw file beside the tree, /etc/passwd, or any other path a link in an archive may name.
+    if log.exists() and opened_outside(log, [tree, out]):
         broken.append("OPENED_OUTSIDE")
     return broken
 

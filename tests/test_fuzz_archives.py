@@ -37,7 +37,8 @@ def test_every_kind_of_mutated_archive_is_rejected_by_name_or_unchanged_and_noth
     for c in cases:
         assert outcome[c.index].startswith(("rejected", "accepted")), (c, outcome)
     structural = [c for c in cases if c.kind in ("soft_loop", "external_link", "external_passwd", "virtual",
-                                                 "external_storage", "huge_declared", "fifo", "empty")]
+                                                 "external_storage", "huge_declared", "fifo", "empty",
+                                                 "symlink_loop", "outside_symlink", "broken_symlink")]
     assert all(outcome[c.index].startswith("rejected") for c in structural), [
         (c.kind, c.detail, outcome[c.index])
         for c in structural if not outcome[c.index].startswith("rejected")]
@@ -47,6 +48,8 @@ def test_the_outside_open_check_sees_a_file_outside_the_allowed_trees(tmp_path):
     fuzz = load()
     log = tmp_path / "strace.log"
     log.write_text('123 openat(AT_FDCWD, "/etc/passwd", O_RDONLY) = 3\n'
-                   f'123 openat(AT_FDCWD, "{tmp_path}/tree/a.h5", O_RDONLY) = 4\n')
-    assert fuzz.opened_outside(log, [tmp_path / "tree"]) == ["/etc/passwd"]
+                   f'123 openat(AT_FDCWD, "{tmp_path}/tree/a.h5", O_RDONLY) = 4\n'
+                   f'123 openat(AT_FDCWD, "{tmp_path}/treehouse.h5", O_RDONLY) = 5\n'
+                   f'123 openat(AT_FDCWD, "{tmp_path}", O_RDONLY|O_DIRECTORY) = 6\n')
+    assert fuzz.opened_outside(log, [tmp_path / "tree"]) == ["/etc/passwd", f"{tmp_path}/treehouse.h5"]
     assert np.isfinite(fuzz.RSS_LIMIT_KB)
