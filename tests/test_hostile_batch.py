@@ -395,3 +395,16 @@ def test_a_pass_whose_positions_are_off_by_orders_of_magnitude_is_refused_before
     entry = batch.detect_file(str(path), SETTINGS)
     assert entry["kind"] == "exceeds_limits", entry
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 200 << 10  # kB
+
+
+def test_a_controller_rig_id_that_looks_like_a_path_cannot_place_an_archive_outside_the_root(tmp_path):
+    import dataclasses
+
+    scan = next(iter(shift.simulate_shift(shift.ShiftConfig(rigs=1, cycles=1, seed=5))))
+    for rig_id in ("../../escaped", "/etc/x", "a/b", "..", "r" * 300):
+        rel = archive.default_relative_path(dataclasses.replace(scan, rig_id=rig_id))
+        assert not rel.is_absolute() and ".." not in rel.parts and len(rel.parts) == 3, rel
+        path = archive.write_pass(tmp_path / "root" / rel, dataclasses.replace(scan, rig_id=rig_id))
+        assert (tmp_path / "root") in path.resolve().parents
+    safe = archive.default_relative_path(scan)
+    assert safe.parts[0] == scan.rig_id  # a safe id is used as it is

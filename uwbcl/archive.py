@@ -30,6 +30,7 @@ import numpy as np
 
 from uwbcl.atomic import PARTIAL_SUFFIX, atomic_path
 from uwbcl.model import PassGeometry, RadarParameters, RawRF, ScanPass
+from uwbcl.names import safe_name
 from uwbcl.records import ReadLimits
 from uwbcl.utc import parse_utc
 
@@ -90,8 +91,9 @@ def default_relative_path(scan: ScanPass) -> Path:
     """``<rig_id>/<YYYY-MM-DD>/<rig_id>_c<cycle:06d>_h<height_mm:04d>.h5``, the date being the UTC pass
     start."""
     day = parse_utc(scan.pass_start_time).date().isoformat()
-    name = f"{scan.rig_id}_c{scan.cycle:06d}_h{height_mm(scan.geometry.height_m):04d}{FILE_SUFFIX}"
-    return Path(scan.rig_id, day, name)
+    rig = safe_name(scan.rig_id)  # a controller's RIG_ID is data, never a path ("../x" stays inside)
+    name = f"{rig}_c{scan.cycle:06d}_h{height_mm(scan.geometry.height_m):04d}{FILE_SUFFIX}"
+    return Path(rig, day, name)
 
 
 def find_pass_files(root: str | os.PathLike[str]) -> list[Path]:

@@ -7,7 +7,6 @@ errors.csv: every problem; plots/ (on request): time series per rig and focused 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import io
 import logging
 import os
@@ -19,6 +18,7 @@ import numpy as np
 from . import __version__, archive
 from .atomic import PARTIAL_SUFFIX, atomic_path, csv_bytes, fsync_directory, write_bytes_atomic
 from .focus import backprojection, nlcs
+from .names import MAX_NAME_LENGTH, safe_name  # noqa: F401  (MAX_NAME_LENGTH: tests)
 from .records import TRUSTED_STATUSES, BatchError, CycleResult, OutputError, Problem, SeriesRow
 from .utc import parse_utc
 
@@ -303,21 +303,6 @@ def _reuse_cycle_images(out_dir: Path, gen: Path) -> None:
 
 
 # ----------------------------------------------------------------------------------------------- plots
-SAFE_NAME_CHARACTERS = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789._-")
-MAX_NAME_LENGTH = 64
-
-
-def safe_name(text: str) -> str:
-    """A file-name component derived from file content (a rig id): the characters docs/archive-format.md calls
-    safe, other characters as '_', no leading dot, at most MAX_NAME_LENGTH characters. A name that had to be
-    changed gets a hash of the original, so two ids never share a file. Never a path: no '/', never '..'."""
-    clean = "".join(c if c in SAFE_NAME_CHARACTERS else "_" for c in text).lstrip(".") or "_"
-    if clean == text and len(text) <= MAX_NAME_LENGTH:
-        return text
-    digest = hashlib.sha256(text.encode("utf-8", "surrogateescape")).hexdigest()[:8]
-    return f"{clean[:MAX_NAME_LENGTH - 9]}-{digest}"
-
-
 def require_matplotlib() -> None:
 
     try:
