@@ -122,13 +122,17 @@ def _cut(line: np.ndarray, index: int, spacing: float, half_width_m: float):
     return window, step, peak
 
 
+def _nearest(axis: np.ndarray, value: float) -> int:
+    return int(np.clip(np.rint((value - axis[0]) / (axis[1] - axis[0])), 0, axis.size - 1))
+
+
 def point_response(image: np.ndarray, azimuth_m: np.ndarray, range_m: np.ndarray, at_azimuth_m: float,
                    at_range_m: float, half_width_m: float = CUT_HALF_WIDTH_M) -> PointResponse:
     """3 dB widths, PSLR and ISLR of the point response at (at_azimuth_m, at_range_m) of an image on
     ascending, uniform axes (image[i, j] at azimuth_m[i], range_m[j]), from its azimuth and range cuts
     through the nearest pixel, each interpolated and limited to +-half_width_m."""
-    i = int(np.clip(np.rint((at_azimuth_m - azimuth_m[0]) / (azimuth_m[1] - azimuth_m[0])), 0, azimuth_m.size - 1))
-    j = int(np.clip(np.rint((at_range_m - range_m[0]) / (range_m[1] - range_m[0])), 0, range_m.size - 1))
+    i = _nearest(azimuth_m, at_azimuth_m)
+    j = _nearest(range_m, at_range_m)
     a_cut, a_step, a_peak = _cut(image[:, j], i, float(azimuth_m[1] - azimuth_m[0]), half_width_m)
     r_cut, r_step, r_peak = _cut(image[i, :], j, float(range_m[1] - range_m[0]), half_width_m)
     energy = []
@@ -189,7 +193,8 @@ def focus_one(path: Path, png: Path, settings: ProcessingSettings, label: str) -
 def plot_pass(png: Path, image: np.ndarray, az: np.ndarray, rg: np.ndarray, detections: list[Detection],
               rail_m: tuple[float, float], title: str) -> None:
     """|image| in dB (DYNAMIC_RANGE_DB below its peak), detections circled, the rail's extent at the
-    processing squint (image azimuth of the rail's ends) as dashed lines; written atomically."""
+    processing squint (image azimuth of the rail's ends) as dashed lines, azimuth shown to half the rail's
+    length beyond its ends; written atomically."""
     plt = _pyplot()
     mag = np.abs(image)
     db = 20 * np.log10(mag / max(mag.max(), 1e-300) + 1e-12)
@@ -200,7 +205,10 @@ def plot_pass(png: Path, image: np.ndarray, az: np.ndarray, rg: np.ndarray, dete
     ax.plot([d.image_azimuth_m for d in detections], [d.image_range_m for d in detections], "o",
             mfc="none", mec="red", ms=12, label="detections")
     for k, x in enumerate(rail_m):
-        ax.axvline(x, color="white", ls="--", lw=1, label="rail extent at the processing squint" if k == 0 else None)
+        ax.axvline(x, color="white", ls="--", lw=1,
+                   label="rail extent at the processing squint" if k == 0 else None)
+    margin = 0.5 * (rail_m[1] - rail_m[0])  # targets beyond the rail ends can focus there too
+    ax.set_xlim(max(az[0], rail_m[0] - margin), min(az[-1], rail_m[1] + margin))
     ax.set_xlabel("image azimuth (m)")
     ax.set_ylabel("range r_LRCM (m)")
     ax.set_title(title, fontsize=9)
