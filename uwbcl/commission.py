@@ -205,10 +205,10 @@ def plot_pass(png: Path, image: np.ndarray, az: np.ndarray, rg: np.ndarray, dete
     ax.plot([d.image_azimuth_m for d in detections], [d.image_range_m for d in detections], "o",
             mfc="none", mec="red", ms=12, label="detections")
     for k, x in enumerate(rail_m):
-        ax.axvline(x, color="white", ls="--", lw=1,
+        ax.axvline(x, color="orange", ls="--", lw=1.2,
                    label="rail extent at the processing squint" if k == 0 else None)
     margin = 0.5 * (rail_m[1] - rail_m[0])  # targets beyond the rail ends can focus there too
-    ax.set_xlim(max(az[0], rail_m[0] - margin), min(az[-1], rail_m[1] + margin))
+    ax.set_xlim(rail_m[0] - margin, rail_m[1] + margin)  # blank where the image does not reach (bp)
     ax.set_xlabel("image azimuth (m)")
     ax.set_ylabel("range r_LRCM (m)")
     ax.set_title(title, fontsize=9)
