@@ -118,6 +118,57 @@ def _process(args: argparse.Namespace) -> int:
         return 1
     return 0
 
+def _focus(args: argparse.Namespace) -> int:
+    """`uwbcl focus ARCHIVE... --out DIR`: exit 2 on usage errors, 1 when an archive cannot be focused."""
+    from . import commission, outputs
+
+    try:
+        outputs.require_matplotlib()
+        site = config.load_config(args.config) if args.config else config.SiteConfig()
+        settings = config.override(site, algorithm=args.algorithm, backend=args.backend).processing_settings()
+    except (ConfigError, BatchError) as exc:
+        print(f"uwbcl focus: {exc}", file=sys.stderr)
+        return 2
+    out_dir = Path(args.out)
+    for parent in (out_dir, *out_dir.parents):
+        if parent.exists() and not parent.is_dir():
+            print(f"uwbcl focus: --out {out_dir}: {parent} is not a directory", file=sys.stderr)
+            return 2
+    if settings.backend == "opencl" and not _engine_ready(settings.device):
+        return 2
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        print(f"uwbcl focus: --out {out_dir}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    paths = [Path(a) for a in args.archives]
+    done, failed = [], 0
+    for path, png in zip(paths, commission.png_names(paths)):
+        try:
+            result = commission.focus_one(path, out_dir / png, settings, str(path))
+        except archive.ArchiveError as exc:  # names the file itself
+            print(f"uwbcl focus: {exc}", file=sys.stderr)
+            failed += 1
+            continue
+        except ValueError as exc:
+            print(f"uwbcl focus: {path}: {exc}", file=sys.stderr)
+            failed += 1
+            continue
+        except OSError as exc:
+            print(f"uwbcl focus: {path}: {exc.strerror or exc}", file=sys.stderr)
+            failed += 1
+            continue
+        done.append(result)
+        print(result.summary())
+    try:
+        csv_path = commission.write_detections_csv(out_dir, done)
+    except OSError as exc:
+        print(f"uwbcl focus: {out_dir}: {exc.strerror or exc}", file=sys.stderr)
+        return 1
+    print(f"{len(done)} passes focused, {sum(len(p.detections) for p in done)} detections: {csv_path} "
+          f"and {len(done)} images in {out_dir}" + (f"; {failed} archives failed" if failed else ""))
+    return 1 if failed else 0
+
 
 def _directories_problem(in_dir: Path, out_dir: Path) -> str:
     """Why ARCHIVE_DIR and --out cannot be used together ("" when they can)."""
@@ -359,6 +410,15 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--follow-symlinks", action="store_true",
                    help="read archives linked from outside ARCHIVE_DIR and enter linked directories")
     q.set_defaults(func=_process)
+
+    f = sub.add_parser("focus", help="commissioning: focus single passes, write their images and "
+                                     "detections.csv (docs/outputs.md)")
+    f.add_argument("archives", nargs="+", metavar="ARCHIVE")
+    f.add_argument("--out", required=True, help="output directory: one PNG per pass and detections.csv")
+    f.add_argument("--backend", choices=BACKENDS, default=None, help="opencl (default) or numpy")
+    f.add_argument("--algorithm", choices=ALGORITHMS, default=None, help="default nlcs")
+    f.add_argument("--config", help="site configuration, TOML (docs/configuration.md); flags override it")
+    f.set_defaults(func=_focus)
 
     _add_import_commands(sub)
 

@@ -68,9 +68,10 @@ def check_plan(scan: ScanPass, settings: ProcessingSettings) -> None:
                             f"pulses {grid.track_spacing_m:.3g} m apart for a {d.separation_m} m separation")
 
 
-def detect_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSettings()) -> list[Detection]:
-    """Focus one pass and return its point targets in closest-approach coordinates (LimitExceeded, before any
-    allocation, for a pass too large for settings.limits)."""
+def focus_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSettings()):
+    """Focus one pass and detect its point targets: (the focused products, the detections). The products are
+    `NlcsProducts` or `BackprojectionProducts` by settings.algorithm; LimitExceeded, before any allocation,
+    for a pass too large for settings.limits."""
     if settings.algorithm not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {settings.algorithm!r}; available: {', '.join(ALGORITHMS)}")
     check_plan(scan, settings)
@@ -78,8 +79,15 @@ def detect_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSetting
     if settings.algorithm == "nlcs":
         products = focuser.nlcs_focus(scan, ac_mode=settings.ac_mode)
         # The echo lets detection model the neighbours, focused by the same backend.
-        return detect.detect_nlcs(products, settings.detection, scan, focuser)
-    return detect.detect_bp(focuser.backprojection_focus(scan), settings.detection)
+        return products, detect.detect_nlcs(products, settings.detection, scan, focuser)
+    products = focuser.backprojection_focus(scan)
+    return products, detect.detect_bp(products, settings.detection)
+
+
+def detect_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSettings()) -> list[Detection]:
+    """Focus one pass and return its point targets in closest-approach coordinates (LimitExceeded, before any
+    allocation, for a pass too large for settings.limits)."""
+    return focus_pass(scan, settings)[1]
 
 
 def locate_detections(passes: Sequence[ScanPass], detections: Sequence[Sequence[Detection]],
