@@ -431,20 +431,21 @@ def suspicious(records: list[PassRecord], now_s: float | None = None) -> list[Pr
         if len({r.sha256 for r in rs}) > 1:
             out.append(Problem("; ".join(sorted(r.file for r in rs)), "shared_pass_id",
                                f"pass id {pid!r} is used by {len(rs)} different files"))
-    by_rig: dict[str, dict[int, str]] = defaultdict(dict)
+    by_rig: dict[str, dict[int, tuple[float, str]]] = defaultdict(dict)  # cycle -> its earliest start
     for r in records:
-        t = by_rig[r.rig_id].get(r.cycle)
-        by_rig[r.rig_id][r.cycle] = r.pass_start_time if t is None else min(t, r.pass_start_time)
+        try:
+            start = (utc_seconds(r.pass_start_time), r.pass_start_time)
+        except ValueError:
+            continue
+        known = by_rig[r.rig_id].get(r.cycle)
+        by_rig[r.rig_id][r.cycle] = start if known is None else min(known, start)
     for rig, starts in sorted(by_rig.items()):
         latest_cycle, latest = None, None
         for c in sorted(starts):
-            try:
-                t = utc_seconds(starts[c])
-            except ValueError:
-                continue
+            t, text = starts[c]
             if latest is not None and t < latest:
                 out.append(Problem(f"rig {rig} cycle {c}", "time_backwards",
-                                   f"starts {starts[c]}, before cycle {latest_cycle} of the same rig"))
+                                   f"starts {text}, before cycle {latest_cycle} of the same rig"))
             if latest is None or t > latest:
                 latest_cycle, latest = c, t
     return sorted(out, key=lambda p: (p.file, p.kind, p.reason))
