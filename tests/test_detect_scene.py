@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from uwbcl import archive, cli, config, pipeline
-from uwbcl.detect import cancel
+from uwbcl.detect import cancel, peaks
 from uwbcl.importers import p440, synthetic
 from uwbcl.records import ConfigError, DetectionSettings, ProcessingSettings
 from uwbcl.scenarios import PAPER_SIM1
@@ -136,3 +136,32 @@ def test_the_new_detection_keys_are_read_from_the_site_file_and_their_ranges_che
         with pytest.raises(ConfigError) as err:
             config.parse_config({"detection": bad})
         assert err.value.key == key
+
+
+def test_the_range_bin_medians_equal_numpys_median_over_each_bins_valid_pixels():
+    rng = np.random.default_rng(3)
+    mag = rng.rayleigh(size=(40, 30))
+    valid = rng.random(mag.shape) > 0.2
+    rc = np.linspace(2.0, 3.0, 30)[None, :] + np.linspace(0.0, 0.2, 40)[:, None]
+    level = peaks.range_bin_medians(mag, valid, rc, 0.05)
+    bins = np.floor((rc - rc[valid].min()) / 0.05).astype(int)
+    for b in np.unique(bins[valid]):
+        here = bins == b
+        assert np.allclose(level[here], np.median(mag[here & valid]))
+    by_column = peaks.range_bin_medians(mag, valid, None, 0.05)
+    assert np.allclose(by_column[0], [np.median(mag[valid[:, j], j]) for j in range(30)])
+
+
+def test_the_cfar_threshold_removes_a_constant_range_stripe_of_an_image_but_not_a_point_on_it():
+    rng = np.random.default_rng(5)
+    mag = rng.rayleigh(size=(200, 60))
+    mag[:, 20] += 60.0 + 20.0 * rng.random(200)  # a stripe at one range: many local maxima along it
+    mag[100, 40] = 90.0  # a point target elsewhere
+    mag[150, 20] = 400.0  # and one on the stripe, far above it
+    valid = np.ones(mag.shape, dtype=bool)
+    s = DetectionSettings(relative_floor_db=-30.0, separation_m=0.02, range_separation_m=0.02)
+    plain, _ = peaks.local_peaks(mag, valid, (0.01, 0.01), s)
+    assert (plain[:, 1] == 20).sum() > 3
+    cfar, _ = peaks.local_peaks(mag, valid, (0.01, 0.01), DetectionSettings(
+        relative_floor_db=-30.0, separation_m=0.02, range_separation_m=0.02, cfar_db=6.0))
+    assert sorted(map(tuple, cfar)) == [(100, 40), (150, 20)]
