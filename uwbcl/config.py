@@ -196,6 +196,10 @@ _RANGES = {
     "detection.neighbour_cancellation_passes": (lambda v: 0 <= v <= 16, "between 0 and 16"),
     "detection.neighbour_cancellation_tol_m": (_positive, "finite and > 0"),
     "detection.neighbour_gain_degree": (lambda v: 0 <= v <= 32, "between 0 and 32"),
+    "detection.min_range_m": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0"),
+    "detection.max_range_m": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0 (0: no upper bound)"),
+    "detection.cfar_db": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0 (0: off)"),
+    "detection.cancel_max_targets": (lambda v: 0 <= v <= 4096, "between 0 (all) and 4096"),
     **{f"limits.{f.name}": (lambda v: v >= 1, ">= 1") for f in dataclasses.fields(ReadLimits)},
 }
 
@@ -211,6 +215,11 @@ def _check_ranges(settings: ProcessingSettings, path) -> None:
                 v if isinstance(v, tuple) else (v,))), "finite"))
             if not check(value):
                 raise ConfigError(path, key, f"must be {want}, got {value!r}")
+    d = settings.detection
+    if 0 < d.max_range_m <= d.min_range_m:
+        raise ConfigError(path, "detection.max_range_m",
+                          f"must be 0 (no upper bound) or > detection.min_range_m ({d.min_range_m}), "
+                          f"got {d.max_range_m!r}")
 
 
 def validate(cfg: SiteConfig, path=None) -> None:

@@ -70,6 +70,18 @@ class DetectionSettings:
     # most their height difference |dh|: the R_c gate is |dh| plus this margin for the per-pass R_c errors.
     cross_height_x_tol_m: float = 0.08
     cross_height_rc_tol_m: float = 0.05
+    # Region of interest in closest-approach range R_c (m), for real recordings: a peak nearer than
+    # min_range_m (the antenna's direct coupling, ~2 m on a PulsON 440) or beyond max_range_m (0: no bound)
+    # does not count, nor sets the relative floor. Checked on each pixel's R_c before the peaks are chosen
+    # (for NLCS with t_n taken as the row's t_a, good to a few cm) and on each detection's exact R_c.
+    min_range_m: float = 0.0
+    max_range_m: float = 0.0
+    # Adaptive (CFAR-like) threshold (dB, 0: off): a peak must also exceed the median magnitude of its range
+    # bin over the searched azimuth by this much, which removes stationary-in-range clutter (a stripe).
+    cfar_db: float = 0.0
+    # Neighbour cancellation models only this many of the strongest peaks (0: all); the weaker ones keep their
+    # first refinement, so a clutter-filled pass cannot cost minutes.
+    cancel_max_targets: int = 0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from ..focus import backprojection as bp
 from ..focus import nlcs
 from ..focus.protocol import Focuser
@@ -60,8 +62,9 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     a, b = [c[0] for c in cells], [c[1] for c in cells]
     t_f, r, t_n = calibration.peak_track_times(products, a, b, focuser)
     r0 = r - grid.speed_m_s * grid.sin_squint * t_n  # eq. (19), C12: r_LC = r_LRCM - v sin(theta_q) t_nc
-    return [_detection(grid, float(t_n[i]), float(r0[i]), grid.speed_m_s * float(t_f[i]), float(r[i]),
-                       abs(val), floor) for i, (_, _, val) in enumerate(cells)]
+    found = [_detection(grid, float(t_n[i]), float(r0[i]), grid.speed_m_s * float(t_f[i]), float(r[i]),
+                        abs(val), floor) for i, (_, _, val) in enumerate(cells)]
+    return _in_range(found, settings)
 
 
 def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings = DetectionSettings()
@@ -99,13 +102,27 @@ def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings =
         r = products.r_axis_m[0] + b * dr
         t_n = u / grid.speed_m_s
         out.append(_detection(grid, t_n, r - grid.sin_squint * u, u, r, abs(val), floor))
-    return out
+    return _in_range(out, settings)
 
 
 def _cancel(cells: list[cancel.Cell], model: cancel.CancellationModel, settings: DetectionSettings
             ) -> list[cancel.Cell]:
-    return cancel.cancel_neighbours(cells, model, settings.neighbour_cancellation_passes,
-                                    settings.neighbour_cancellation_tol_m, settings.neighbour_gain_degree)
+    """Neighbour cancellation of the strongest `cancel_max_targets` cells (all when 0; `cells` are strongest
+    first); the weaker ones keep their first refinement."""
+    n = len(cells) if settings.cancel_max_targets <= 0 else min(settings.cancel_max_targets, len(cells))
+    if n < 2:
+        return cells
+    return cancel.cancel_neighbours(cells[:n], model, settings.neighbour_cancellation_passes,
+                                    settings.neighbour_cancellation_tol_m, settings.neighbour_gain_degree
+                                    ) + cells[n:]
+
+
+def _in_range(found: list[Detection], settings: DetectionSettings) -> list[Detection]:
+    """The detections whose exact R_c is in the region of interest (the pixels were gated on an estimate)."""
+    if settings.min_range_m <= 0 and settings.max_range_m <= 0:
+        return found
+    keep = peaks.range_of_interest(np.array([d.rc_m for d in found]), settings)
+    return [d for d, k in zip(found, keep) if k]
 
 
 def _detection(grid: nlcs.FocusGrid, t_n: float, r0: float, image_az: float, image_r: float, amp: float,

@@ -1,7 +1,8 @@
 """Peaks of a focused image on its pixel grid: the floors, non-maximum suppression and where to search.
 
 A peak is a pixel above both floors (relative to the strongest peak, and to the image's median magnitude, a
-robust noise/clutter level) that is the largest pixel of its separation ellipse (`DetectionSettings`).
+robust noise/clutter level), and optionally over its range bin's median by `cfar_db`, inside the region of
+interest in R_c, that is the largest pixel of its separation ellipse (`DetectionSettings`).
 """
 
 from __future__ import annotations
@@ -21,8 +22,8 @@ NLCS_RANGE_EDGE_BINS = 2
 NLCS_CROP_MARGIN_ROWS = 2
 
 
-def local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float], s: DetectionSettings
-                ) -> tuple[np.ndarray, float]:
+def local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float], s: DetectionSettings,
+                rc_m: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """Pixels above the floors that are the maximum of their separation ellipse (non-maximum suppression).
 
     Parameters
@@ -35,6 +36,9 @@ def local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float]
         Pixel spacing along azimuth and range (m).
     s : DetectionSettings
         Floors (dB), the ellipse's semi-axes (m) and the most peaks kept.
+    rc_m : ndarray, shape (n_a, n_r), optional
+        Each pixel's closest-approach range (m): the adaptive threshold's bins (`s.cfar_db`); without it,
+        the image's columns.
 
     Returns
     -------
@@ -46,10 +50,12 @@ def local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float]
     floor = np.median(mag[valid]) if valid.any() else 0.0
     peak_max = mag[valid].max() if valid.any() else 0.0
     threshold = max(peak_max * 10 ** (s.relative_floor_db / 20), floor * 10 ** (s.min_snr_db / 20))
+    candidates = valid & (mag > threshold)
+    if s.cfar_db > 0:
+        candidates &= mag > range_bin_medians(mag, valid, rc_m, pixel_m[1]) * 10 ** (s.cfar_db / 20)
     na, nr = (int(s.separation_m / pixel_m[0]), int(s.range_separation_m / pixel_m[1]))
     a, r = np.ogrid[-na:na + 1, -nr:nr + 1]
     footprint = (a * pixel_m[0] / s.separation_m) ** 2 + (r * pixel_m[1] / s.range_separation_m) ** 2 <= 1.0
-    candidates = valid & (mag > threshold)
     if na >= 1 and nr >= 1 and footprint[na - 1:na + 2, nr - 1:nr + 2].all():
         # The ellipse holds the 3x3 neighbourhood, so its maxima are 3x3 maxima: test the ellipse only there
         # (the same result as the full filter, at a fraction of its cost on a mostly empty image).
@@ -65,6 +71,42 @@ def local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float]
         idx = np.argwhere(candidates & is_max)
     order = np.argsort(mag[idx[:, 0], idx[:, 1]], kind="stable")[::-1][: s.max_targets]
     return idx[order], floor
+
+
+def range_bin_medians(mag: np.ndarray, valid: np.ndarray, rc_m: np.ndarray | None, bin_m: float
+                      ) -> np.ndarray:
+    """Each pixel's clutter level for the adaptive threshold (`DetectionSettings.cfar_db`): the median of
+    `mag` over the valid pixels of its range bin, shape of `mag`.
+
+    The bins are `bin_m` wide in closest-approach range `rc_m` (a squinted image draws an echo at a constant
+    delay, such as the antenna's coupling, along a line of constant R_c, not along a column); without
+    `rc_m`, the image's columns. A pixel whose bin holds no valid pixel gets 0.
+    """
+    if rc_m is None:
+        bins = np.broadcast_to(np.arange(mag.shape[1])[None, :], mag.shape)
+    else:
+        lowest = rc_m[valid].min() if valid.any() else 0.0
+        bins = np.floor((rc_m - lowest) / bin_m).astype(np.int64)
+    values, b = mag[valid], bins[valid]
+    n_bins = int(b.max()) + 1 if b.size else 1
+    counts = np.bincount(b, minlength=n_bins)
+    ordered = values[np.lexsort((values, b))]  # by bin, then by magnitude within it
+    starts = np.cumsum(counts) - counts
+    has = counts > 0
+    medians = np.zeros(n_bins)
+    lo, hi = starts[has] + (counts[has] - 1) // 2, starts[has] + counts[has] // 2
+    medians[has] = 0.5 * (ordered[lo] + ordered[hi])
+    inside = (bins >= 0) & (bins < n_bins)
+    return np.where(inside, medians[np.clip(bins, 0, n_bins - 1)], 0.0)
+
+
+def range_of_interest(rc_m: np.ndarray, s: DetectionSettings) -> np.ndarray:
+    """Where a closest-approach range is inside the region of interest [min_range_m, max_range_m]
+    (max_range_m = 0: no upper bound)."""
+    inside = rc_m >= s.min_range_m
+    if s.max_range_m > 0:
+        inside &= rc_m <= s.max_range_m
+    return inside
 
 
 def nlcs_peaks(products: nlcs.NlcsProducts, s: DetectionSettings) -> tuple[np.ndarray, float]:
@@ -97,7 +139,13 @@ def nlcs_peaks(products: nlcs.NlcsProducts, s: DetectionSettings) -> tuple[np.nd
     mag = np.abs(products.image[top:bottom])
     valid = np.zeros(mag.shape, dtype=bool)
     valid[on_rail - top, NLCS_RANGE_EDGE_BINS:-NLCS_RANGE_EDGE_BINS] = True
-    pixels, floor = local_peaks(mag, valid, (grid.track_spacing_m, dr), s)
+    rc = None
+    if s.min_range_m > 0 or s.max_range_m > 0 or s.cfar_db > 0:
+        # R_c with t_n taken as t_a: the focus-position calibration moves a peak by at most a few cm
+        t_a = grid.t_azimuth_s[top:bottom, None]
+        rc = (grid.range_bins_m[None, :] - grid.speed_m_s * grid.sin_squint * t_a) * grid.cos_squint
+        valid &= range_of_interest(rc, s)
+    pixels, floor = local_peaks(mag, valid, (grid.track_spacing_m, dr), s, rc)
     return pixels + (top, 0), floor
 
 
@@ -124,4 +172,9 @@ def bp_peaks(products: bp.BackprojectionProducts, s: DetectionSettings) -> tuple
     dr = products.r_axis_m[1] - products.r_axis_m[0]
     valid = np.ones(mag.shape, dtype=bool)
     valid[[0, -1], :] = valid[:, [0, -1]] = False
-    return local_peaks(mag, valid, (du, dr), s)
+    rc = None
+    if s.min_range_m > 0 or s.max_range_m > 0 or s.cfar_db > 0:
+        grid = products.grid
+        rc = (products.r_axis_m[None, :] - grid.sin_squint * products.u_axis_m[:, None]) * grid.cos_squint
+        valid &= range_of_interest(rc, s)
+    return local_peaks(mag, valid, (du, dr), s, rc)
