@@ -18,19 +18,11 @@ from pathlib import Path
 
 import h5py
 import pytest
+from shift_case import CONFIG, OUTPUTS, SETTINGS, options
 
 from uwbcl import archive, batch, outputs, shift
 from uwbcl.cli import main
-from uwbcl.records import AssociationSettings, BatchOptions, OutputOptions, ProcessingSettings
-
-SETTINGS = ProcessingSettings(backend="numpy",
-                              association=AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0)))
-CONFIG = shift.ShiftConfig(rigs=1, cycles=3, seed=5)
-OUTPUTS = ("displacements.csv", "displacements.h5", "targets.csv", "errors.csv")
-
-
-def options(**kw) -> BatchOptions:
-    return BatchOptions(**{"jobs": 1, "progress": False, **kw})
+from uwbcl.records import OutputOptions
 
 
 def problems(out: Path) -> dict[str, str]:
@@ -40,20 +32,6 @@ def problems(out: Path) -> dict[str, str]:
 
 def outputs_of(out: Path) -> dict[str, bytes]:
     return {name: (out / name).read_bytes() for name in OUTPUTS}
-
-
-@pytest.fixture(scope="module")
-def archive_dir(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("shift")
-    shift.write_shift(out, CONFIG)
-    return out
-
-
-@pytest.fixture(scope="module")
-def clean(archive_dir, tmp_path_factory):
-    out = tmp_path_factory.mktemp("clean-out")
-    report = batch.process_directory(archive_dir, out, SETTINGS, options())
-    return out, report
 
 
 @pytest.fixture

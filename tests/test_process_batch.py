@@ -17,19 +17,11 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from shift_case import OUTPUTS, SETTINGS, options
 
 from uwbcl import batch, shift
 from uwbcl.cli import main
-from uwbcl.records import AssociationSettings, BatchError, BatchOptions, OutputOptions, ProcessingSettings
-
-SETTINGS = ProcessingSettings(backend="numpy",
-                              association=AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0)))
-OUTPUTS = ("displacements.csv", "displacements.h5", "targets.csv", "errors.csv")
-CONFIG = shift.ShiftConfig(rigs=1, cycles=3, seed=5)
-
-
-def options(**kw) -> BatchOptions:
-    return BatchOptions(**{"jobs": 1, "progress": False, **kw})
+from uwbcl.records import BatchError, OutputOptions
 
 
 def snapshot(out: Path) -> dict[str, bytes]:
@@ -44,20 +36,6 @@ def rows(path: Path) -> list[dict]:
 def tree_hashes(root: Path) -> dict[str, str]:
     return {p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
             for p in sorted(root.rglob("*")) if p.is_file()}
-
-
-@pytest.fixture(scope="module")
-def archive_dir(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("shift")
-    shift.write_shift(out, CONFIG)
-    return out
-
-
-@pytest.fixture(scope="module")
-def clean(archive_dir, tmp_path_factory):
-    out = tmp_path_factory.mktemp("clean-out")
-    report = batch.process_directory(archive_dir, out, SETTINGS, options())
-    return out, report
 
 
 def warm_out(clean_out: Path, tmp_path: Path) -> Path:

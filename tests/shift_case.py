@@ -1,0 +1,15 @@
+"""The small simulated shift the batch tests share (1 rig, 3 cycles, 2 heights) and how they process it."""
+
+from __future__ import annotations
+
+from uwbcl import shift
+from uwbcl.records import AssociationSettings, BatchOptions, ProcessingSettings
+
+SETTINGS = ProcessingSettings(backend="numpy",
+                              association=AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0)))
+OUTPUTS = ("displacements.csv", "displacements.h5", "targets.csv", "errors.csv")
+CONFIG = shift.ShiftConfig(rigs=1, cycles=3, seed=5)
+
+
+def options(**kw) -> BatchOptions:
+    return BatchOptions(**{"jobs": 1, "progress": False, **kw})
