@@ -30,6 +30,7 @@ import sys
 import threading
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -135,6 +136,9 @@ def detect_file(path: str, settings: ProcessingSettings) -> dict:
 
 
 DETECT = detect_file  # the per-pass worker (tests substitute one that crashes)
+# The entry of a pass whose worker process died every time it was focused (a crash, the out-of-memory killer).
+WORKER_DIED = {"error": "the worker process died while focusing it (crash or out of memory)",
+               "kind": "processing_failed"}
 
 
 _DETECTION_FIELDS = tuple(f.name for f in dataclasses.fields(Detection))
@@ -543,14 +547,20 @@ def _focus(todo: list[tuple[Path, str, str]], settings: ProcessingSettings, jobs
         log.warning("a worker process died; focusing the %d unfinished passes one at a time", len(left))
         for item in left:
             if _run_pool([item], settings, 1, finish):
-                finish(*item, {"error": "the worker process died while focusing it (crash or out of memory)",
-                               "kind": "processing_failed"})
+                finish(*item, dict(WORKER_DIED))
+
+
+# Focuses a list of (path, name, sha256) with the settings, calling finish(path, name, sha256, entry) for each
+# in any order; entries as detect_file returns them. The default focuses here (_focus); `uwbcl process
+# --scheduler` passes the cluster's (cluster.DaskRunner), a layer above.
+Runner = Callable[[list[tuple[Path, str, str]], ProcessingSettings, Callable[..., None]], None]
 
 
 def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, cache: PassCache,
-               options: BatchOptions) -> tuple[list[PassRecord], list[Problem], set[str]]:
-    """Records of every readable archive, from the cache or by focusing; problems of the others; the files
-    focused in this run."""
+               options: BatchOptions, runner: Runner | None = None
+               ) -> tuple[list[PassRecord], list[Problem], set[str]]:
+    """Records of every readable archive, from the cache or by focusing (in this machine's worker processes,
+    or by `runner`); problems of the others; the files focused in this run."""
     records, problems, todo = _from_cache(files, in_dir, cache)
     progress = Progress(len(todo), options.progress)
     done = 0
@@ -575,16 +585,19 @@ def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, ca
             options.on_pass_done(done)
 
     try:
-        _focus(todo, settings, worker_count(options.jobs, settings, len(todo)), finish)
+        if runner is None:
+            _focus(todo, settings, worker_count(options.jobs, settings, len(todo)), finish)
+        else:
+            runner(todo, settings, finish)
     finally:
         progress.close()
     return records, problems, {rel for _, rel, _ in todo}
 
 
 def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings | None = None,
-                      options: BatchOptions | None = None) -> BatchReport:
+                      options: BatchOptions | None = None, runner: Runner | None = None) -> BatchReport:
     """Every archive under in_dir -> the outputs of docs/outputs.md in out_dir. Bad input is reported,
-    skipped."""
+    skipped. `runner` focuses the passes elsewhere (a Dask cluster) instead of this machine's workers."""
     settings = settings or ProcessingSettings()
     options = options or BatchOptions()
     in_dir, out_dir = Path(in_dir), Path(out_dir)
@@ -596,7 +609,7 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
         for p in problems:
             log.error("%s: %s", p.file, p.reason)
         cache = PassCache(out_dir, settings, options.cache)
-        records, pass_problems, focused = detect_all(files, in_dir, settings, cache, options)
+        records, pass_problems, focused = detect_all(files, in_dir, settings, cache, options, runner)
         problems += pass_problems
         n_detected = len(focused)
         warnings += suspicious(records)

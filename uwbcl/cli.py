@@ -81,7 +81,13 @@ def _process(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"uwbcl process: {exc}", file=sys.stderr)
         return 2
-    if settings.backend == "opencl" and not _engine_ready(settings.device, args.profile):
+    usage = _scheduler_problem(args)
+    if usage:
+        print(f"uwbcl process: {usage}", file=sys.stderr)
+        return 2
+    # On a cluster the workers start the engine (cluster.connect checks them), not this process.
+    local_engine = settings.backend == "opencl" and not args.scheduler
+    if local_engine and not _engine_ready(settings.device, args.profile):
         return 2
     in_dir, out_dir = Path(args.in_dir), Path(args.out)
     usage = _directories_problem(in_dir, out_dir)
@@ -89,9 +95,14 @@ def _process(args: argparse.Namespace) -> int:
         print(f"uwbcl process: {usage}", file=sys.stderr)
         return 2
     try:
-        with _signals_as_interrupts():
+        with _signals_as_interrupts(), contextlib.ExitStack() as stack:
+            runner = None
+            if args.scheduler:
+                from . import cluster
+
+                runner = stack.enter_context(cluster.connect(args.scheduler, settings))
             report = batch.process_directory(in_dir, out_dir, settings, site.batch_options(
-                progress=False if args.no_progress else None, follow_symlinks=args.follow_symlinks))
+                progress=False if args.no_progress else None, follow_symlinks=args.follow_symlinks), runner)
     except BatchError as exc:
         print(f"uwbcl process: {exc}", file=sys.stderr)
         return 2
@@ -168,6 +179,17 @@ def _focus(args: argparse.Namespace) -> int:
     print(f"{len(done)} passes focused, {sum(len(p.detections) for p in done)} detections: {csv_path} "
           f"and {len(done)} images in {out_dir}" + (f"; {failed} archives failed" if failed else ""))
     return 1 if failed else 0
+
+
+def _scheduler_problem(args: argparse.Namespace) -> str:
+    """Why --scheduler cannot be used with the other flags given ("" when it can)."""
+    if not args.scheduler:
+        return ""
+    if args.jobs is not None:
+        return "--jobs and --scheduler: the cluster's workers are the jobs; give one of them"
+    if args.profile:
+        return "--profile runs the engine in this process; it cannot be used with --scheduler"
+    return ""
 
 
 def _directories_problem(in_dir: Path, out_dir: Path) -> str:
@@ -403,6 +425,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--plots", action="store_true", help="write plots/timeseries_<rig>.png (needs matplotlib)")
     q.add_argument("--cycle-images", action="store_true",
                    help="write a focused image per pass with the detections marked (slow: refocuses)")
+    q.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                   help="focus on a Dask cluster: its scheduler's tcp://HOST:PORT, or local:N for N worker "
+                        "processes on this machine (needs uwbcl[cluster]; docs/outputs.md section 5)")
     q.add_argument("--no-cache", action="store_true", help="refocus every pass, ignoring OUT/.uwbcl-cache")
     q.add_argument("--profile", action="store_true",
                    help="opencl: print the device time per focusing stage after the run (runs with --jobs 1)")
