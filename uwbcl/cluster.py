@@ -112,7 +112,7 @@ class DaskRunner:
         """BatchError naming the first worker that runs other code or cannot start the settings' focuser."""
         workers = sorted(self.client.nthreads())
         futures = [self.client.submit(worker_ready, settings, self.fingerprint, workers=[w],
-                                      allow_other_workers=False, pure=False, key=f"uwbcl-ready-{w}")
+                                      allow_other_workers=False, pure=False)
                    for w in workers]
         for w, problem in zip(workers, self.client.gather(futures)):
             if problem:
