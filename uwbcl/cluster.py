@@ -20,8 +20,10 @@ import hashlib
 import logging
 import math
 import os
+import signal
 import socket
 import tempfile
+import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -93,6 +95,21 @@ def detect_passes(items: list[tuple[str, str]], settings: ProcessingSettings, fi
 
 def _sees_directory(path: str) -> bool:
     return os.path.isdir(path)
+
+
+def _ignore_interrupts_plugin():
+    """A worker plugin for local:N: Ctrl-C on the terminal reaches the whole process group, and is the
+    client's to handle (it cancels the tasks and closes the cluster), as in a local run's workers."""
+    from distributed import WorkerPlugin
+
+    class IgnoreInterrupts(WorkerPlugin):
+        name = "uwbcl-ignore-interrupts"
+
+        def setup(self, worker):
+            if threading.current_thread() is threading.main_thread():
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    return IgnoreInterrupts()
 
 
 # ----------------------------------------------------------------------------------------------- the client
@@ -255,6 +272,8 @@ def connect(spec: str, settings: ProcessingSettings, timeout_s: float = CONNECT_
         except (OSError, TimeoutError, ValueError) as e:
             raise BatchError(f"--scheduler {spec}: cannot connect: {e}") from None
         stack.callback(client.close)
+        if n_workers is not None:
+            client.register_plugin(_ignore_interrupts_plugin())
         try:
             client.wait_for_workers(1, timeout=timeout_s)
         except TimeoutError:
