@@ -12,6 +12,7 @@ from pathlib import Path
 
 import distributed
 import pytest
+from dask.config import set as dask_config_set
 from shift_case import OUTPUTS, SETTINGS, options
 
 from uwbcl import batch, cluster, shift
@@ -165,3 +166,40 @@ def test_a_worker_with_other_uwbcl_code_is_refused_before_the_run(dask_runner):
     runner.fingerprint = hashlib.sha256(b"another build").hexdigest()[:16]
     with pytest.raises(BatchError, match="runs other uwbcl code"):
         runner.check_workers(SETTINGS)
+
+
+class DieOnCycle1(distributed.WorkerPlugin):
+    """In each worker: the per-pass detector, except that a pass of cycle 1 takes its process down, every
+    time."""
+
+    name = "uwbcl-test-die-on-cycle-1"
+
+    def setup(self, worker):
+        def detect(path, settings):
+            if "_c000001_" in path:
+                os._exit(3)
+            return batch.detect_file(path, settings)
+
+        batch.DETECT = detect
+
+    def teardown(self, worker):
+        batch.DETECT = batch.detect_file
+
+
+def test_a_pass_that_kills_every_worker_it_meets_gets_the_row_a_local_run_gives_it(archive_dir, clean,
+                                                                                     tmp_path):
+    out = tmp_path / "out"
+    shutil.copytree(clean[0] / batch.CACHE_DIR, out / batch.CACHE_DIR)
+    cycle1 = sorted(p for p in archive_dir.rglob("*.h5") if "_c000001_" in p.name)[0]
+    cycle2 = sorted(p for p in archive_dir.rglob("*.h5") if "_c000002_" in p.name)[0]
+    for f in (cycle1, cycle2):
+        (out / batch.CACHE_DIR / batch.settings_key(SETTINGS) / f"{batch.file_sha256(f)}.json").unlink()
+    with dask_config_set({"distributed.scheduler.allowed-failures": 0}), \
+            cluster.connect("local:2", SETTINGS) as runner:  # one death makes a task lost, to keep this short
+        runner.client.register_plugin(DieOnCycle1())
+        report = batch.process_directory(archive_dir, out, SETTINGS, options(), runner)
+    assert report.n_detected == 2
+    (dead,) = [p for p in report.errors if p.kind != "single_height"]  # cycle 1 keeps one height
+    assert (dead.file, dead.kind, dead.reason) == (cycle1.relative_to(archive_dir).as_posix(),
+                                                   batch.WORKER_DIED["kind"], batch.WORKER_DIED["error"])
+    assert [r["cycle"] for r in report.rows] == [2]  # cycle 2 measured from cycle 0, across the lost cycle

@@ -36,6 +36,16 @@ LOCAL_PREFIX = "local:"
 CONNECT_TIMEOUT_S = 10.0  # to reach the scheduler and, after that, for its first worker to be there
 TASKS_PER_THREAD = 8  # at least this many tasks per worker thread, so that the run ends evenly
 MAX_PASSES_PER_TASK = 8  # a task's scheduling cost (~1 ms) spread over up to this many passes
+# Dask settings of the local:N workers. pre-spawn-environ: they inherit this process's environment, as a local
+# run's workers do (Dask's default pins BLAS to one thread, and OpenBLAS rounds some float64 sums differently
+# with another thread count: the last bits of the detections, so of displacements.h5). The rest: no periodic
+# Python work beside the task that takes the GIL from it (the statistical profiler samples every 10 ms).
+LOCAL_WORKER_CONFIG = {
+    "distributed.nanny.pre-spawn-environ": {},
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.system-monitor.gil.enabled": False,
+    "distributed.admin.tick.interval": "200ms",
+}
 INSTALL_HINT = "install uwbcl[cluster] (pip install 'uwbcl[cluster]')"
 
 
@@ -238,9 +248,9 @@ def _probe(address: str, timeout_s: float) -> None:
 def connect(spec: str, settings: ProcessingSettings, timeout_s: float = CONNECT_TIMEOUT_S
             ) -> Iterator[DaskRunner]:
     """A DaskRunner on the scheduler at `spec` (tcp://HOST:PORT), or on a LocalCluster of N single-threaded
-    worker processes for 'local:N' (started here, closed on leaving, its scratch space in a temporary
-    directory that goes with it). The workers are checked first: BatchError for a missing `distributed`, an
-    address that does not answer, no worker within timeout_s, a worker with other code or no OpenCL."""
+    worker processes for 'local:N' (started here, closed on leaving). The workers are checked first:
+    BatchError for a missing `distributed`, an address that does not answer, no worker within timeout_s, a
+    worker with other code or no OpenCL."""
     kind, n_workers = parse_scheduler(spec)
     try:
         import distributed
@@ -251,12 +261,11 @@ def connect(spec: str, settings: ProcessingSettings, timeout_s: float = CONNECT_
         logging.getLogger("distributed").setLevel(logging.WARNING)
     with contextlib.ExitStack() as stack:
         if n_workers is not None:
-            scratch = stack.enter_context(tempfile.TemporaryDirectory(prefix="uwbcl-dask-"))
+            # Dask's scratch space for the workers (they keep nothing there: results go to the client); one
+            # per user, where Dask's next start removes what a killed run left.
+            scratch = os.path.join(tempfile.gettempdir(), f"uwbcl-dask-{os.getuid()}")
             try:
-                # The workers inherit this process's environment, as the local run's workers do: the nanny's
-                # default pins BLAS to one thread, and OpenBLAS rounds differently with another thread count
-                # (last bits of float64 detections, so of displacements.h5).
-                with dask_config_set({"distributed.nanny.pre-spawn-environ": {}}):
+                with dask_config_set(LOCAL_WORKER_CONFIG):
                     local = stack.enter_context(distributed.LocalCluster(
                         n_workers=n_workers, threads_per_worker=1, processes=True, host="127.0.0.1",
                         dashboard_address=None, scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
