@@ -147,8 +147,9 @@ class DaskRunner:
 
     def _check_paths(self, todo: list[tuple[Path, str, str]]) -> None:
         """The workers read the archives by path: BatchError when one of them cannot see the input tree."""
-        common = os.path.commonpath([str(p.parent) for p, _, _ in todo])
-        blind = sorted(w for w, ok in self.client.run(_sees_directory, common).items() if not ok)
+        common = os.path.commonpath([os.path.abspath(p.parent) for p, _, _ in todo])
+        blind = sorted(w for w, ok in self.client.run(_sees_directory, common, on_error="return").items()
+                       if ok is False)
         if blind:
             raise BatchError(f"--scheduler {self.description}: worker {blind[0]} cannot see {common}; the "
                              "workers must see the archive directory at the same path as this machine")
@@ -166,9 +167,12 @@ class DaskRunner:
         from distributed import KilledWorker, as_completed
 
         self.rounds += 1
-        futures = {self.client.submit(detect_passes, [(str(p), sha) for p, _, sha in chunk], settings,
-                                      self.fingerprint, key=self._key(chunk, settings), pure=False): chunk
-                   for chunk in chunks}
+        futures = {}
+        for chunk in chunks:
+            items = [(os.path.abspath(p), sha) for p, _, sha in chunk]  # workers have other working dirs
+            fut = self.client.submit(detect_passes, items, settings, self.fingerprint,
+                                     key=self._key(chunk, settings), pure=False)
+            futures[fut] = chunk
         lost = []
         try:
             for fut in as_completed(list(futures), loop=self.client.loop):
