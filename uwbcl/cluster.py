@@ -38,12 +38,18 @@ TASKS_PER_THREAD = 8  # at least this many tasks per worker thread, so that the 
 MAX_PASSES_PER_TASK = 8  # a task's scheduling cost (~1 ms) spread over up to this many passes
 # Dask settings of the local:N workers. pre-spawn-environ: they inherit this process's environment, as a local
 # run's workers do (Dask's default pins BLAS to one thread, and OpenBLAS rounds some float64 sums differently
-# with another thread count: the last bits of the detections, so of displacements.h5). The rest: no periodic
-# Python work beside the task that takes the GIL from it (the statistical profiler samples every 10 ms).
+# with another thread count: the last bits of the detections, so of displacements.h5). The rest: as little
+# periodic Python work beside the task as Dask allows, since each wake-up takes the GIL from the task (the
+# statistical profiler samples every 10 ms; the memory monitor, which only spills or pauses, every 100 ms;
+# the tasks hold no data to spill). The nanny's out-of-memory guard (in this process) stays.
 LOCAL_WORKER_CONFIG = {
     "distributed.nanny.pre-spawn-environ": {},
     "distributed.worker.profile.enabled": False,
+    "distributed.worker.memory.target": False,
+    "distributed.worker.memory.spill": False,
+    "distributed.worker.memory.pause": False,
     "distributed.admin.system-monitor.gil.enabled": False,
+    "distributed.admin.system-monitor.interval": "2s",
     "distributed.admin.tick.interval": "200ms",
 }
 INSTALL_HINT = "install uwbcl[cluster] (pip install 'uwbcl[cluster]')"
