@@ -427,7 +427,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write a focused image per pass with the detections marked (slow: refocuses)")
     q.add_argument("--scheduler", metavar="ADDRESS", default=None,
                    help="focus on a Dask cluster: its scheduler's tcp://HOST:PORT, or local:N for N worker "
-                        "processes on this machine (needs uwbcl[cluster]; docs/outputs.md section 5)")
+                        "processes on this machine (needs uwbcl[cluster]; docs/outputs.md section 5.1)")
     q.add_argument("--no-cache", action="store_true", help="refocus every pass, ignoring OUT/.uwbcl-cache")
     q.add_argument("--profile", action="store_true",
                    help="opencl: print the device time per focusing stage after the run (runs with --jobs 1)")
