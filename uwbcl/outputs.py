@@ -31,8 +31,9 @@ DISPLACEMENT_COLUMNS = (
     # Added in displacements format 1.1 (docs/outputs.md section 2.1), appended: the order above is fixed.
     "retreat_bound_m", "creep_bound_m", "cumulative_retreat_bound_m", "cumulative_creep_bound_m",
     "association_margin",
-    # Added in 1.2: 0 as first issued, 1 when a later cycle resolved the row (the second look)
-    "revision",
+    # Added in 1.2: 0 as first issued, 1 when a later cycle resolved the row (the second look); the vertical
+    # column's bounds
+    "revision", "vertical_bound_m", "cumulative_vertical_bound_m",
 )
 TARGET_COLUMNS = (
     "rig_id", "cycle", "plate", "track", "x_m", "y_m", "z_m", "residual_m", "n_passes", "amplitude",
@@ -70,7 +71,8 @@ def displacement_records(rows: list[SeriesRow]) -> list[dict]:
             "retreat_bound_m": float(d.bound_m[0]), "creep_bound_m": float(d.bound_m[1]),
             "cumulative_retreat_bound_m": float(r.cumulative_bound_m[0]),
             "cumulative_creep_bound_m": float(r.cumulative_bound_m[1]), "association_margin": float(d.margin),
-            "revision": r.revision,
+            "revision": r.revision, "vertical_bound_m": float(d.bound_m[2]),
+            "cumulative_vertical_bound_m": float(r.cumulative_bound_m[2]),
         })
     return out
 
