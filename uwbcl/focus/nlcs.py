@@ -168,10 +168,19 @@ def h6_group_delay_s(f_hz, k: coef.NlcsCoefficients) -> np.ndarray:
     return -0.5 * (3.0 * k.y3 * f**2 + 4.0 * k.y4 * f**3)
 
 
-def _azimuth_frequencies_hz(x_sine: np.ndarray, f_abs_hz, grid: FocusGrid) -> np.ndarray:
-    """f_a = 2 v F (X - s) / c of slant-squint sines X (n,) at absolute frequencies F: shape (n, F.size)."""
-    f = np.atleast_1d(np.asarray(f_abs_hz, dtype=float))[None, :]
-    return 2.0 * grid.speed_m_s * f * (np.asarray(x_sine)[:, None] - grid.sin_squint) / C
+def max_h6_delay_s(f_lo_hz: float, f_hi_hz: float, k: coef.NlcsCoefficients) -> float:
+    """max |h6_group_delay_s| over f_a in [f_lo, f_hi] and every bin: the cubic's extremes are at the ends and
+    where its derivative -(3 Y3 f + 6 Y4 f^2) vanishes (f = 0, f = -Y3 / (2 Y4))."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        turn = np.where(k.y4 != 0, -k.y3 / (2.0 * k.y4), 0.0)
+    turn = np.clip(turn, f_lo_hz, f_hi_hz)
+    f = np.stack([np.full_like(turn, f_lo_hz), np.full_like(turn, f_hi_hz), turn])
+    return float(np.abs(0.5 * (3.0 * k.y3 * f**2 + 4.0 * k.y4 * f**3)).max())
+
+
+def _azimuth_frequencies_hz(x_sine, f_abs_hz, grid: FocusGrid) -> np.ndarray:
+    """f_a = 2 v F (X - s) / c of slant-squint sines X at absolute frequencies F (broadcast)."""
+    return 2.0 * grid.speed_m_s * np.asarray(f_abs_hz) * (np.asarray(x_sine) - grid.sin_squint) / C
 
 
 def _grid_coefficients(grid: FocusGrid) -> coef.NlcsCoefficients:
@@ -184,10 +193,10 @@ def azimuth_half_support_s(grid: FocusGrid) -> float:
     frequency where the compressed pulse's spectrum is COMPRESSED_SPECTRUM_FLOOR of its peak, every bin."""
     lo, hi = grid.doppler_band
     f_r = pulse_frequency_at_hz(math.sqrt(COMPRESSED_SPECTRUM_FLOOR), grid.pulse_sigma_s)
-    edges = _azimuth_frequencies_hz(np.array([max(lo, -SQUINT_SINE_CAP), min(hi, SQUINT_SINE_CAP)]),
+    edges = _azimuth_frequencies_hz(np.array([[max(lo, -SQUINT_SINE_CAP)], [min(hi, SQUINT_SINE_CAP)]]),
                                     [grid.carrier_frequency_hz, grid.carrier_frequency_hz + f_r], grid)
-    delay = h6_group_delay_s(np.linspace(edges.min(), edges.max(), 513), _grid_coefficients(grid))
-    return grid.half_track_s + float(np.abs(delay).max())
+    k = _grid_coefficients(grid)
+    return grid.half_track_s + max_h6_delay_s(float(edges.min()), float(edges.max()), k)
 
 
 def reference_grid(grid: FocusGrid, aperture_m: float) -> FocusGrid:
@@ -196,16 +205,16 @@ def reference_grid(grid: FocusGrid, aperture_m: float) -> FocusGrid:
     grid's, so its spectrum at the grid's frequencies is every m-th row (`on_grid_frequencies`)."""
     beam = geo.beam_half_width_rad(aperture_m, grid.wavelength_m)
     squint = math.asin(grid.sin_squint)
-    x = np.linspace(max(math.sin(max(squint - beam, -math.pi / 2)), -SQUINT_SINE_CAP),
-                    min(math.sin(min(squint + beam, math.pi / 2)), SQUINT_SINE_CAP), 513)
+    x = np.array([max(math.sin(max(squint - beam, -math.pi / 2)), -SQUINT_SINE_CAP),
+                  min(math.sin(min(squint + beam, math.pi / 2)), SQUINT_SINE_CAP)])
     k = _grid_coefficients(grid)
-    # the reference is a carrier-frequency response; its stationary time at slant squint X (P1, t_n = 0):
-    # v t = r (s - X cos(theta_q) / sqrt(1 - X^2))
-    t_ref = k.r_m * (grid.sin_squint - x[:, None] * grid.cos_squint / np.sqrt(1.0 - x[:, None] ** 2))
-    f = _azimuth_frequencies_hz(x, grid.carrier_frequency_hz, grid)[:, 0]
+    # the reference is a carrier-frequency response; its stationary time at slant squint X (P1, t_n = 0),
+    # v t = r (s - X cos(theta_q) / sqrt(1 - X^2)), decreases with X: largest |t| at the main lobe's edges.
     # |t_ref| + |H6 delay| bounds it (triangle inequality): the stationary time alone is only the centre of a
     # component, and the beam's edge components reach past it (measured: 1e-3 of X_ref's peak, 3 s)
-    reach = float(np.abs(t_ref).max() / grid.speed_m_s + np.abs(h6_group_delay_s(f, k)).max())
+    t_ref = np.abs(grid.sin_squint - x * grid.cos_squint / np.sqrt(1.0 - x**2)).max() * k.r_m.max()
+    f = _azimuth_frequencies_hz(x, grid.carrier_frequency_hz, grid)
+    reach = float(t_ref) / grid.speed_m_s + max_h6_delay_s(float(f.min()), float(f.max()), k)
     return dataclasses.replace(grid, n_azimuth=max(_power_of_two_holding(2.0 * reach, grid), grid.n_azimuth))
 
 
