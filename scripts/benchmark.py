@@ -713,7 +713,8 @@ def report_floor(engine, files: list[Path], runs: dict[str, BatchRun], settings:
     if run is not None:
         n = sum(run.shapes.values())
         out["opencl_ms_per_pass"] = 1e3 * run.seconds / n
-        out["opencl_focus_ms_per_pass"] = 1e3 * run.stages["focus"] / n
+        # a pooled leg's focus seconds are summed over its workers, which ran side by side
+        out["opencl_focus_ms_per_pass"] = 1e3 * run.stages["focus"] / n / run.jobs
         print(f"    opencl: {out['opencl_ms_per_pass']:.1f} ms per pass end to end = "
               f"{out['opencl_ms_per_pass'] / out['pass_floor_ms']:.1f}x the pass floor; focusing "
               f"{out['opencl_focus_ms_per_pass']:.1f} ms = "
