@@ -123,7 +123,8 @@ class FocusGrid:
 
 # The padded azimuth axis (docs/method.md D5). The data chain's axis spans AZIMUTH_GUARD times the centred
 # interval that its signal occupies after H6, over the Doppler band of the range frequencies where the
-# compressed pulse's spectrum P^2 is above COMPRESSED_SPECTRUM_FLOOR of its peak (P > its square root).
+# compressed pulse's spectrum P^2 is above COMPRESSED_SPECTRUM_FLOOR of its peak (the Gaussian pulse's P from
+# `pulse_spectrum`).
 AZIMUTH_GUARD = 1.5
 COMPRESSED_SPECTRUM_FLOOR = 1e-2
 
