@@ -17,9 +17,12 @@ Peak RSS is that of the whole process tree (`uwbcl process` and its workers): sa
 `resource.getrusage(RUSAGE_CHILDREN)`'s ru_maxrss, which is the largest single process of the tree so far in
 the study (workers not added up).
 
-Verdict: time per pass is flat when every size's is within 10 % of the smallest size's; memory is bounded
-when the largest size's peak RSS is within 25 % of the smallest size's (a batch keeps only per-pass records,
-so memory should not grow with the number of passes).
+A run's wall time is a fixed start-up (interpreter, workers, engine, FFT plans) plus a cost per pass, so the
+time per pass of a small run overstates the cost per pass. The study prints both, and the marginal time per
+pass between consecutive sizes, (wall_b - wall_a) / (n_b - n_a), which the start-up cancels from. Verdict:
+flat when every marginal time per pass is within 10 % of the first one (with two sizes only: when the two
+times per pass are within 10 %); memory is bounded when the largest size's peak RSS is within 25 % of the
+smallest size's (a batch keeps only per-pass records, so memory should not grow with the number of passes).
 
 Exit status: 0; 1 if a run failed; 2 for bad arguments.
 """
@@ -146,6 +149,32 @@ def run_size(in_dir: Path, out_dir: Path, args) -> dict:
             "output_tail": output[-2000:]}
 
 
+def judge(ok: list[dict]) -> dict:
+    """Marginal time per pass between consecutive sizes, the start-up estimate, the flat / bounded verdict,
+    printed."""
+    base = ok[0]
+    marginal = [1e3 * (b["seconds"] - a["seconds"]) / (b["passes"] - a["passes"]) for a, b in zip(ok, ok[1:])]
+    startup_s = base["seconds"] - base["passes"] * marginal[0] / 1e3
+    if len(marginal) >= 2:
+        spread = max(abs(m / marginal[0] - 1) for m in marginal)
+        what = "marginal time per pass"
+    else:
+        spread = max(abs(r["ms_per_pass"] / base["ms_per_pass"] - 1) for r in ok)
+        what = "time per pass"
+    growth = ok[-1]["peak_rss_bytes"] / base["peak_rss_bytes"] - 1
+    verdict = {"marginal_ms_per_pass": marginal, "startup_s_estimate": startup_s, "spread": spread,
+               "spread_of": what, "flat": spread <= FLAT_TOLERANCE, "rss_growth": growth,
+               "rss_bounded": growth <= RSS_TOLERANCE}
+    print("marginal ms per pass between sizes: "
+          + ", ".join(f"{a['passes']}->{b['passes']}: {m:.1f}" for a, b, m in zip(ok, ok[1:], marginal))
+          + f"; start-up about {startup_s:.1f} s")
+    print(f"{what} within {100 * spread:.0f} %: {'flat' if verdict['flat'] else 'NOT flat'} "
+          f"(tolerance {100 * FLAT_TOLERANCE:.0f} %); peak RSS {100 * growth:+.0f} % from {base['passes']} "
+          f"to {ok[-1]['passes']} passes: {'bounded' if verdict['rss_bounded'] else 'NOT bounded'} "
+          f"(tolerance {100 * RSS_TOLERANCE:.0f} %); RSS by {base['rss_method']}")
+    return verdict
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -191,16 +220,7 @@ def main(argv=None) -> int:
         ok = [r for r in rows if r["returncode"] == 0]
         verdict = {}
         if len(ok) >= 2:
-            base = ok[0]
-            spread = max(abs(r["ms_per_pass"] / base["ms_per_pass"] - 1) for r in ok)
-            growth = ok[-1]["peak_rss_bytes"] / base["peak_rss_bytes"] - 1
-            verdict = {"time_per_pass_spread": spread, "flat": spread <= FLAT_TOLERANCE,
-                       "rss_growth": growth, "rss_bounded": growth <= RSS_TOLERANCE}
-            print(f"time per pass within {100 * spread:.0f} % of the {base['passes']}-pass run: "
-                  f"{'flat' if verdict['flat'] else 'NOT flat'} (tolerance {100 * FLAT_TOLERANCE:.0f} %); "
-                  f"peak RSS {100 * growth:+.0f} % from {base['passes']} to {ok[-1]['passes']} passes: "
-                  f"{'bounded' if verdict['rss_bounded'] else 'NOT bounded'} "
-                  f"(tolerance {100 * RSS_TOLERANCE:.0f} %); RSS by {ok[0]['rss_method']}")
+            verdict = judge(ok)
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps({"backend": args.backend, "jobs": args.jobs, "rows": rows,
