@@ -14,9 +14,11 @@ calibration targets with the backend that focused the pass.
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 
+from .. import geometry as geo
 from ..focus import backprojection as bp
 from ..focus import nlcs
 from ..focus.protocol import Focuser
@@ -25,11 +27,12 @@ from ..model import ScanPass
 from ..records import Detection, DetectionSettings
 from . import calibration, cancel, peaks, refine
 
-__all__ = ["detect_bp", "detect_nlcs"]
+__all__ = ["detect_bp", "detect_nlcs", "search_footprint"]
 
 
 def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = DetectionSettings(),
-                scan: ScanPass | None = None, focuser: Focuser = NUMPY_FOCUSER) -> list[Detection]:
+                scan: ScanPass | None = None, focuser: Focuser = NUMPY_FOCUSER,
+                footprint: geo.BeamFootprint | None = None) -> list[Detection]:
     """Point targets of an NLCS image, in the pass's closest-approach coordinates.
 
     Parameters
@@ -43,6 +46,8 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
         (`cancel.NlcsModel`); without it, on the image alone.
     focuser : Focuser
         Focuses the neighbours' models and the calibration targets: the backend that focused `products`.
+    footprint : BeamFootprint, optional
+        Search the beam's footprint beside the rail (`settings.search`, `search_footprint`); None: the rail.
 
     Returns
     -------
@@ -51,7 +56,7 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
         the SNR over the image's median magnitude (dB).
     """
     grid = products.grid
-    pixels, floor = peaks.nlcs_peaks(products, settings)
+    pixels, floor = peaks.nlcs_peaks(products, settings, footprint)
     rows, spectrum, interpolant = refine.nlcs_interpolant(products)
     cells = [interpolant.maximise(float(i), float(j)) for i, j in pixels]
     if settings.neighbour_cancellation_passes > 0 and len(cells) > 1 and scan is not None:
@@ -67,8 +72,8 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     return _in_range(found, settings)
 
 
-def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings = DetectionSettings()
-              ) -> list[Detection]:
+def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings = DetectionSettings(),
+              footprint: geo.BeamFootprint | None = None) -> list[Detection]:
     """Point targets of a backprojection image, in the pass's closest-approach coordinates.
 
     The image's pixels are already on (u = v t_n, r_LRCM): no focus-position calibration. Neighbour
@@ -81,6 +86,8 @@ def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings =
         The focused pass (`Focuser.backprojection_focus`).
     settings : DetectionSettings
         Floors, non-maximum suppression and neighbour cancellation.
+    footprint : BeamFootprint, optional
+        As `detect_nlcs` (the image must reach it: `peaks.search_extent_u_m`).
 
     Returns
     -------
@@ -90,7 +97,7 @@ def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings =
     grid = products.grid
     du = products.u_axis_m[1] - products.u_axis_m[0]
     dr = products.r_axis_m[1] - products.r_axis_m[0]
-    pixels, floor = peaks.bp_peaks(products, settings)
+    pixels, floor = peaks.bp_peaks(products, settings, footprint)
     value = refine.bp_evaluator(products, products.compressed)
     cells = [refine.maximise_nelder_mead(value, float(i), float(j), step=refine.BP_SIMPLEX_STEP_CELLS)
              for i, j in pixels]
@@ -105,16 +112,33 @@ def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings =
     return _in_range(out, settings)
 
 
+def search_footprint(scan: ScanPass, settings: DetectionSettings) -> geo.BeamFootprint | None:
+    """The beam footprint `settings.search` asks for (docs/method.md section 4): None for "rail", else the
+    pass's footprint to the beam's -3 dB edges ("footprint") or first nulls ("main_lobe"), from the rail's
+    extent about the aperture centre, the rotation table angle and the antenna aperture."""
+    if settings.search == "rail":
+        return None
+    edge = {"footprint": "3db", "main_lobe": "null"}.get(settings.search)
+    if edge is None:
+        raise ValueError(f"unknown detection search region {settings.search!r} (rail|footprint|main_lobe)")
+    x = scan.pulse_position_m - scan.aperture_centre_m
+    return geo.pass_footprint(float(x.min()), float(x.max()),
+                              scan.geometry.rotation_table_angle_rad, scan.radar.antenna_aperture_m,
+                              scan.radar.wavelength_m, edge)
+
+
 def _cancel(cells: list[cancel.Cell], model: cancel.CancellationModel, settings: DetectionSettings
             ) -> list[cancel.Cell]:
     """Neighbour cancellation of the strongest `cancel_max_targets` cells (all when 0; `cells` are strongest
-    first); the weaker ones keep their first refinement."""
+    first) within `cancel_time_budget_s` (0: none); the others keep their first refinement."""
     n = len(cells) if settings.cancel_max_targets <= 0 else min(settings.cancel_max_targets, len(cells))
     if n < 2:
         return cells
+    budget = settings.cancel_time_budget_s
+    deadline = time.monotonic() + budget if budget > 0 else math.inf
     return cancel.cancel_neighbours(cells[:n], model, settings.neighbour_cancellation_passes,
-                                    settings.neighbour_cancellation_tol_m, settings.neighbour_gain_degree
-                                    ) + cells[n:]
+                                    settings.neighbour_cancellation_tol_m, settings.neighbour_gain_degree,
+                                    deadline) + cells[n:]
 
 
 def _in_range(found: list[Detection], settings: DetectionSettings) -> list[Detection]:

@@ -18,6 +18,9 @@ from ..focus.reference import NUMPY_FOCUSER
 # Simulated targets per calibrated range, evenly across the rail's t_a: more than twice the fit's
 # coefficients, so the fit is a least-squares one through every part of the aperture.
 CALIBRATION_TARGETS = 13
+# Beyond the rail's ends (docs/method.md section 4, footprint search) a peak's t_n(t_f) is fitted locally: the
+# simulated targets span +-0.25 m along track about it, where the distortion is smooth for a degree-5 fit.
+BEYOND_FIT_HALF_M = 0.25
 # Degree of the t_n(t_f) polynomial: the distortion is a smooth series in t_n (t_n + (b/2) t_n^2 + ...).
 CALIBRATION_DEGREE = 5
 # Newton on |Y(t)|^2 for each focused peak: stop once every step is shorter than 1e-10 s (well under a
@@ -123,7 +126,8 @@ def invert_focus_position(products: nlcs.NlcsProducts, r_m, t_f_s, degree: int =
                           focuser: Focuser = NUMPY_FOCUSER):
     """t_n from the focused t_f: t_n(t_f) fitted through `CALIBRATION_TARGETS` simulated targets across the
     rail, per range (cached in `products.focus_calibration` under (r, degree)); the missing fits are simulated
-    together.
+    together. A peak focused beyond the rail's ends (|t_f| more than half the rail plus BEYOND_FIT_HALF_M / 2)
+    gets a fit local to it instead (`BEYOND_FIT_HALF_M`, cached under (r, degree, centre)).
 
     Parameters
     ----------
@@ -145,16 +149,32 @@ def invert_focus_position(products: nlcs.NlcsProducts, r_m, t_f_s, degree: int =
     """
     cache = products.focus_calibration
     r = [float(x) for x in np.atleast_1d(r_m)]
-    missing = list(dict.fromkeys(x for x in r if (x, degree) not in cache))
-    if missing:
-        grid = products.grid
-        half = 0.5 * (grid.n_track - 1) * grid.dt_s
-        t_n = np.linspace(-half, half, CALIBRATION_TARGETS)
-        for x, t_f in zip(missing, focus_position(products, np.array(missing), t_n, focuser)):
-            cache[(x, degree)] = np.polynomial.polynomial.polyfit(t_f, t_n, degree)
     t_f = np.broadcast_to(np.asarray(t_f_s, dtype=float), (len(r),))
-    out = np.array([np.polynomial.polynomial.polyval(t, cache[(x, degree)]) for x, t in zip(r, t_f)])
+    grid = products.grid
+    half = grid.half_track_s
+    beyond = half + 0.5 * BEYOND_FIT_HALF_M / grid.speed_m_s  # a rail search's peaks are never there
+    keys = [(x, degree) if abs(t) <= beyond else (x, degree, _beyond_centre_s(grid, t))
+            for x, t in zip(r, t_f)]
+    missing = list(dict.fromkeys(k for k in keys if len(k) == 2 and k not in cache))
+    if missing:
+        t_n = np.linspace(-half, half, CALIBRATION_TARGETS)
+        fits = focus_position(products, np.array([k[0] for k in missing]), t_n, focuser)
+        for k, t_fit in zip(missing, fits):
+            cache[k] = np.polynomial.polynomial.polyfit(t_fit, t_n, degree)
+    for k in dict.fromkeys(k for k in keys if len(k) == 3 and k not in cache):
+        # beyond the rail ends (a footprint search): a fit local to the peak, BEYOND_FIT_HALF_M either side
+        t_n = k[2] + np.linspace(-1.0, 1.0, CALIBRATION_TARGETS) * BEYOND_FIT_HALF_M / grid.speed_m_s
+        t_fit = focus_position(products, k[0], t_n, focuser)
+        cache[k] = np.polynomial.polynomial.polyfit(t_fit, t_n, degree)
+    out = np.array([np.polynomial.polynomial.polyval(t, cache[k]) for k, t in zip(keys, t_f)])
     return out if np.ndim(r_m) or np.ndim(t_f_s) else float(out[0])
+
+
+def _beyond_centre_s(grid: nlcs.FocusGrid, t_f_s: float) -> float:
+    """Centre (s) of the local calibration of a peak focused at t_f beyond the rail's ends: t_f rounded to
+    half the fit's half-width, so the peak lies well inside the fit and nearby peaks share it."""
+    step = 0.5 * BEYOND_FIT_HALF_M / grid.speed_m_s
+    return float(np.round(t_f_s / step) * step)
 
 
 def peak_track_times(products: nlcs.NlcsProducts, a: np.ndarray, b: np.ndarray,

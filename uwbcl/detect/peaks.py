@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from .. import geometry as geo
 from ..focus import backprojection as bp
 from ..focus import nlcs
 from ..records import DetectionSettings
@@ -109,12 +110,14 @@ def range_of_interest(rc_m: np.ndarray, s: DetectionSettings) -> np.ndarray:
     return inside
 
 
-def nlcs_peaks(products: nlcs.NlcsProducts, s: DetectionSettings) -> tuple[np.ndarray, float]:
-    """`local_peaks` of an NLCS image, searched along the rail only.
+def nlcs_peaks(products: nlcs.NlcsProducts, s: DetectionSettings,
+               footprint: geo.BeamFootprint | None = None) -> tuple[np.ndarray, float]:
+    """`local_peaks` of an NLCS image, searched along the rail, or with `footprint` over the rail and the
+    beam's footprint (`in_search`).
 
-    Targets focus at t_f within the rail's t_a (a few hundred of the padded rows): the image is cropped to
+    Targets focus at t_f within the searched t_a (a few hundred of the padded rows): the image is cropped to
     those rows plus the separation ellipse's reach, beyond which the crop's edges cannot change any test, so
-    the peaks and the floor are those of the whole image with the rail's rows valid.
+    the peaks and the floor are those of the whole image with the searched pixels valid.
 
     Parameters
     ----------
@@ -122,36 +125,75 @@ def nlcs_peaks(products: nlcs.NlcsProducts, s: DetectionSettings) -> tuple[np.nd
         The focused pass: `image` (n_azimuth, n_range) on the centred (t_a, r_LRCM) grid.
     s : DetectionSettings
         Floors, the separation ellipse and the most peaks kept.
+    footprint : BeamFootprint, optional
+        The pass's beam footprint (`geometry.pass_footprint`); None: the rail only.
 
     Returns
     -------
     pixels : ndarray of int, shape (n_peaks, 2)
         (row, column) in the whole image (row n_azimuth/2 is t_a = 0), strongest first.
     floor : float
-        Median |image| over the rail's rows.
+        Median |image| over the searched pixels.
     """
     grid = products.grid
-    half_s = 0.5 * (grid.n_track - 1) * grid.dt_s
+    half_s = grid.half_track_s
     dr = grid.range_bins_m[1] - grid.range_bins_m[0]
-    on_rail = np.flatnonzero(np.abs(grid.t_azimuth_s) <= half_s)
     reach = int(s.separation_m / grid.track_spacing_m) + NLCS_CROP_MARGIN_ROWS
-    top, bottom = max(on_rail[0] - reach, 0), min(on_rail[-1] + reach + 1, grid.n_azimuth)
+    if footprint is None:
+        searched = np.flatnonzero(np.abs(grid.t_azimuth_s) <= half_s)
+    else:  # rows whose t_a can hold a footprint pixel, short of the image's ends by the crop's reach
+        lo_m, hi_m = search_extent_u_m(grid, grid.range_bins_m, footprint)
+        u = grid.t_azimuth_s * grid.speed_m_s
+        searched = np.flatnonzero((u >= lo_m) & (u <= hi_m))
+        searched = searched[(searched >= reach) & (searched < grid.n_azimuth - reach)]
+    top, bottom = max(searched[0] - reach, 0), min(searched[-1] + reach + 1, grid.n_azimuth)
     mag = np.abs(products.image[top:bottom])
     valid = np.zeros(mag.shape, dtype=bool)
-    valid[on_rail - top, NLCS_RANGE_EDGE_BINS:-NLCS_RANGE_EDGE_BINS] = True
+    valid[searched - top, NLCS_RANGE_EDGE_BINS:-NLCS_RANGE_EDGE_BINS] = True
     rc = None
-    if s.min_range_m > 0 or s.max_range_m > 0 or s.cfar_db > 0:
+    if footprint is not None or s.min_range_m > 0 or s.max_range_m > 0 or s.cfar_db > 0:
         # R_c with t_n taken as t_a: the focus-position calibration moves a peak by at most a few cm
         t_a = grid.t_azimuth_s[top:bottom, None]
         rc = (grid.range_bins_m[None, :] - grid.speed_m_s * grid.sin_squint * t_a) * grid.cos_squint
+        if footprint is not None:
+            valid &= in_search(grid, grid.speed_m_s * t_a, grid.range_bins_m[None, :], footprint)
         valid &= range_of_interest(rc, s)
     pixels, floor = local_peaks(mag, valid, (grid.track_spacing_m, dr), s, rc)
     return pixels + (top, 0), floor
 
 
-def bp_peaks(products: bp.BackprojectionProducts, s: DetectionSettings) -> tuple[np.ndarray, float]:
-    """`local_peaks` of a backprojection image, its outermost pixels left out (a peak there is the image's
-    edge, not a maximum).
+def in_search(grid: nlcs.FocusGrid, u_m: np.ndarray, r_lrcm_m: np.ndarray, footprint: geo.BeamFootprint
+              ) -> np.ndarray:
+    """Where pixels at image azimuth u = v t_n and range r_LRCM (broadcast) are searched with a footprint:
+    on the rail at the processing squint (|u| <= half the rail), or inside the footprint at their R_c."""
+    x_rel, rc = bp.pixel_track_coordinates(u_m, r_lrcm_m, grid)
+    lo, hi = footprint.x_rel_bounds_m(rc)
+    return (np.abs(u_m) <= grid.half_track_s * grid.speed_m_s) | ((x_rel >= lo) & (x_rel <= hi))
+
+
+def search_extent_u_m(grid: nlcs.FocusGrid, r_lrcm_m: np.ndarray, footprint: geo.BeamFootprint | None
+                      ) -> tuple[float, float]:
+    """Image azimuth u (m) covering the rail and, when given, the footprint at the ranges r_LRCM: the
+    footprint's bounds are linear in R_c and u = x_rel - R_c tan(theta_q), so its ends at the nearest and
+    farthest R_c bound it."""
+    half = grid.half_track_s * grid.speed_m_s
+    if footprint is None:
+        return -half, half
+    tan_q = grid.sin_squint / grid.cos_squint
+    lo, hi = -half, half
+    for r in (float(np.min(r_lrcm_m)), float(np.max(r_lrcm_m))):
+        for u in (-half, half):  # R_c of the window's corners
+            _, rc = bp.pixel_track_coordinates(u, r, grid)
+            x_lo, x_hi = footprint.x_rel_bounds_m(rc)
+            lo, hi = min(lo, float(x_lo - rc * tan_q)), max(hi, float(x_hi - rc * tan_q))
+    return lo, hi
+
+
+def bp_peaks(products: bp.BackprojectionProducts, s: DetectionSettings,
+             footprint: geo.BeamFootprint | None = None) -> tuple[np.ndarray, float]:
+    """`local_peaks` of a backprojection image over the rail, or with `footprint` over the rail and the
+    footprint (`in_search`; the image must reach it: `search_extent_u_m`), its outermost pixels left out (a
+    peak there is the image's edge, not a maximum).
 
     Parameters
     ----------
@@ -159,6 +201,8 @@ def bp_peaks(products: bp.BackprojectionProducts, s: DetectionSettings) -> tuple
         The focused pass: `image` (n_u, n_r) on the axes `u_axis_m`, `r_axis_m` (m).
     s : DetectionSettings
         Floors, the separation ellipse and the most peaks kept.
+    footprint : BeamFootprint, optional
+        The pass's beam footprint; None: the rail only.
 
     Returns
     -------
@@ -172,9 +216,13 @@ def bp_peaks(products: bp.BackprojectionProducts, s: DetectionSettings) -> tuple
     dr = products.r_axis_m[1] - products.r_axis_m[0]
     valid = np.ones(mag.shape, dtype=bool)
     valid[[0, -1], :] = valid[:, [0, -1]] = False
+    grid = products.grid
+    if footprint is None:  # the rail only, whatever the image's extent
+        valid &= (np.abs(products.u_axis_m) <= grid.half_track_s * grid.speed_m_s + 1e-9)[:, None]
+    else:
+        valid &= in_search(grid, products.u_axis_m[:, None], products.r_axis_m[None, :], footprint)
     rc = None
-    if s.min_range_m > 0 or s.max_range_m > 0 or s.cfar_db > 0:
-        grid = products.grid
+    if footprint is not None or s.min_range_m > 0 or s.max_range_m > 0 or s.cfar_db > 0:
         rc = (products.r_axis_m[None, :] - grid.sin_squint * products.u_axis_m[:, None]) * grid.cos_squint
         valid &= range_of_interest(rc, s)
     return local_peaks(mag, valid, (du, dr), s, rc)
