@@ -253,6 +253,12 @@ def _import_options(args: argparse.Namespace) -> passes.ImportOptions:
     if args.config:
         site = config.read_toml(args.config)
         values = passes.options_from_table(site.get("import", {}), args.config)
+        if isinstance(site.get("radar"), dict):  # the calibrated delay (`uwbcl calibrate`), checked
+            calibrated = config.parse_config({"radar": site["radar"]}, args.config).range_delay_s
+            if calibrated is not None and values.setdefault("range_delay_s", calibrated) != calibrated:
+                raise ConfigError(args.config, "import.range_delay_s",
+                                  f"{values['range_delay_s']!r} differs from radar.range_delay_s "
+                                  f"({calibrated!r}); keep one")
     flags = {"height_m": args.height_m, "rotation_table_angle_deg": args.table_angle_deg,
              "boresight_y_sign": args.boresight_y_sign, "reference_range_m": args.reference_range_m,
              "reference_point_m": tuple(args.reference_point) if args.reference_point else None,
