@@ -24,7 +24,8 @@ NLCS_CROP_MARGIN_ROWS = 2
 
 
 def local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float], s: DetectionSettings,
-                rc_m: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+                rc_m: np.ndarray | None = None, floor_mask: np.ndarray | None = None
+                ) -> tuple[np.ndarray, float]:
     """Pixels above the floors that are the maximum of their separation ellipse (non-maximum suppression).
 
     Parameters
@@ -40,15 +41,19 @@ def local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float]
     rc_m : ndarray, shape (n_a, n_r), optional
         Each pixel's closest-approach range (m): the adaptive threshold's bins (`s.cfar_db`); without it,
         the image's columns.
+    floor_mask : ndarray of bool, shape (n_a, n_r), optional
+        The pixels whose median is the noise level (default `valid`): a footprint search keeps the rail's,
+        where the aperture is whole, so its SNRs and floor are those of a rail search.
 
     Returns
     -------
     pixels : ndarray of int, shape (n_peaks, 2)
         (row, column) of each peak, strongest first, at most `s.max_targets`.
     floor : float
-        The median magnitude over `valid` (0 where nothing is valid): the noise level of the SNR.
+        The median magnitude over `floor_mask` (0 where it is empty): the noise level of the SNR.
     """
-    floor = np.median(mag[valid]) if valid.any() else 0.0
+    floor_mask = valid if floor_mask is None else floor_mask
+    floor = np.median(mag[floor_mask]) if floor_mask.any() else 0.0
     peak_max = mag[valid].max() if valid.any() else 0.0
     threshold = max(peak_max * 10 ** (s.relative_floor_db / 20), floor * 10 ** (s.min_snr_db / 20))
     candidates = valid & (mag > threshold)
@@ -150,7 +155,7 @@ def nlcs_peaks(products: nlcs.NlcsProducts, s: DetectionSettings,
     mag = np.abs(products.image[top:bottom])
     valid = np.zeros(mag.shape, dtype=bool)
     valid[searched - top, NLCS_RANGE_EDGE_BINS:-NLCS_RANGE_EDGE_BINS] = True
-    rc = None
+    rc, on_rail = None, None
     if footprint is not None or s.min_range_m > 0 or s.max_range_m > 0 or s.cfar_db > 0:
         # R_c with t_n taken as t_a: the focus-position calibration moves a peak by at most a few cm
         t_a = grid.t_azimuth_s[top:bottom, None]
@@ -158,7 +163,9 @@ def nlcs_peaks(products: nlcs.NlcsProducts, s: DetectionSettings,
         if footprint is not None:
             valid &= in_search(grid, grid.speed_m_s * t_a, grid.range_bins_m[None, :], footprint)
         valid &= range_of_interest(rc, s)
-    pixels, floor = local_peaks(mag, valid, (grid.track_spacing_m, dr), s, rc)
+        if footprint is not None:
+            on_rail = valid & (np.abs(t_a) <= half_s)
+    pixels, floor = local_peaks(mag, valid, (grid.track_spacing_m, dr), s, rc, on_rail)
     return pixels + (top, 0), floor
 
 
@@ -221,8 +228,12 @@ def bp_peaks(products: bp.BackprojectionProducts, s: DetectionSettings,
         valid &= (np.abs(products.u_axis_m) <= grid.half_track_s * grid.speed_m_s + 1e-9)[:, None]
     else:
         valid &= in_search(grid, products.u_axis_m[:, None], products.r_axis_m[None, :], footprint)
-    rc = None
+    rc, on_rail = None, None
     if footprint is not None or s.min_range_m > 0 or s.max_range_m > 0 or s.cfar_db > 0:
         rc = (products.r_axis_m[None, :] - grid.sin_squint * products.u_axis_m[:, None]) * grid.cos_squint
         valid &= range_of_interest(rc, s)
-    return local_peaks(mag, valid, (du, dr), s, rc)
+    if footprint is not None:  # the noise level of a rail search: its pixels, the rail's inner ones
+        rail_rows = np.flatnonzero(np.abs(products.u_axis_m) <= grid.half_track_s * grid.speed_m_s + 1e-9)
+        on_rail = np.zeros(mag.shape, dtype=bool)
+        on_rail[rail_rows[1:-1]] = valid[rail_rows[1:-1]]
+    return local_peaks(mag, valid, (du, dr), s, rc, on_rail)
