@@ -59,6 +59,10 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     pixels, floor = peaks.nlcs_peaks(products, settings, footprint)
     rows, spectrum, interpolant = refine.nlcs_interpolant(products)
     cells = [interpolant.maximise(float(i), float(j)) for i, j in pixels]
+    if footprint is not None and cells:  # a peak past where the focus-position map reaches cannot be placed
+        t_n = calibration.peak_track_times(products, [c[0] for c in cells], [c[1] for c in cells], focuser)[2]
+        placed = np.isfinite(t_n)
+        cells = [c for c, ok in zip(cells, placed) if ok]
     if settings.neighbour_cancellation_passes > 0 and len(cells) > 1 and scan is not None:
         model = cancel.NlcsModel.of(products, scan, focuser, rows, spectrum)
         cells = _cancel(cells, model, settings)
