@@ -58,8 +58,15 @@ def apply_range_delay(scan: ScanPass, site_delay_s: float | None) -> ScanPass:
     else:
         log.info("%s: range_delay_s %.4f ns recorded, site %.4f ns: window start %+.4f ns",
                  scan.source or "pass", scan.range_delay_s * 1e9, site_delay_s * 1e9, -shift_s * 1e9)
+    return shift_range_delay(scan, site_delay_s)
+
+
+def shift_range_delay(scan: ScanPass, delay_s: float) -> ScanPass:
+    """The pass as if its archive had been written with `delay_s` removed instead of the delay it records:
+    window start - (delay_s - recorded), range_delay_s = delay_s (`apply_range_delay`, quietly)."""
+    shift_s = delay_s - scan.range_delay_s
     return dataclasses.replace(scan, range_window_start_s=scan.range_window_start_s - shift_s,
-                               range_delay_s=site_delay_s)
+                               range_delay_s=delay_s)
 
 
 def bp_u_extent_m(scan: ScanPass, settings: ProcessingSettings) -> tuple[float, float] | None:
