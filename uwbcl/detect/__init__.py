@@ -73,7 +73,7 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     r0 = r - grid.speed_m_s * grid.sin_squint * t_n  # eq. (19), C12: r_LC = r_LRCM - v sin(theta_q) t_nc
     found = [_detection(grid, float(t_n[i]), float(r0[i]), grid.speed_m_s * float(t_f[i]), float(r[i]),
                         abs(val), floor) for i, (_, _, val) in enumerate(cells)]
-    return _in_range(found, settings)
+    return _in_range(_in_footprint(found, grid, footprint), settings)
 
 
 def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings = DetectionSettings(),
@@ -143,6 +143,18 @@ def _cancel(cells: list[cancel.Cell], model: cancel.CancellationModel, settings:
     return cancel.cancel_neighbours(cells[:n], model, settings.neighbour_cancellation_passes,
                                     settings.neighbour_cancellation_tol_m, settings.neighbour_gain_degree,
                                     deadline) + cells[n:]
+
+
+def _in_footprint(found: list[Detection], grid: nlcs.FocusGrid, footprint: geo.BeamFootprint | None
+                  ) -> list[Detection]:
+    """The NLCS detections whose own (t_n, r0) lie on the rail or in the footprint (the pixels were searched
+    with a margin for the focus-position distortion, `peaks.NLCS_FOOTPRINT_MARGIN_M`)."""
+    if footprint is None:
+        return found
+    u = np.array([grid.speed_m_s * d.t_n_s for d in found])
+    r_lrcm = np.array([d.r0_m for d in found]) + grid.sin_squint * u
+    keep = peaks.in_search(grid, u, r_lrcm, footprint) if found else []
+    return [d for d, k in zip(found, keep) if k]
 
 
 def _in_range(found: list[Detection], settings: DetectionSettings) -> list[Detection]:

@@ -21,6 +21,11 @@ NLCS_RANGE_EDGE_BINS = 2
 # Rows kept beyond the separation ellipse's reach at each end of the rail when the NLCS image is cropped: one
 # for the 3x3 maximum filter, one to spare, so the crop's edges cannot change any test of a pixel on the rail.
 NLCS_CROP_MARGIN_ROWS = 2
+# A footprint search of an NLCS image looks this much further along track than the footprint itself: beyond
+# the rail's ends one processing squint focuses a target up to ~0.45 m further out than its t_n (the
+# focus-position map, detect.calibration), and the detections are checked against the footprint on their
+# own t_n afterwards.
+NLCS_FOOTPRINT_MARGIN_M = 0.5
 
 
 def local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float], s: DetectionSettings,
@@ -148,6 +153,7 @@ def nlcs_peaks(products: nlcs.NlcsProducts, s: DetectionSettings,
         searched = np.flatnonzero(np.abs(grid.t_azimuth_s) <= half_s)
     else:  # rows whose t_a can hold a footprint pixel, short of the image's ends by the crop's reach
         lo_m, hi_m = search_extent_u_m(grid, grid.range_bins_m, footprint)
+        lo_m, hi_m = lo_m - NLCS_FOOTPRINT_MARGIN_M, hi_m + NLCS_FOOTPRINT_MARGIN_M
         u = grid.t_azimuth_s * grid.speed_m_s
         searched = np.flatnonzero((u >= lo_m) & (u <= hi_m))
         searched = searched[(searched >= reach) & (searched < grid.n_azimuth - reach)]
@@ -161,7 +167,8 @@ def nlcs_peaks(products: nlcs.NlcsProducts, s: DetectionSettings,
         t_a = grid.t_azimuth_s[top:bottom, None]
         rc = (grid.range_bins_m[None, :] - grid.speed_m_s * grid.sin_squint * t_a) * grid.cos_squint
         if footprint is not None:
-            valid &= in_search(grid, grid.speed_m_s * t_a, grid.range_bins_m[None, :], footprint)
+            valid &= in_search(grid, grid.speed_m_s * t_a, grid.range_bins_m[None, :], footprint,
+                               NLCS_FOOTPRINT_MARGIN_M)
         valid &= range_of_interest(rc, s)
         if footprint is not None:
             on_rail = valid & (np.abs(t_a) <= half_s)
@@ -169,13 +176,15 @@ def nlcs_peaks(products: nlcs.NlcsProducts, s: DetectionSettings,
     return pixels + (top, 0), floor
 
 
-def in_search(grid: nlcs.FocusGrid, u_m: np.ndarray, r_lrcm_m: np.ndarray, footprint: geo.BeamFootprint
-              ) -> np.ndarray:
+def in_search(grid: nlcs.FocusGrid, u_m: np.ndarray, r_lrcm_m: np.ndarray, footprint: geo.BeamFootprint,
+              margin_m: float = 0.0) -> np.ndarray:
     """Where pixels at image azimuth u = v t_n and range r_LRCM (broadcast) are searched with a footprint:
-    on the rail at the processing squint (|u| <= half the rail), or inside the footprint at their R_c."""
+    on the rail at the processing squint (|u| <= half the rail), or inside the footprint at their R_c,
+    widened by `margin_m` along track."""
     x_rel, rc = bp.pixel_track_coordinates(u_m, r_lrcm_m, grid)
     lo, hi = footprint.x_rel_bounds_m(rc)
-    return (np.abs(u_m) <= grid.half_track_s * grid.speed_m_s) | ((x_rel >= lo) & (x_rel <= hi))
+    inside = (x_rel >= lo - margin_m) & (x_rel <= hi + margin_m)
+    return (np.abs(u_m) <= grid.half_track_s * grid.speed_m_s) | inside
 
 
 def search_extent_u_m(grid: nlcs.FocusGrid, r_lrcm_m: np.ndarray, footprint: geo.BeamFootprint | None
