@@ -27,6 +27,9 @@ from ..model import ScanPass
 from ..records import Detection, DetectionSettings
 from . import calibration, cancel, peaks, refine
 
+# The lattice (m) of the backprojection refinement of NLCS detections beyond the rail ends (BP's pixel).
+BP_SUBSCENE_CELL_M = 0.01
+
 __all__ = ["detect_bp", "detect_nlcs", "search_footprint"]
 
 
@@ -71,6 +74,8 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     a, b = [c[0] for c in cells], [c[1] for c in cells]
     t_f, r, t_n = calibration.peak_track_times(products, a, b, focuser)
     r0 = r - grid.speed_m_s * grid.sin_squint * t_n  # eq. (19), C12: r_LC = r_LRCM - v sin(theta_q) t_nc
+    if footprint is not None and scan is not None:
+        t_n, r0 = _beyond_rail_by_backprojection(scan, grid, t_n, r0)
     found = [_detection(grid, float(t_n[i]), float(r0[i]), grid.speed_m_s * float(t_f[i]), float(r[i]),
                         abs(val), floor) for i, (_, _, val) in enumerate(cells)]
     return _in_range(_in_footprint(found, grid, footprint), settings)
@@ -143,6 +148,29 @@ def _cancel(cells: list[cancel.Cell], model: cancel.CancellationModel, settings:
     return cancel.cancel_neighbours(cells[:n], model, settings.neighbour_cancellation_passes,
                                     settings.neighbour_cancellation_tol_m, settings.neighbour_gain_degree,
                                     deadline) + cells[n:]
+
+
+def _beyond_rail_by_backprojection(scan: ScanPass, grid: nlcs.FocusGrid, t_n_s: np.ndarray, r0_m: np.ndarray
+                                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(t_n, r0) of NLCS detections beyond the rail's ends placed again on the backprojection sum (a
+    subscene per detection: one processing squint focuses them poorly there, docs/method.md section 4),
+    started from the NLCS estimate on a BP_SUBSCENE_CELL_M lattice; the others unchanged."""
+    beyond = np.flatnonzero(np.abs(t_n_s) > grid.half_track_s)
+    if beyond.size == 0:
+        return t_n_s, r0_m
+    t_n_s, r0_m = t_n_s.copy(), r0_m.copy()
+    rc = bp.range_compress(scan, grid)
+    cell = BP_SUBSCENE_CELL_M
+    for i in beyond:
+        u0 = grid.speed_m_s * t_n_s[i]
+        r_lrcm0 = r0_m[i] + grid.sin_squint * u0
+        a, b, _ = refine.maximise_nelder_mead(
+            lambda a, b, u0=u0, r_lrcm0=r_lrcm0: complex(bp.backproject_points(rc, grid, u0 + a * cell,
+                                                                               r_lrcm0 + b * cell)),
+            0.0, 0.0, step=refine.BP_SIMPLEX_STEP_CELLS)
+        u = u0 + a * cell
+        t_n_s[i], r0_m[i] = u / grid.speed_m_s, r_lrcm0 + b * cell - grid.sin_squint * u
+    return t_n_s, r0_m
 
 
 def _in_footprint(found: list[Detection], grid: nlcs.FocusGrid, footprint: geo.BeamFootprint | None
