@@ -15,6 +15,7 @@ The along-track offset (x measured - x surveyed) is reported the same way; it is
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
 import math
 import re
@@ -34,6 +35,7 @@ C = SPEED_OF_LIGHT_M_S
 DELAY_TOL_S = 1e-13  # stop once a step of D is below 0.1 ps (15 um of range)
 MAX_ITERATIONS = 8  # the secant converges in 3-4 steps from 2.3 ns off; a bound for a pathological scene
 DEFAULT_GATE_M = 0.5  # a reflector's detection must lie this close to it in (x, R_c) at the starting delay
+MATCH_CANDIDATES = 4  # per reflector, the nearest detections within the gate considered
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,17 +94,27 @@ def surveyed_track(reflector_m: Sequence[float], height_m: float) -> tuple[float
 
 def match_reflectors(detections: Sequence[Detection], reflectors: Sequence[Sequence[float]], height_m: float,
                      gate_m: float) -> list[Detection | None]:
-    """Per reflector, the detection nearest its surveyed (x, R_c) within `gate_m`, else None; one detection
-    serves at most one reflector (the nearest pairs first)."""
+    """Per reflector, its detection in one pass, or None: among the MATCH_CANDIDATES nearest detections
+    within `gate_m` of its surveyed (x, R_c), the assignment (one detection per reflector) that matches the
+    most reflectors, then whose R_c residuals agree best (one delay moves every reflector's R_c alike: a
+    clutter or coupling peak near one reflector does not), then the nearest."""
     truth = [surveyed_track(r, height_m) for r in reflectors]
-    pairs = sorted((math.hypot(d.x_m - x, d.rc_m - rc), i, j) for i, (x, rc) in enumerate(truth)
-                   for j, d in enumerate(detections))
-    out: list[Detection | None] = [None] * len(reflectors)
-    used: set[int] = set()
-    for dist, i, j in pairs:
-        if dist <= gate_m and out[i] is None and j not in used:
-            out[i], _ = detections[j], used.add(j)
-    return out
+    options = []
+    for x, rc in truth:
+        near = sorted((math.hypot(d.x_m - x, d.rc_m - rc), j) for j, d in enumerate(detections))
+        options.append([j for dist, j in near if dist <= gate_m][:MATCH_CANDIDATES] + [None])
+    best, best_key = [None] * len(reflectors), None
+    for combo in itertools.product(*options):
+        chosen = [j for j in combo if j is not None]
+        if len(set(chosen)) < len(chosen):
+            continue
+        residual = [detections[j].rc_m - truth[i][1] for i, j in enumerate(combo) if j is not None]
+        dist = sum(math.hypot(detections[j].x_m - truth[i][0], detections[j].rc_m - truth[i][1])
+                   for i, j in enumerate(combo) if j is not None)
+        key = (-len(chosen), float(np.ptp(residual)) if residual else 0.0, dist)
+        if best_key is None or key < best_key:
+            best, best_key = list(combo), key
+    return [None if j is None else detections[j] for j in best]
 
 
 def _measure(scans: Sequence[ScanPass], reflectors, settings: ProcessingSettings, delay_s: float,
