@@ -144,6 +144,19 @@ class BeamFootprint:
         hi = min(self.angle_hi_rad, MAX_FOOTPRINT_ANGLE_RAD)
         return self.rail_lo_m + rc * math.tan(lo), self.rail_hi_m + rc * math.tan(hi)
 
+    def u_edges_m(self, r_lrcm_m, sin_squint: float) -> tuple[np.ndarray, np.ndarray]:
+        """The footprint's edges on an image's (u = v t_n, r_LRCM) axes at the processing squint: with
+        r0 = r_LRCM - s u, x_rel = u + r0 s and R_c = r0 c (P1), the edge x_rel = x_b + R_c tan(psi) gives
+        u = (x_b + r_LRCM (c tan(psi) - s)) / (c^2 + s c tan(psi)), s = sin(theta_q), c = cos(theta_q)."""
+        r = np.asarray(r_lrcm_m, dtype=float)
+        s, c = sin_squint, math.sqrt(1.0 - sin_squint**2)
+        out = []
+        for x_b, psi in ((self.rail_lo_m, max(self.angle_lo_rad, -MAX_FOOTPRINT_ANGLE_RAD)),
+                         (self.rail_hi_m, min(self.angle_hi_rad, MAX_FOOTPRINT_ANGLE_RAD))):
+            t = math.tan(psi)
+            out.append((x_b + r * (c * t - s)) / (c * c + s * c * t))
+        return out[0], out[1]
+
 
 def pass_footprint(rail_lo_m: float, rail_hi_m: float, rotation_table_angle_rad: float, aperture_m: float,
                    wavelength_m: float, edge: str = "3db") -> BeamFootprint:
