@@ -13,6 +13,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+SEARCH_REGIONS = ("rail", "footprint", "main_lobe")
 ALGORITHMS = ("nlcs", "bp")
 BACKENDS = ("opencl", "numpy")  # the OpenCL engine, and the float64 numpy reference it is checked against
 AC_MODES = ("exact", "series")  # NLCS azimuth compression: exact reference, or the series of eq. 17
@@ -82,6 +83,13 @@ class DetectionSettings:
     # Neighbour cancellation models only this many of the strongest peaks (0: all); the weaker ones keep their
     # first refinement, so a clutter-filled pass cannot cost minutes.
     cancel_max_targets: int = 0
+    # Where peaks are sought along track (docs/method.md section 4): "rail", the rail's extent at the
+    # processing squint; "footprint", the beam's -3 dB footprint over the ranges of the window (reflectors
+    # beyond the rail ends); "main_lobe", out to the beam's first nulls.
+    search: str = "rail"
+    # Wall-clock budget of neighbour cancellation per pass (s, 0: none): the strongest targets are modelled
+    # first, and once a pass has used the budget the remaining ones keep their first refinement.
+    cancel_time_budget_s: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -137,6 +145,10 @@ class ProcessingSettings:
     detection: DetectionSettings = dataclasses.field(default_factory=DetectionSettings)
     association: AssociationSettings = dataclasses.field(default_factory=AssociationSettings)
     limits: ReadLimits = dataclasses.field(default_factory=ReadLimits)
+    # The site's calibrated two-way antenna/cable delay ([radar] range_delay_s, `uwbcl calibrate`; None: use
+    # every archive as recorded). Each pass's window start is shifted by it minus the delay its archive
+    # records (`pipeline.apply_range_delay`, docs/configuration.md).
+    range_delay_s: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
