@@ -13,6 +13,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+SEARCH_REGIONS = ("rail", "footprint", "main_lobe")
 ALGORITHMS = ("nlcs", "bp")
 BACKENDS = ("opencl", "numpy")  # the OpenCL engine, and the float64 numpy reference it is checked against
 AC_MODES = ("exact", "series")  # NLCS azimuth compression: exact reference, or the series of eq. 17
@@ -82,6 +83,13 @@ class DetectionSettings:
     # Neighbour cancellation models only this many of the strongest peaks (0: all); the weaker ones keep their
     # first refinement, so a clutter-filled pass cannot cost minutes.
     cancel_max_targets: int = 0
+    # Where peaks are sought along track (docs/method.md section 4): "rail", the rail's extent at the
+    # processing squint; "footprint", the beam's -3 dB footprint over the ranges of the window (reflectors
+    # beyond the rail ends); "main_lobe", out to the beam's first nulls.
+    search: str = "rail"
+    # Wall-clock budget of neighbour cancellation per pass (s, 0: none): the strongest targets are modelled
+    # first, and once a pass has used the budget the remaining ones keep their first refinement.
+    cancel_time_budget_s: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,6 +111,7 @@ class AssociationSettings:
     # A row is "ok" only when its error bound (one standard deviation, retreat and creep) is at most this.
     max_bound_m: float = 0.01
     motion_model: bool = True  # the previous trusted cycles' steps predict the next (RigChain)
+    second_look: bool = True  # a later trusted cycle re-measures the untrusted ones it bridged (revision 1)
 
     def for_gap(self, cycles: int) -> AssociationSettings:
         """The prior for a displacement spanning `cycles` cutting cycles (after a missing or rejected one):
@@ -136,6 +145,10 @@ class ProcessingSettings:
     detection: DetectionSettings = dataclasses.field(default_factory=DetectionSettings)
     association: AssociationSettings = dataclasses.field(default_factory=AssociationSettings)
     limits: ReadLimits = dataclasses.field(default_factory=ReadLimits)
+    # The site's calibrated two-way antenna/cable delay ([radar] range_delay_s, `uwbcl calibrate`; None: use
+    # every archive as recorded). Each pass's window start is shifted by it minus the delay its archive
+    # records (`pipeline.apply_range_delay`, docs/configuration.md).
+    range_delay_s: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -229,6 +242,8 @@ class SeriesRow:
     chain: int = 0  # 0, then +1 each time the chain of trusted matches had to start again
     # (3,) one-standard-deviation bound of cumulative_m, m; NaN where it is NaN
     cumulative_bound_m: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
+    # 0 as first issued; 1 when a later cycle resolved it (the second look, docs/method.md section 6.2)
+    revision: int = 0
 
 
 @dataclasses.dataclass(frozen=True)
