@@ -17,6 +17,7 @@ from .records import (
     AC_MODES,
     ALGORITHMS,
     BACKENDS,
+    BACKGROUND_MODES,
     AssociationSettings,
     BatchOptions,
     ConfigError,
@@ -138,7 +139,8 @@ def _detection_schema() -> dict:
     out = {}
     for f in dataclasses.fields(DetectionSettings):
         default = f.default
-        out[f.name] = _bool if isinstance(default, bool) else _int if isinstance(default, int) else _number
+        out[f.name] = (_bool if isinstance(default, bool) else _int if isinstance(default, int)
+                       else _str if isinstance(default, str) else _number)
     return out
 
 
@@ -216,6 +218,9 @@ def _check_ranges(settings: ProcessingSettings, path) -> None:
             if not check(value):
                 raise ConfigError(path, key, f"must be {want}, got {value!r}")
     d = settings.detection
+    if d.background not in BACKGROUND_MODES:
+        raise ConfigError(path, "detection.background",
+                          f"must be one of {', '.join(map(repr, BACKGROUND_MODES))}, got {d.background!r}")
     if 0 < d.max_range_m <= d.min_range_m:
         raise ConfigError(path, "detection.max_range_m",
                           f"must be 0 (no upper bound) or > detection.min_range_m ({d.min_range_m}), "

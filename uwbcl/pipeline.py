@@ -75,6 +75,7 @@ def focus_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSettings
     if settings.algorithm not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {settings.algorithm!r}; available: {', '.join(ALGORITHMS)}")
     check_plan(scan, settings)
+    scan = nlcs.condition_pass(scan, settings.detection.background)  # every backend: host-side, before upload
     focuser = _focuser(settings)
     if settings.algorithm == "nlcs":
         products = focuser.nlcs_focus(scan, ac_mode=settings.ac_mode)

@@ -14,6 +14,7 @@ from collections.abc import Callable
 import numpy as np
 
 ALGORITHMS = ("nlcs", "bp")
+BACKGROUND_MODES = ("none", "mean")  # DetectionSettings.background
 BACKENDS = ("opencl", "numpy")  # the OpenCL engine, and the float64 numpy reference it is checked against
 AC_MODES = ("exact", "series")  # NLCS azimuth compression: exact reference, or the series of eq. 17
 
@@ -82,6 +83,9 @@ class DetectionSettings:
     # Neighbour cancellation models only this many of the strongest peaks (0: all); the weaker ones keep their
     # first refinement, so a clutter-filled pass cannot cost minutes.
     cancel_max_targets: int = 0
+    # Background subtraction before focusing (docs/method.md section 4): "none", or "mean" to remove each
+    # fast-time sample's mean over the pass's pulses (direct coupling, static clutter), for every backend.
+    background: str = "none"
 
 
 @dataclasses.dataclass(frozen=True)
