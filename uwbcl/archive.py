@@ -393,7 +393,8 @@ def read_pass(path: str | os.PathLike[str], limits: ReadLimits = ReadLimits()) -
         position_m = _read_values(f, path, "/pulses/position_m").astype(np.float64)
         raw = _read_values(f, path, "/echo")
         scale = h.pop("echo_scale")
-        measured = _read_measured_pulse(f, path) if h["pulse_shape"] == "measured" else None
+        measured = (_read_measured_pulse(f, path, h["sample_rate_hz"]) if h["pulse_shape"] == "measured"
+                    else None)
         deviations = [_read_deviation(f, path, name, h["n_pulses"]) if name in h["rail_deviations"] else None
                       for name in _DEVIATION_DATASETS]
     _check_pulses(path, time_s, position_m, h["n_pulses"])
@@ -810,7 +811,7 @@ def _write_additions(f: h5py.File, path: Path, scan: ScanPass) -> None:
     deviations = {name: np.asarray(d, dtype=np.float64) for name, d in
                   zip(_DEVIATION_DATASETS, (scan.antenna_y_m, scan.antenna_z_m)) if d is not None}
     if pulse is not None:
-        _check_measured_pulse(path, pulse.frequency_hz, pulse.spectrum)
+        _check_measured_pulse(path, pulse.frequency_hz, pulse.spectrum, scan.radar.sample_rate_hz)
     for name, d in deviations.items():
         _check_deviation(path, name, d, scan.n_pulses)
     minor = 2 if pulse is not None or deviations else 1 if delay != 0.0 or raw is not None else 0
@@ -900,14 +901,15 @@ def _check_pulse_additions(f: h5py.File, path: Any, h: dict[str, Any]) -> None:
         h["rail_deviations"].append(name)
 
 
-def _check_measured_pulse(path: Any, f_hz: np.ndarray, spectrum: np.ndarray) -> None:
+def _check_measured_pulse(path: Any, f_hz: np.ndarray, spectrum: np.ndarray, sample_rate_hz: float) -> None:
     name_f, name_p = _PULSE_DATASETS
     if f_hz.ndim != 1 or not 2 <= f_hz.size <= MAX_PULSE_SPECTRUM_SAMPLES or spectrum.shape != f_hz.shape:
         raise ArchiveError(path, name_p, f"expected 2 to {MAX_PULSE_SPECTRUM_SAMPLES} samples, one per "
                            f"frequency, got {spectrum.shape} values at {f_hz.shape} frequencies")
-    bad = np.flatnonzero(~np.isfinite(f_hz))
+    bad = np.flatnonzero(~(np.abs(f_hz) <= sample_rate_hz))
     if bad.size:
-        raise ArchiveError(path, name_f, f"NaN or inf at sample {bad[0]}")
+        raise ArchiveError(path, name_f, f"{f_hz[bad[0]]} Hz at sample {bad[0]}: must be finite and within "
+                           f"+-sample_rate_hz ({sample_rate_hz} Hz) of the carrier")
     if not (np.diff(f_hz) > 0).all():
         raise ArchiveError(path, name_f,
                            f"not strictly increasing (at sample {np.argmax(np.diff(f_hz) <= 0) + 1})")
@@ -927,10 +929,10 @@ def _check_deviation(path: Any, name: str, d: np.ndarray, n_pulses: int) -> None
                            f"+-{MAX_RAIL_DEVIATION_M} m of the straight rail")
 
 
-def _read_measured_pulse(f: h5py.File, path: Any) -> MeasuredPulse:
+def _read_measured_pulse(f: h5py.File, path: Any, sample_rate_hz: float) -> MeasuredPulse:
     f_hz = np.asarray(_read_values(f, path, _PULSE_DATASETS[0]), dtype=np.float64)
     spectrum = np.asarray(_read_values(f, path, _PULSE_DATASETS[1]), dtype=np.complex128)
-    _check_measured_pulse(path, f_hz, spectrum)
+    _check_measured_pulse(path, f_hz, spectrum, sample_rate_hz)
     return MeasuredPulse(frequency_hz=f_hz, spectrum=spectrum)
 
 
