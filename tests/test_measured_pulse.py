@@ -90,7 +90,8 @@ def test_range_compression_gives_the_matched_point_model_detection_subtracts(odd
     echo of the same target must agree: else the neighbours' residues would be modelled with another pulse."""
     target = PAPER_SIM1.targets_radar_m(0)[1]
     one = simulate_pass(odd_pass.radar, odd_pass.geometry, [target],
-                        aperture_length_m=PAPER_SIM1.aperture_length_m, speed_m_s=PAPER_SIM1.speed_m_s, rng=np.random.default_rng(1))
+                        aperture_length_m=PAPER_SIM1.aperture_length_m, speed_m_s=PAPER_SIM1.speed_m_s,
+                        rng=np.random.default_rng(1))
     grid = nlcs.focus_grid(one)
     rc = bp.range_compress(one, grid, upsample=4)
     r0 = math.hypot(target[1], target[2] - HEIGHT_M) / grid.cos_squint  # P1: R_c = r0 c_q
