@@ -1,4 +1,4 @@
-"""The measured pulse (archive 1.2, docs/method.md C13a): every focuser's range compression uses conj(P(f)) of
+"""The measured pulse (archive 1.2, docs/method.md C15): every focuser's range compression uses conj(P(f)) of
 the measured pulse, and every point-response model uses the same pulse, so the models stay consistent.
 
 Measured on a PAPER_SIM1 pass (cycle 0, h = 0.15 m, 10 dB SNR) with a non-Gaussian pulse (the Gaussian
