@@ -67,8 +67,8 @@ import scipy.fft
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from uwbcl import archive, chain, detect, opencl, outputs, pipeline, simulate
-from uwbcl.focus import nlcs
+from uwbcl import archive, batch, chain, detect, opencl, outputs, pipeline, simulate
+from uwbcl.focus import nlcs, scipy32
 from uwbcl.focus.protocol import Focuser
 from uwbcl.focus.reference import NUMPY_FOCUSER
 from uwbcl.focus.scipy32 import SCIPY32_FOCUSER
@@ -210,23 +210,79 @@ class BatchRun:
     displacements: dict[tuple[str, int], tuple[np.ndarray, str]]
     n_detections: int
     shapes: Counter
+    jobs: int = 1
 
 
 def run_batch(leg: Leg, files: list[Path], out_csv: Path, settings: ProcessingSettings) -> BatchRun:
-    """archive read -> focus -> detect per pass; locate per cycle; displacement per rig; CSV written."""
+    """archive read -> focus -> detect per pass, in this process; locate per cycle; displacement per rig; CSV
+    written."""
     clock = Stopwatch()
+    results = []
+    t0 = time.perf_counter()
+    for path in files:
+        results.append(_one_pass(leg, path, settings, clock))
+    return _finish_batch(results, clock, t0, out_csv, settings)
+
+
+def _one_pass(leg: Leg, path: Path | str, settings: ProcessingSettings, clock: Stopwatch
+              ) -> tuple[ScanPass, list, tuple[int, int]]:
+    with clock("read"):
+        scan = archive.read_pass(path)
+    with clock("focus"):
+        products = leg.focus(scan)
+    with clock("detect"):  # as pipeline.detect_pass: the echo lets detection model the neighbours
+        found = detect.detect_nlcs(products, settings.detection, scan, leg.focuser)
+    return scan, found, scan.echo.shape
+
+
+def pool_pass(path: str, leg_name: str, settings: ProcessingSettings, device: str | None
+              ) -> tuple[tuple[ScanPass, list, tuple[int, int]], dict[str, float]]:
+    """Worker of batch's process pool (as `uwbcl process --jobs N`): one pass through `leg_name`; the scan
+    without its echo (what locating needs), its detections and the stage seconds. A scipy32 worker's FFTs
+    run on one thread: the pool's workers are the parallelism."""
+    scipy32.WORKERS = 1
+    engine = None
+    if leg_name == "opencl":
+        from uwbcl.focus.engine import shared_engine
+
+        engine = shared_engine(device)
+    leg = make_legs([leg_name], engine)[0]
+    clock = Stopwatch()
+    scan, found, shape = _one_pass(leg, path, settings, clock)
+    return (dataclasses.replace(scan, echo=scan.echo[:0]), found, shape), dict(clock.seconds)
+
+
+def run_batch_pool(leg: Leg, files: list[Path], out_csv: Path, settings: ProcessingSettings, jobs: int,
+                   warm_files: list[Path], device: str | None) -> BatchRun:
+    """`run_batch` with the passes spread over `jobs` worker processes of batch's pool. The workers are
+    started and warmed up (every input shape, `jobs` times) before the clock starts, as the in-process legs
+    are; the stage seconds are summed over the workers (CPU-side time, not wall time)."""
+    pool = batch._pool(jobs)  # noqa: SLF001 - the pool `uwbcl process --jobs N` focuses with
+    try:
+        warm = [pool.submit(pool_pass, str(p), leg.name, settings, device) for p in warm_files * jobs]
+        for fut in warm:
+            fut.result()
+        clock = Stopwatch()
+        t0 = time.perf_counter()
+        futures = [pool.submit(pool_pass, str(p), leg.name, settings, device) for p in files]
+        results = []
+        for fut in futures:
+            result, stages = fut.result()
+            for k, v in stages.items():
+                clock.seconds[k] += v
+            results.append(result)
+        return _finish_batch(results, clock, t0, out_csv, settings)
+    finally:
+        batch._stop_pool(pool)  # noqa: SLF001
+
+
+def _finish_batch(results: list[tuple[ScanPass, list, tuple[int, int]]], clock: Stopwatch, t0: float,
+                  out_csv: Path, settings: ProcessingSettings) -> BatchRun:
     by_cycle: dict[tuple[str, int], list] = defaultdict(list)
     shapes: Counter = Counter()
     n_det = 0
-    t0 = time.perf_counter()
-    for path in files:
-        with clock("read"):
-            scan = archive.read_pass(path)
-        with clock("focus"):
-            products = leg.focus(scan)
-        with clock("detect"):  # as pipeline.detect_pass: the echo lets detection model the neighbours
-            found = detect.detect_nlcs(products, settings.detection, scan, leg.focuser)
-        shapes[scan.echo.shape] += 1
+    for scan, found, shape in results:
+        shapes[tuple(shape)] += 1
         n_det += len(found)
         by_cycle[(scan.rig_id, scan.cycle)].append((scan, found))
     with clock("locate"):
@@ -351,6 +407,14 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="do not time the numpy leg (its images are still computed for the agreement check "
                         "on a few batch passes, not on the hires pass)")
     p.add_argument("--skip-hires", action="store_true", help="leave out workload (b)")
+    p.add_argument("--jobs", type=int, default=batch.cpu_count(),
+                   help="worker processes of the numpy and scipy32 legs in the batch, as `uwbcl process "
+                        "--jobs N` runs them (batch's pool; each scipy32 worker's FFTs on one thread); "
+                        "default: the cores here. 1: in this process, scipy.fft on all cores")
+    p.add_argument("--opencl-jobs", type=int, default=1,
+                   help="worker processes of the OpenCL leg in the batch, each with its own engine on the "
+                        "same device (default 1: this process; the engine runs on every core the runtime "
+                        "is given)")
     p.add_argument("--fresh-kernel-cache", action="store_true",
                    help="point PoCL's and CUDA's kernel caches at an empty directory, for a true cold start")
     p.add_argument("--workdir", type=Path, default=None,
@@ -419,10 +483,13 @@ def benchmark_batch(args, legs: list[Leg], workdir: Path, failures: list[str]) -
           f"alternately, SNR {BATCH_SNR_DB:g} dB, speed +-{100 * BATCH_SPEED_JITTER:g} %); archives "
           f"written in {time.perf_counter() - t:.1f} s (untimed)")
     n_warm, agreement = warm_up_legs(legs, files, settings)
-    runs = time_batch_runs(legs, files, workdir, settings, failures)
+    runs = time_batch_runs(args, legs, files, workdir, settings, failures)
     n_sample, fft_frac = fft_fractions(legs, runs, files)
     out = report_batch_legs(runs, len(files), fft_frac, agreement, n_sample)
     out["ratios"], out["focus_only_ratios"] = throughput_ratios(runs)
+    engine = next((leg.focuser for leg in legs if leg.name == "opencl"), None)
+    if engine is not None:
+        out["floor"] = report_floor(engine, files, runs, settings)
     print(f"    agreement on {n_warm} passes (one per shape), max ||out - numpy|| / ||numpy||: "
           + ", ".join(f"{k} {v:.1e}" for k, v in agreement.items()))
     for name, err in agreement.items():
@@ -432,16 +499,20 @@ def benchmark_batch(args, legs: list[Leg], workdir: Path, failures: list[str]) -
     return out
 
 
-def warm_up_legs(legs: list[Leg], files: list[Path],
-                 settings: ProcessingSettings) -> tuple[int, dict[str, float]]:
-    """Warm every leg up on one pass per input shape (plans, kernels, caches); (passes used, each leg's
-    max image error vs the numpy oracle on them)."""
-    # One pass per input shape: the warm-up inputs, and those the images are compared on.
+def shape_samples(files: list[Path]) -> list[Path]:
+    """One pass per input shape: the warm-up inputs, and those the images are compared on."""
     by_shape: dict[tuple[int, int], Path] = {}
     for path in files:
         h = archive.read_pass_header(path)
         by_shape.setdefault((h["n_pulses"], h["samples_per_pulse"]), path)
-    warm_scans = [archive.read_pass(p) for p in by_shape.values()]
+    return list(by_shape.values())
+
+
+def warm_up_legs(legs: list[Leg], files: list[Path],
+                 settings: ProcessingSettings) -> tuple[int, dict[str, float]]:
+    """Warm every leg up on one pass per input shape (plans, kernels, caches); (passes used, each leg's
+    max image error vs the numpy oracle on them)."""
+    warm_scans = [archive.read_pass(p) for p in shape_samples(files)]
     reference = [nlcs.nlcs_focus(s, ac_mode="exact").image for s in warm_scans]  # the oracle (untimed)
     agreement = {}
     for leg in legs:
@@ -454,20 +525,32 @@ def warm_up_legs(legs: list[Leg], files: list[Path],
     return len(warm_scans), agreement
 
 
-def time_batch_runs(legs: list[Leg], files: list[Path], workdir: Path, settings: ProcessingSettings,
+def leg_jobs(args, name: str) -> int:
+    """Worker processes of a leg: --jobs for the CPU legs, --opencl-jobs for the engine's."""
+    return max(1, args.opencl_jobs if name == "opencl" else args.jobs)
+
+
+def time_batch_runs(args, legs: list[Leg], files: list[Path], workdir: Path, settings: ProcessingSettings,
                     failures: list[str]) -> dict[str, BatchRun]:
-    """The timed end-to-end run of each leg; a leg that fails is reported and left out."""
+    """The timed end-to-end run of each leg, in this process or in batch's worker pool (leg_jobs); a leg that
+    fails is reported and left out."""
     runs: dict[str, BatchRun] = {}
+    warm_files = shape_samples(files)
     for leg in legs:
         load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+        out_csv = workdir / f"out-{leg.name}" / "displacements.csv"
+        jobs = leg_jobs(args, leg.name)
         try:
-            runs[leg.name] = run_batch(leg, files, workdir / f"out-{leg.name}" / "displacements.csv",
-                                       settings)
+            if jobs > 1:
+                runs[leg.name] = run_batch_pool(leg, files, out_csv, settings, jobs, warm_files, args.device)
+            else:
+                runs[leg.name] = run_batch(leg, files, out_csv, settings)
         except Exception as exc:  # noqa: BLE001 - report the leg, keep the others
             failures.append(f"batch {leg.name}: {type(exc).__name__}: {exc}")
             print(f"  {leg.name}: FAILED ({type(exc).__name__}: {exc})")
             continue
         runs[leg.name].stages["load_average_before"] = load
+        runs[leg.name].jobs = jobs
     return runs
 
 
@@ -494,31 +577,41 @@ def report_batch_legs(runs: dict[str, BatchRun], n_files: int, fft_frac: dict[st
           + ", ".join(f"{a}x{b}: {n}" for (a, b), n in sorted(shapes.items())))
     print("    shares of each leg's total time: archive read, focus (of it FFTs, estimated), detect, "
           "locate + displacement + CSV")
-    print(f"    {'leg':<8} {'passes/s':>9} {'total s':>8} {'read':>7} {'focus':>7} {'(FFT)':>8} "
-          f"{'detect':>7} {'loc+csv':>8}  load avg before")
-    out: dict = {"files": n_files, "shapes": {f"{a}x{b}": n for (a, b), n in shapes.items()}, "legs": {}}
+    cores = batch.cpu_count()
+    print(f"    {'leg':<8} {'jobs':>4} {'ms/pass':>8} {'passes/s':>9} {'/core':>6} {'total s':>8} "
+          f"{'read':>7} {'focus':>7} {'(FFT)':>8} {'detect':>7} {'loc+csv':>8}  load avg before")
+    out: dict = {"files": n_files, "shapes": {f"{a}x{b}": n for (a, b), n in shapes.items()}, "legs": {},
+                 "cores": cores}
     for name, run in runs.items():
         st = run.stages
         total = run.seconds
         rest = st["locate"] + st["displacement"] + st["csv"]
+        # a pooled leg's stage seconds are summed over its workers: shares of that sum, not of the wall time
+        basis = total if run.jobs == 1 else sum(v for k, v in st.items() if k != "load_average_before")
         frac, calls = fft_frac.get(name, (float("nan"), 0))
         fft_s = frac * st["focus"]
-        print(f"    {name:<8} {n_files / total:9.2f} {total:8.1f} {fmt_share(st['read'], total):>7} "
-              f"{fmt_share(st['focus'], total):>7} {'(' + fmt_share(fft_s, total).strip() + ')':>8} "
-              f"{fmt_share(st['detect'], total):>7} {fmt_share(rest, total):>8}  "
+        print(f"    {name:<8} {run.jobs:4d} {1e3 * total / n_files:8.1f} {n_files / total:9.2f} "
+              f"{n_files / total / cores:6.2f} {total:8.1f} {fmt_share(st['read'], basis):>7} "
+              f"{fmt_share(st['focus'], basis):>7} {'(' + fmt_share(fft_s, basis).strip() + ')':>8} "
+              f"{fmt_share(st['detect'], basis):>7} {fmt_share(rest, basis):>8}  "
               f"{st['load_average_before']:.2f}")
         out["legs"][name] = {
-            "passes_per_s": n_files / total, "seconds": total,
+            "jobs": run.jobs, "ms_per_pass": 1e3 * total / n_files,
+            "passes_per_s": n_files / total, "passes_per_s_per_core": n_files / total / cores,
+            "seconds": total,
             "stage_seconds": {k: v for k, v in st.items() if k != "load_average_before"},
             "load_average_before": st["load_average_before"],
             "fft_fraction_of_focus": frac, "fft_calls_per_pass": calls,
             "fft_seconds_estimate": fft_s, "detections": run.n_detections,
             "max_image_error_vs_numpy": agreement.get(name),
         }
+    if any(run.jobs > 1 for run in runs.values()):
+        print(f"    ({cores} cores; a leg with jobs > 1 ran in batch's worker pool, its shares are of the "
+              "time summed over its workers)")
     print("    FFT share: from a separate profiling pass over "
           f"{n_sample} passes (FFT time / focus time there) x the focus time of the timed pass")
     for name, d in out["legs"].items():
-        total = d["seconds"]
+        total = d["seconds"] if d["jobs"] == 1 else sum(d["stage_seconds"].values())
         focus = d["stage_seconds"]["focus"]
         print(f"    {name:<8} FFTs {fmt_share(d['fft_seconds_estimate'], total)}, focusing without FFTs "
               f"{fmt_share(focus - d['fft_seconds_estimate'], total)}, "
@@ -541,6 +634,92 @@ def throughput_ratios(runs: dict[str, BatchRun]) -> tuple[dict[str, float], dict
         print("    focusing alone (same timed pass):                    "
               + ", ".join(f"{k} {v:.2f}x" for k, v in focus_ratios.items()))
     return ratios, focus_ratios
+
+
+def fft_cost(engine, scans: list[ScanPass], settings: ProcessingSettings) -> dict[str, float]:
+    """FLOPs and bytes of the engine's FFTs per pass (5 N log2 N per complex FFT of length N; one read and one
+    write of the complex64 array per FFT), counted over `scans`: of the pass's focusing alone (`nlcs_focus`,
+    its exact-reference spectra included) and of the whole pass (detection's neighbour models and
+    calibration too)."""
+    count = {"flops": 0.0, "bytes": 0.0}
+    fft = engine.fft
+
+    def counted(arr, axis, inverse=False):
+        n = arr.shape[axis]
+        count["flops"] += 5.0 * n * np.log2(n) * (arr.size // n)
+        count["bytes"] += 2.0 * arr.size * 8
+        return fft(arr, axis, inverse)
+
+    engine.fft = counted
+    try:
+        focus = {"flops": 0.0, "bytes": 0.0}
+        for scan in scans:
+            before = dict(count)
+            products = engine.nlcs_focus(scan, ac_mode="exact")
+            for k in focus:
+                focus[k] += count[k] - before[k]
+            detect.detect_nlcs(products, settings.detection, scan, engine)
+    finally:
+        del engine.fft  # the instance attribute that shadowed the method
+    n = len(scans)
+    return {"focus_flops": focus["flops"] / n, "focus_bytes": focus["bytes"] / n,
+            "pass_flops": count["flops"] / n, "pass_bytes": count["bytes"] / n}
+
+
+def machine_rates(cores: int) -> dict[str, float]:
+    """This CPU's FFT rate (complex64 scipy.fft on every core, 5 N log2 N per FFT; the better of a batch of
+    1024-point FFTs, the chain's size, and one 2^20-point FFT) and its memory bandwidth (a 256 MiB copy,
+    read + write), best of 5."""
+    def best(fn, reps: int) -> float:
+        fn()
+        times = []
+        for _ in range(5):
+            t = time.perf_counter()
+            for _ in range(reps):
+                fn()
+            times.append((time.perf_counter() - t) / reps)
+        return min(times)
+
+    rng = np.random.default_rng(0)
+    batch_fft = (rng.standard_normal((1024, 512)) + 1j).astype(np.complex64)
+    big = (rng.standard_normal(1 << 20) + 1j).astype(np.complex64)
+    t_batch = best(lambda: scipy.fft.fft(batch_fft, axis=0, workers=cores), 10)
+    t_big = best(lambda: scipy.fft.fft(big, workers=cores), 10)
+    rate = max(5.0 * 1024 * 10 * 512 / t_batch, 5.0 * (1 << 20) * 20 / t_big)
+    a = np.ones(1 << 25, dtype=np.float64)
+    b = np.empty_like(a)
+    t_copy = best(lambda: np.copyto(b, a), 3)
+    return {"fft_flops_per_s": rate, "memory_bytes_per_s": 2.0 * a.nbytes / t_copy}
+
+
+def report_floor(engine, files: list[Path], runs: dict[str, BatchRun], settings: ProcessingSettings) -> dict:
+    """The physical floor of a pass (its FFTs at this CPU's FFT rate, or their bytes at its memory bandwidth,
+    whichever is longer) and the OpenCL leg's measured time over it, printed."""
+    sample = [archive.read_pass(p) for p in files[:: max(1, len(files) // PROFILE_SAMPLE)][:PROFILE_SAMPLE]]
+    cost = fft_cost(engine, sample, settings)
+    rates = machine_rates(batch.cpu_count())
+    out = {**cost, **rates}
+    for what in ("focus", "pass"):
+        out[f"{what}_floor_ms"] = 1e3 * max(cost[f"{what}_flops"] / rates["fft_flops_per_s"],
+                                            cost[f"{what}_bytes"] / rates["memory_bytes_per_s"])
+    mib = 2**20
+    print(f"    floor: FFTs per pass {cost['focus_flops'] / 1e6:.0f} MFLOP / {cost['focus_bytes'] / mib:.0f} "
+          f"MiB to focus, {cost['pass_flops'] / 1e6:.0f} MFLOP / {cost['pass_bytes'] / mib:.0f} MiB with "
+          f"detection's models and calibration; this CPU: {rates['fft_flops_per_s'] / 1e9:.1f} GFLOP/s "
+          f"complex64 FFT (scipy.fft, {batch.cpu_count()} cores), "
+          f"{rates['memory_bytes_per_s'] / 1e9:.1f} GB/s copy; floor {out['focus_floor_ms']:.1f} ms to "
+          f"focus, {out['pass_floor_ms']:.1f} ms per pass")
+    run = runs.get("opencl")
+    if run is not None:
+        n = sum(run.shapes.values())
+        out["opencl_ms_per_pass"] = 1e3 * run.seconds / n
+        # a pooled leg's focus seconds are summed over its workers, which ran side by side
+        out["opencl_focus_ms_per_pass"] = 1e3 * run.stages["focus"] / n / run.jobs
+        print(f"    opencl: {out['opencl_ms_per_pass']:.1f} ms per pass end to end = "
+              f"{out['opencl_ms_per_pass'] / out['pass_floor_ms']:.1f}x the pass floor; focusing "
+              f"{out['opencl_focus_ms_per_pass']:.1f} ms = "
+              f"{out['opencl_focus_ms_per_pass'] / out['focus_floor_ms']:.1f}x the focusing floor")
+    return out
 
 
 def compare_displacements(runs: dict[str, BatchRun]) -> tuple[str | None, dict[str, list[float]]]:
@@ -570,7 +749,7 @@ def benchmark_hires(args, legs: list[Leg], failures: list[str]) -> dict:
     scan = hires_pass()
     grid = nlcs.focus_grid(scan)
     print(f"\n(b) hires pass: {scan.n_pulses} pulses x {scan.samples_per_pulse} samples (focus grid "
-          f"{grid.n_azimuth} x {grid.n_range} after the 8x azimuth padding), simulated in "
+          f"{grid.n_azimuth} x {grid.n_range} with the azimuth padding of D5), simulated in "
           f"{time.perf_counter() - t:.1f} s (untimed); "
           + ("one cold run per leg (--quick)" if args.quick
              else "one warm-up run per leg, then one timed run"))

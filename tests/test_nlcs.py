@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 
@@ -394,3 +395,45 @@ def test_a_bin_whose_strong_segment_misses_zero_doppler_keeps_the_series_phase_l
     series = nlcs.series_azimuth_compression(k, grid)
     f = grid.f_azimuth_hz
     np.testing.assert_allclose(ac.phase(f)[:, 7], series.phase(f)[:, 7], rtol=1e-9, atol=1e-9)
+
+
+# ------------------------------------------------------------------------------------- the azimuth axis (D5)
+def test_the_largest_h6_delay_is_that_of_a_dense_sampling_of_the_band():
+    grid, k = _grid_and_coefficients(PAPER_SIM1.simulate()[0])
+    for lo, hi in ((-2.7, 2.0), (0.5, 3.0), (-4.0, -1.0)):
+        dense = np.abs(nlcs.h6_group_delay_s(np.linspace(lo, hi, 20001), k)).max()
+        assert nlcs.max_h6_delay_s(lo, hi, k) == pytest.approx(dense, rel=1e-6)
+
+
+def test_the_paper_passes_get_1024_azimuth_rows_and_a_2048_row_reference_axis():
+    for scenario in (PAPER_SIM1, PAPER_SIM2):
+        scan = scenario.simulate()[0]
+        grid = nlcs.focus_grid(scan)
+        assert grid.n_azimuth == 1024
+        assert grid.n_azimuth * grid.dt_s >= 3.0 * nlcs.azimuth_half_support_s(grid)
+        assert nlcs.reference_grid(grid, scan.radar.antenna_aperture_m).n_azimuth == 2048
+        eight_fold = nlcs.focus_grid(scan, azimuth_oversampling=8).n_azimuth
+        assert eight_fold == (4096 if scenario is PAPER_SIM1 else 2048)
+
+
+def test_the_shorter_azimuth_axis_focuses_the_paper_pass_as_the_8x_padding_does():
+    scan = PAPER_SIM1.simulate()[0]  # noise-free
+    short = nlcs.nlcs_focus(scan)
+    long = nlcs.nlcs_focus(scan, grid=nlcs.focus_grid(scan, azimuth_oversampling=8))
+    n, m = short.grid.n_azimuth, long.grid.n_azimuth
+    rail = np.arange(n // 2 - short.grid.n_track // 2 - 40, n // 2 + short.grid.n_track // 2 + 40)
+    ref = long.image[m // 2 - n // 2:][rail]
+    assert np.abs(short.image[rail] - ref).max() < 1e-3 * np.abs(ref).max()  # measured 2.5e-4
+
+
+def test_the_reference_on_its_own_axis_is_the_untruncated_reference_at_the_grid_frequencies():
+    scan = PAPER_SIM1.simulate()[0]
+    grid = nlcs.focus_grid(scan)
+    k = coef.nlcs_coefficients(grid.range_bins_m, grid.speed_m_s, grid.sin_squint, grid.wavelength_m)
+    aperture = scan.radar.antenna_aperture_m
+    wide = dataclasses.replace(grid, n_azimuth=8192)
+    untruncated = nlcs._azimuth_nlcs_chain(
+        nlcs.az_fft(nlcs.slow_time_point_response(k.r_m, 0.0, wide, aperture, rail_only=False)), k, wide)
+    ref = nlcs.on_grid_frequencies(untruncated, wide, grid)
+    out = nlcs.reference_spectra(k, grid, aperture)
+    assert np.abs(out - ref).max() < 1e-5 * np.abs(ref).max()  # measured 5e-7

@@ -505,7 +505,7 @@ def test_the_squint_cap_reaches_the_kernels_as_a_define(engine):
 
 def test_the_memory_check_refuses_a_pass_that_would_not_fit_before_it_runs(engine, jittery_pass, grid,
                                                                            monkeypatch):
-    need = engine.nlcs_footprint(grid, jittery_pass.n_pulses)
+    need = engine.nlcs_footprint(grid, jittery_pass.n_pulses, jittery_pass.radar.antenna_aperture_m)
     assert need > 8 * grid.n_azimuth * grid.n_range * 4  # the padded arrays: azimuth, scratch, H7, reference
     launches = []
     monkeypatch.setattr(engine, "launch", lambda *a, **k: launches.append(a))

@@ -16,7 +16,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from .displacement import estimate_advance, fit_chi2, location_covariance_m2
+from .displacement import estimate_advance, fit_chi2, location_covariance_m2, translation_scores
 from .locate import locate_plates
 from .records import (
     TRUSTED_STATUSES,
@@ -37,6 +37,10 @@ MOTION_MIN_STEPS = 3  # and only once it has this many
 # creep jumps by up to ~10 cm, the floor undulates. Wrong matches are a plate spacing (>= 0.8 m) away in x or
 # a row (>= 0.5 m) away in z, so a prior this wide still tells them apart without forcing the creep.
 MOTION_SIGMA_FLOOR_M = np.array([0.05, 0.15, 0.10])
+# Without a configured prior and before the motion model has its steps, the per-cycle step is learned from the
+# last LEARN_PAIRS consecutive cycle pairs together (eq. M4), once LEARN_MIN_PAIRS are available.
+LEARN_PAIRS = 6
+LEARN_MIN_PAIRS = 2
 MISSED_HEIGHT_SIGMA_FACTOR = 3.0  # range sigma of a plate missed at some of its cycle's heights (see below)
 # Covariance calibration: the location covariances (range_sigma_m) are scaled by the pooled chi2 / dof of the
 # last SCALE_HISTORY ok rows with two or more plates, once they have SCALE_MIN_DOF degrees of freedom, within
@@ -107,7 +111,10 @@ class RigChain:
     cycle just before it, the chain starts again at that cycle (`chain` + 1, its row cumulative 0). After
     max_bridge_cycles without a trusted match the chain is broken and starts again at the current cycle
     (`chain` + 1, cumulative from 0): the break is visible, never bridged by a guess that may be off by a
-    plate spacing.
+    plate spacing. The second look: when a trusted match bridges untrusted cycles, each is measured again
+    from both ends with the bridge's prior (`bridge_prior`); if both halves are ok and close on the bridge,
+    its row is re-issued with `revision` 1 and a cumulative value (the anchor's plus its own step: the
+    bridge's cumulative is not changed by it).
 
     State is real here: a row depends only on the cycles before it, so `uwbcl acquire --process` feeding the
     cycles one at a time gets exactly the rows that `uwbcl process` gets from the whole series.
@@ -117,6 +124,7 @@ class RigChain:
         self.association = association
         self.max_bridge_cycles = max_bridge_cycles
         self.rows: list[SeriesRow] = []
+        self.revised: list[SeriesRow] = []  # the rows the last `add` re-issued (revision 1), in cycle order
         self.first: CycleResult | None = None
         self._chain = 0
         self._anchor: CycleResult | None = None
@@ -127,27 +135,108 @@ class RigChain:
         self._anchor_var = np.zeros(3)  # variance (m^2) of the anchor's cumulative position
         self._steps: list[np.ndarray] = []  # per-cycle advance of the ok rows, oldest first: the motion model
         self._fits: list[tuple[float, int]] = []  # (chi2, dof) of the ok rows' fits (the covariance scale)
+        self._history: list[CycleResult] = []  # the last LEARN_PAIRS + 1 located cycles (the learned step)
+        # the chain's last cycles with their cumulative position and its variance (the backward second look)
+        self._members: list[tuple[CycleResult, np.ndarray, np.ndarray]] = []
+        self._pair_scores: dict[tuple[int, int], list[tuple[np.ndarray, float]]] = {}
+
+    def motion(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(median per-cycle step, its per-cycle standard deviation) of the last MOTION_HISTORY ok steps (m),
+        the deviation a scaled MAD floored at MOTION_SIGMA_FLOOR_M; None before MOTION_MIN_STEPS steps or with
+        the motion model off."""
+        steps = np.array(self._steps[-MOTION_HISTORY:])
+        if not self.association.motion_model or len(steps) < MOTION_MIN_STEPS:
+            return None
+        mu = np.median(steps, axis=0)
+        return mu, np.maximum(1.4826 * np.median(np.abs(steps - mu), axis=0), MOTION_SIGMA_FLOOR_M)
 
     def prior(self, gap: int) -> AssociationSettings:
         """The association settings for a displacement spanning `gap` cycles: the motion model's prediction.
 
-        With MOTION_MIN_STEPS ok steps or more, the prior is gap x the median of the last MOTION_HISTORY
-        per-cycle steps, with a per-cycle standard deviation of their scaled MAD (floored at
-        MOTION_SIGMA_FLOOR_M) that grows as sqrt(gap) (independent cycles) plus gap x the median's own
-        uncertainty; its window is three standard deviations, never wider than the configured one. Otherwise
-        the configured prior (web depth) scaled by the gap, or none.
+        With the motion model (`motion`), the prior is gap x the median step with a per-cycle standard
+        deviation that grows as sqrt(gap) (independent cycles) plus gap x the median's own uncertainty; its
+        window is three standard deviations, never wider than the configured one. Otherwise the configured
+        prior (web depth) scaled by the gap, or none.
         """
         base = self.association.for_gap(gap)
-        steps = np.array(self._steps[-MOTION_HISTORY:])
-        if not self.association.motion_model or len(steps) < MOTION_MIN_STEPS:
+        motion = self.motion()
+        if motion is None and self.association.second_look:
+            motion = self.learned_step()
+            if motion is not None and base.prior_advance_m is not None and \
+                    np.any(np.abs(gap * motion[0] - base.prior_advance_m) > base.prior_window_m):
+                motion = None  # the data disagree with the configured prior: that stays a prior_conflict
+        if motion is None:
             return base
-        mu = np.median(steps, axis=0)
-        sigma = np.maximum(1.4826 * np.median(np.abs(steps - mu), axis=0), MOTION_SIGMA_FLOOR_M)
-        window = 3.0 * np.sqrt(gap * sigma**2 + (gap * sigma) ** 2 / len(steps))
+        mu, sigma = motion
+        n_steps = max(len(self._steps[-MOTION_HISTORY:]), LEARN_MIN_PAIRS)
+        window = 3.0 * np.sqrt(gap * sigma**2 + (gap * sigma) ** 2 / n_steps)
         if base.prior_advance_m is not None:
             window = np.minimum(window, base.prior_window_m)
         return dataclasses.replace(base, prior_advance_m=tuple(float(v) for v in gap * mu),
                                    prior_window_m=tuple(float(v) for v in window))
+
+    def _scores(self, a: CycleResult, b: CycleResult) -> list[tuple[np.ndarray, float]]:
+        key = (a.cycle, b.cycle)
+        if key not in self._pair_scores:
+            self._pair_scores[key] = translation_scores(a.plates, b.plates, self.association,
+                                                        before_cov_m2=self._covs[a.cycle],
+                                                        after_cov_m2=self._covs[b.cycle])
+        return self._pair_scores[key]
+
+    def learned_step(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The per-cycle step that the recent consecutive cycle pairs support together, before the motion
+        model has its ok steps: (step, MOTION_SIGMA_FLOOR_M) or None. `prior` uses it in place of the
+        web-depth prior when that is not configured, or inside the configured window (it is narrower).
+
+        Eq. M4: S(s) = sum over the last LEARN_PAIRS pairs (a, b), g = b - a cycles apart, of
+        max(0, max over the pair's translations t of [score(t) - |(t - g s) / (sigma sqrt(g))|^2 / 2]) (0: the
+        pair says nothing about s), sigma = MOTION_SIGMA_FLOOR_M per cycle. Each pair alone may fit a plate
+        spacing off as well as right (few plates, a regular grid); a wrong step must fit every pair, and the
+        missing plates and the field of view's ends break the grid's period. The step is the candidate t / g
+        of highest S; it is used only when it leads the best distinct candidate (and "none", S = 0) by
+        min_margin.
+        The cycle being measured is never one of the pairs, so its own plates are not counted twice.
+        """
+        cycles = self._history[-(LEARN_PAIRS + 1):]
+        if len(cycles) < LEARN_MIN_PAIRS + 1:
+            return None
+        sigma = MOTION_SIGMA_FLOOR_M
+        pairs = [(b.cycle - a.cycle, self._scores(a, b)) for a, b in zip(cycles, cycles[1:])]
+        steps = [t / g for g, hyps in pairs for t, _ in hyps]
+        if not steps:
+            return None
+
+        def support(step: np.ndarray) -> float:
+            total = 0.0
+            for g, hyps in pairs:
+                fits = [sc - 0.5 * float(np.sum(((t - g * step) / (sigma * np.sqrt(g))) ** 2))
+                        for t, sc in hyps]
+                total += max([0.0, *fits])
+            return total
+
+        scored = sorted(((support(st), k) for k, st in enumerate(steps)), key=lambda v: (-v[0], v[1]))
+        best_score, k = scored[0]
+        tol = np.asarray(self.association.tolerance_m, dtype=float)
+        rival = max([0.0, *(sc for sc, j in scored[1:] if np.any(np.abs(steps[j] - steps[k]) > tol))])
+        if best_score - rival < self.association.min_margin:
+            return None
+        return steps[k], sigma
+
+    def bridge_prior(self, d: Displacement, span: int, part: int) -> AssociationSettings:
+        """The prior of a step of `part` cycles inside a trusted displacement `d` spanning `span` cycles.
+
+        A random walk pinned at both ends (a Brownian bridge, docs/method.md section 6.2): the step's mean is
+        part/span of d, its variance sigma^2 part (span - part) / span per axis (sigma the per-cycle deviation
+        of `motion`, else MOTION_SIGMA_FLOOR_M) plus (part/span)^2 d's own variance; the window is three
+        standard deviations.
+        """
+        motion = self.motion()
+        sigma = MOTION_SIGMA_FLOOR_M if motion is None else motion[1]
+        frac = part / span
+        var = sigma**2 * part * (span - part) / span + (frac * d.bound_m) ** 2
+        return dataclasses.replace(self.association,
+                                   prior_advance_m=tuple(float(v) for v in frac * d.advance_m),
+                                   prior_window_m=tuple(float(v) for v in 3.0 * np.sqrt(var)))
 
     def covariance_scale(self) -> float:
         """Variance factor for the location covariances from the recent ok rows' fit (1 until enough dof)."""
@@ -157,22 +246,93 @@ class RigChain:
             return 1.0
         return float(np.clip(sum(f[0] for f in fits) / dof, *SCALE_LIMITS))
 
-    def _measure(self, a: CycleResult, b: CycleResult) -> Displacement:
+    def _measure(self, a: CycleResult, b: CycleResult, prior: AssociationSettings | None = None
+                 ) -> Displacement:
         scale = self.covariance_scale()
-        return estimate_advance(a.plates, b.plates, self.prior(b.cycle - a.cycle),
+        return estimate_advance(a.plates, b.plates, prior or self.prior(b.cycle - a.cycle),
                                 before_cov_m2=scale * self._covs[a.cycle],
                                 after_cov_m2=scale * self._covs[b.cycle])
+
+    def _resolve(self, a: CycleResult, b: CycleResult, c: CycleResult, d_ac: Displacement
+                 ) -> Displacement | None:
+        """The second look at cycle b, untrusted between a and c, now that d_ac links a to c: a -> b and
+        b -> c measured with the bridge prior must both be ok and add up to d_ac within three times their
+        combined bound (per axis). Returns a -> b, or None."""
+        span = c.cycle - a.cycle
+        d_ab = self._measure(a, b, self.bridge_prior(d_ac, span, b.cycle - a.cycle))
+        if d_ab.status != "ok":
+            return None
+        d_bc = self._measure(b, c, self.bridge_prior(d_ac, span, c.cycle - b.cycle))
+        if d_bc.status != "ok":
+            return None
+        misclosure = d_ab.advance_m + d_bc.advance_m - d_ac.advance_m
+        limit = 3.0 * np.sqrt(d_ab.bound_m**2 + d_bc.bound_m**2 + d_ac.bound_m**2)
+        return d_ab if bool(np.all(np.abs(misclosure) <= limit)) else None
+
+    def _resolve_through(self, a: CycleResult, b: CycleResult, c: CycleResult, d_bc: Displacement
+                         ) -> Displacement | None:
+        """The second look at cycle b, untrusted from a, when the next cycle c matches b (d_bc trusted) but
+        not a: a -> b measured again with c's plates that b did not see added to b, moved into b's frame by
+        d_bc (P_b = P_c + Delta P, their covariance widened by d_bc's bound). More plates of one rib pattern
+        than b alone saw: ok, or None."""
+        matched = {j for _, j in d_bc.pairs}
+        extra = [k for k in range(len(c.plates)) if k not in matched]
+        if not extra:
+            return None
+        scale = self.covariance_scale()
+        moved = [dataclasses.replace(c.plates[k], position_m=c.plates[k].position_m + d_bc.advance_m)
+                 for k in extra]
+        cov_b = np.concatenate([self._covs[b.cycle], self._covs[c.cycle][extra] + np.diag(d_bc.bound_m**2)])
+        d_ab = estimate_advance(a.plates, list(b.plates) + moved, self.prior(b.cycle - a.cycle),
+                                before_cov_m2=scale * self._covs[a.cycle], after_cov_m2=scale * cov_b)
+        return d_ab if d_ab.status == "ok" else None
+
+    def _second_look(self, a: CycleResult, c: CycleResult, d_ac: Displacement, cum_a: np.ndarray,
+                     var_a: np.ndarray) -> None:
+        """Re-issue (revision 1) the untrusted rows of this chain between a and c that d_ac resolves."""
+        for i in range(len(self.rows) - 1, -1, -1):
+            row = self.rows[i]
+            if row.cycle.cycle <= a.cycle or row.chain != self._chain:
+                break
+            if row.cycle.cycle >= c.cycle or row.revision or not row.cycle.plates or \
+                    bool(np.all(np.isfinite(row.cumulative_m))):
+                continue
+            d_ab = self._resolve(a, row.cycle, c, d_ac)
+            if d_ab is None:
+                continue
+            log.info("rig %s: cycle %d (%s) resolved by cycle %d; re-issued as revision 1", c.rig_id,
+                     row.cycle.cycle, row.displacement.status, c.cycle)
+            self.rows[i] = SeriesRow(row.cycle, a, d_ab, cum_a + d_ab.advance_m, self._chain,
+                                     np.sqrt(var_a + d_ab.bound_m**2), revision=1)
+            self.revised.insert(0, self.rows[i])
 
     def _restart(self, cur: CycleResult) -> None:
         self._anchor, self._anchor_cum, self._reserve = cur, np.zeros(3), None
         self._anchor_var = np.zeros(3)
+        self._members = [(cur, np.zeros(3), np.zeros(3))]
+
+    def _from_earlier(self, cur: CycleResult) -> SeriesRow | None:
+        """The second look backwards: a cycle that cannot be matched to the anchor (e.g. an anchor that saw
+        one plate, gone from view since) measured from the chain's earlier cycles, newest first, within
+        max_bridge_cycles; the first trusted match extends the chain from there."""
+        for via, cum, var in reversed(self._members[:-1]):
+            if cur.cycle - via.cycle > self.max_bridge_cycles or not via.plates:
+                break
+            d = self._measure(via, cur)
+            if trusted(d):
+                return self._extend(cur, via, d, cum, var)
+        return None
 
     def _extend(self, cur: CycleResult, via: CycleResult, d: Displacement, cum_via: np.ndarray,
                 var_via: np.ndarray) -> SeriesRow:
-        """A trusted displacement from `via` (in the chain) to `cur`: the anchor moves to `cur`."""
+        """A trusted displacement from `via` (in the chain) to `cur`: the anchor moves to `cur`; the untrusted
+        cycles it bridged get their second look."""
         cum, var = cum_via + d.advance_m, var_via + d.bound_m**2
+        if self.association.second_look and cur.cycle - via.cycle > 1:
+            self._second_look(via, cur, d, cum_via, var_via)
         row = self._append(SeriesRow(cur, via, d, cum, self._chain, np.sqrt(var)))
         self._anchor, self._anchor_cum, self._anchor_var, self._reserve = cur, cum, var, None
+        self._members = [*self._members[-self.max_bridge_cycles:], (cur, cum, var)]
         if d.status == "ok":
             self._steps.append(d.advance_m / (cur.cycle - via.cycle))
             chi2, dof = fit_chi2(via.plates, cur.plates, d.pairs, d.advance_m, self._covs[via.cycle],
@@ -182,7 +342,14 @@ class RigChain:
         return row
 
     def add(self, cur: CycleResult) -> SeriesRow | None:
-        """Measure the next cycle (higher cycle number than every cycle before); None for the rig's first."""
+        """Measure the next cycle (higher cycle number than every cycle before); None for the rig's first.
+        Earlier rows this cycle resolved are re-issued in `revised`."""
+        row = self._add(cur)
+        self._history = [*self._history[-LEARN_PAIRS:], cur]
+        return row
+
+    def _add(self, cur: CycleResult) -> SeriesRow | None:
+        self.revised = []
         self._covs[cur.cycle] = plate_covariances(cur, self.association.range_sigma_m)
         if self._anchor is None:
             self.first = cur
@@ -203,9 +370,23 @@ class RigChain:
                 self.rows[index].cumulative_m = via_cum
                 self.rows[index].cumulative_bound_m = np.sqrt(via_var)
                 return self._extend(cur, via, d2, via_cum, via_var)
+        earlier = self._from_earlier(cur) if self.association.second_look else None
+        if earlier is not None:
+            return earlier
         last = self.rows[-1] if self.rows else None
         if last is not None and last.cycle.cycle != anchor.cycle and last.cycle.plates:
             d3 = self._measure(last.cycle, cur)
+            d_ab = (self._resolve_through(anchor, last.cycle, cur, d3)
+                    if trusted(d3) and self.association.second_look else None)
+            if d_ab is not None:
+                # The second look joins the chain through the untrusted cycle: re-issued, no restart.
+                log.info("rig %s: cycle %d (%s) resolved by cycle %d; re-issued as revision 1", cur.rig_id,
+                         last.cycle.cycle, last.displacement.status, cur.cycle)
+                cum_b, var_b = self._anchor_cum + d_ab.advance_m, self._anchor_var + d_ab.bound_m**2
+                self.rows[-1] = SeriesRow(last.cycle, anchor, d_ab, cum_b, self._chain, np.sqrt(var_b),
+                                          revision=1)
+                self.revised.append(self.rows[-1])
+                return self._extend(cur, last.cycle, d3, cum_b, var_b)
             if trusted(d3):
                 # The cycle matches the untrusted one before it, not the chain: the chain starts again there
                 # (chain + 1, visible) instead of bridging a gap that the plates seen by both may not span.

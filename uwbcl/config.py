@@ -129,7 +129,7 @@ _SCHEMA = {
     "association": {"tolerance_m": _triple, "min_targets": _int, "min_confident_targets": _int,
                     "weighted": _bool, "range_sigma_m": _number, "outlier_chi2": _number,
                     "max_bridge_cycles": _int, "min_margin": _number, "max_bound_m": _number,
-                    "motion_model": _bool},
+                    "motion_model": _bool, "second_look": _bool},
     "output": {f.name: _bool for f in dataclasses.fields(OutputOptions)},
     "limits": {f.name: _int for f in dataclasses.fields(ReadLimits)},
 }

@@ -227,6 +227,37 @@ def _box_match(p: np.ndarray, q: np.ndarray, shift: np.ndarray, tol: np.ndarray)
     return _greedy(cost, 1.0)
 
 
+def _pair_terms(before: list[Located], after: list[Located], tol: np.ndarray, before_cov_m2, after_cov_m2):
+    """Positions p (n, 3), q (m, 3), differences P_i - P'_j (n, m, 3), their covariances (n, m, 3, 3), the
+    match gains (n, m) of eq. M1, and whether covariances were given."""
+    p = np.array([t.position_m for t in before], dtype=float)
+    q = np.array([t.position_m for t in after], dtype=float)
+    have_cov = before_cov_m2 is not None and after_cov_m2 is not None
+    if have_cov:
+        pc, qc = np.asarray(before_cov_m2, dtype=float), np.asarray(after_cov_m2, dtype=float)
+    else:
+        pc = np.broadcast_to(np.diag((tol / 3.0) ** 2 / 2.0), (len(p), 3, 3))
+        qc = np.broadcast_to(np.diag((tol / 3.0) ** 2 / 2.0), (len(q), 3, 3))
+    diff = p[:, None, :] - q[None, :, :]
+    cov = pc[:, None] + qc[None, :] + np.eye(3) * MODEL_SIGMA_M**2
+    # M1: ln N_xz(0; C) - ln(rho): a match's likelihood over a chance plate within the same (x, z) cell.
+    det_xz = cov[..., 0, 0] * cov[..., 2, 2] - cov[..., 0, 2] ** 2
+    gain = np.maximum(-np.log(PLATE_DENSITY_PER_M2 * 2.0 * np.pi * np.sqrt(det_xz)), 0.5)
+    return p, q, diff, cov, gain, have_cov
+
+
+def translation_scores(before: list[Located], after: list[Located], settings: AssociationSettings, *,
+                       before_cov_m2: np.ndarray, after_cov_m2: np.ndarray) -> list[tuple[np.ndarray, float]]:
+    """Every distinct translation two cycles' plates support and its data log-likelihood ratio (eq. M1, no
+    prior), best first: (Delta P (3,) m, score). Empty when no plate pair matches."""
+    if not before or not after:
+        return []
+    tol = np.asarray(settings.tolerance_m, dtype=float)
+    _, _, diff, cov, gain, _ = _pair_terms(before, after, tol, before_cov_m2, after_cov_m2)
+    blind = dataclasses.replace(settings, prior_advance_m=None)
+    return [(h.shift, h.score) for h in _hypotheses(diff, cov, gain, blind)]
+
+
 def estimate_advance(before: list[Located], after: list[Located],
                      settings: AssociationSettings = AssociationSettings(), *,
                      before_cov_m2: np.ndarray | None = None, after_cov_m2: np.ndarray | None = None
@@ -262,19 +293,7 @@ def estimate_advance(before: list[Located], after: list[Located],
     none = Displacement(nan3, nan3, 0, float("nan"), "too_few_targets", [])
     if not before or not after:
         return none
-    p = np.array([t.position_m for t in before], dtype=float)
-    q = np.array([t.position_m for t in after], dtype=float)
-    have_cov = before_cov_m2 is not None and after_cov_m2 is not None
-    if have_cov:
-        pc, qc = np.asarray(before_cov_m2, dtype=float), np.asarray(after_cov_m2, dtype=float)
-    else:
-        pc = np.broadcast_to(np.diag((tol / 3.0) ** 2 / 2.0), (len(p), 3, 3))
-        qc = np.broadcast_to(np.diag((tol / 3.0) ** 2 / 2.0), (len(q), 3, 3))
-    diff = p[:, None, :] - q[None, :, :]
-    cov = pc[:, None] + qc[None, :] + np.eye(3) * MODEL_SIGMA_M**2
-    # M1: ln N_xz(0; C) - ln(rho): a match's likelihood over a chance plate within the same (x, z) cell.
-    det_xz = cov[..., 0, 0] * cov[..., 2, 2] - cov[..., 0, 2] ** 2
-    gain = np.maximum(-np.log(PLATE_DENSITY_PER_M2 * 2.0 * np.pi * np.sqrt(det_xz)), 0.5)
+    p, q, diff, cov, gain, have_cov = _pair_terms(before, after, tol, before_cov_m2, after_cov_m2)
     hyps = _hypotheses(diff, cov, gain, settings)
     if not hyps or len(hyps[0].pairs) < settings.min_targets:
         return none

@@ -31,6 +31,9 @@ DISPLACEMENT_COLUMNS = (
     # Added in displacements format 1.1 (docs/outputs.md section 2.1), appended: the order above is fixed.
     "retreat_bound_m", "creep_bound_m", "cumulative_retreat_bound_m", "cumulative_creep_bound_m",
     "association_margin",
+    # Added in 1.2: 0 as first issued, 1 when a later cycle resolved the row (the second look); the vertical
+    # column's bounds
+    "revision", "vertical_bound_m", "cumulative_vertical_bound_m",
 )
 TARGET_COLUMNS = (
     "rig_id", "cycle", "plate", "track", "x_m", "y_m", "z_m", "residual_m", "n_passes", "amplitude",
@@ -40,7 +43,7 @@ ERROR_COLUMNS = ("file", "kind", "reason")
 H5_FORMAT = "uwbcl-displacements"
 H5_FORMAT_VERSION = 1
 UNITS = {"_m": "m", "cycle": "1", "from_cycle": "1", "chain": "1", "n_targets": "1", "n_plates": "1",
-         "runner_up_targets": "1",
+         "runner_up_targets": "1", "revision": "1",
          "plate": "1", "track": "1", "n_passes": "1", "matched_plate": "1", "inlier": "1", "amplitude": "arb",
          "start_time": "ISO 8601 UTC", "rig_id": "", "status": "",
          "association_margin": "ln(likelihood ratio)"}
@@ -68,6 +71,8 @@ def displacement_records(rows: list[SeriesRow]) -> list[dict]:
             "retreat_bound_m": float(d.bound_m[0]), "creep_bound_m": float(d.bound_m[1]),
             "cumulative_retreat_bound_m": float(r.cumulative_bound_m[0]),
             "cumulative_creep_bound_m": float(r.cumulative_bound_m[1]), "association_margin": float(d.margin),
+            "revision": r.revision, "vertical_bound_m": float(d.bound_m[2]),
+            "cumulative_vertical_bound_m": float(r.cumulative_bound_m[2]),
         })
     return out
 

@@ -107,6 +107,7 @@ class AssociationSettings:
     # A row is "ok" only when its error bound (one standard deviation, retreat and creep) is at most this.
     max_bound_m: float = 0.01
     motion_model: bool = True  # the previous trusted cycles' steps predict the next (RigChain)
+    second_look: bool = True  # a later trusted cycle re-measures the untrusted ones it bridged (revision 1)
 
     def for_gap(self, cycles: int) -> AssociationSettings:
         """The prior for a displacement spanning `cycles` cutting cycles (after a missing or rejected one):
@@ -233,6 +234,8 @@ class SeriesRow:
     chain: int = 0  # 0, then +1 each time the chain of trusted matches had to start again
     # (3,) one-standard-deviation bound of cumulative_m, m; NaN where it is NaN
     cumulative_bound_m: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
+    # 0 as first issued; 1 when a later cycle resolved it (the second look, docs/method.md section 6.2)
+    revision: int = 0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -921,8 +921,8 @@ class AcquisitionSession:
                 return
             self.report.results.append(result)
             self.processor.write_csv(self.out, self.report.results)
-            if result.get("status_code") is None:
-                continue  # the reference cycle: nothing to publish yet
+            if result.get("status_code") is None or result.get("revision", 0):
+                continue  # the reference cycle: nothing to publish yet; a re-issue goes to the CSV only
             self._result_seq = self._result_seq % 0xFFFFFFFF + 1
             values = {"RESULT_SEQ": self._result_seq, "CYCLE": result["cycle"],
                       "PREVIOUS_CYCLE": result["previous_cycle"] or 0, "RETREAT": result["retreat_m"],

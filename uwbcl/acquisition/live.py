@@ -27,7 +27,7 @@ from . import registers as R
 log = logging.getLogger("uwbcl.acquire")
 
 RESULT_COLUMNS = ("rig_id", "cycle", "previous_cycle", "start_time", "retreat_m", "creep_m", "vertical_m",
-                  "n_targets", "residual_m", "status")
+                  "n_targets", "residual_m", "status", "revision")
 RESULTS_FILE = "acquire-results.csv"
 
 
@@ -96,33 +96,39 @@ class LiveProcessor:
             if cycle is None:
                 return
             try:
-                self.results.put(self._process(cycle, passes, complete, start_time))
+                for result in self._process(cycle, passes, complete, start_time):
+                    self.results.put(result)
             except Exception as exc:  # one cycle's failure must not end the service
                 log.exception("cycle %d: processing failed", cycle)
                 self.results.put(self._row(cycle, start_time, None, R.ResultStatus.PROCESSING_ERROR,
                                            f"processing_error: {exc}"))
 
-    def _process(self, cycle: int, passes, complete: bool, start_time) -> dict:
+    def _process(self, cycle: int, passes, complete: bool, start_time) -> list[dict]:
+        """The cycle's result, then the earlier cycles it resolved (the chain's second look: revision 1)."""
         if not complete or len({p.geometry.height_m for p in passes}) < 2:
             log.warning("cycle %d: incomplete (%d passes); no displacement", cycle, len(passes))
-            return self._row(cycle, start_time, None, R.ResultStatus.INCOMPLETE_CYCLE, "incomplete_cycle")
+            return [self._row(cycle, start_time, None, R.ResultStatus.INCOMPLETE_CYCLE, "incomplete_cycle")]
         located = pipeline.locate_cycle(passes, self.settings)
         log.info("cycle %d: %d plates located", cycle, len(located.plates))
         row = self._chain.add(located)
         if row is None:
-            return self._row(cycle, start_time, None, None, "reference", located=len(located.plates))
+            return [self._row(cycle, start_time, None, None, "reference", located=len(located.plates))]
+        return [self._series_row(r) for r in (row, *self._chain.revised)]
+
+    def _series_row(self, row) -> dict:
         d = row.displacement
         code = _STATUS.get(d.status, R.ResultStatus.FLAGGED)
-        return self._row(cycle, start_time, row.reference.cycle, code, d.status, d=d)
+        return self._row(row.cycle.cycle, row.cycle.start_time, row.reference.cycle, code, d.status, d=d,
+                         revision=row.revision)
 
-    def _row(self, cycle, start_time, previous_cycle, code, status, d=None, located=0) -> dict:
+    def _row(self, cycle, start_time, previous_cycle, code, status, d=None, located=0, revision=0) -> dict:
         nan = math.nan
         return {"rig_id": self.rig_id, "cycle": cycle, "previous_cycle": previous_cycle,
                 "start_time": start_time or "", "time_s": utc_seconds(start_time),
                 "retreat_m": d.retreat_m if d else nan, "creep_m": d.creep_m if d else nan,
                 "vertical_m": d.vertical_m if d else nan, "n_targets": d.n_targets if d else located,
                 "residual_m": d.residual_m if d else nan, "status": status,
-                "status_code": None if code is None else int(code)}
+                "status_code": None if code is None else int(code), "revision": revision}
 
     @staticmethod
     def write_csv(out_dir: Path, results: list[dict]) -> Path:

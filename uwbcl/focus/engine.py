@@ -91,9 +91,10 @@ BUFFERS = (
                doc="image spectrum rows"),
     BufferSpec("model_rows", lambda g, rows: (padded_rows(rows, g), g.n_range), COMPLEX64,
                doc="a neighbour model's spectrum rows"),
-    *(BufferSpec(name, lambda g, columns: (g.n_azimuth, columns), COMPLEX64,
-                 doc="simulated targets per column")
-      for name in ("reference", "calibration")),
+    BufferSpec("reference", lambda g, columns, rows: (rows, columns), COMPLEX64,
+               doc="the whole-beam reference per bin, on its own azimuth axis of `rows` (D5)"),
+    BufferSpec("calibration", lambda g, columns: (g.n_azimuth, columns), COMPLEX64,
+               doc="simulated targets per column"),
     *(BufferSpec(f"{name}_{what}", lambda g, columns: (columns,), REAL, True, "per column")
       for name in ("reference", "calibration") for what in ("r", "t_n")),
     BufferSpec("fine", lambda g, n_pulses, upsample: (n_pulses, g.n_range * upsample), COMPLEX64,
@@ -175,12 +176,18 @@ class FocusEngine(OpenclProcessing):
                 *((name, {}) for name in NLCS_COEFFICIENTS), ("ac_poly", {"n_terms": AC_TERMS_BOUND}),
                 ("ac_first", {}), ("ac_last", {}), ("filter_h8", {"rows": rows}), ("h8_rows", {"rows": rows})]
 
-    def nlcs_footprint(self, grid: nlcs.FocusGrid, n_pulses: int) -> int:
-        """Device bytes `nlcs_focus` needs for a pass of `n_pulses` pulses on `grid` (from the buffer table;
-        the exact-reference spectra included)."""
+    @staticmethod
+    def _reference_entries(grid: nlcs.FocusGrid, aperture_m: float) -> list:
+        """(buffer, extents) of the exact-reference spectra, on their own azimuth axis (D5)."""
+        n = nlcs.reference_grid(grid, aperture_m).n_azimuth
         columns = {"columns": grid.n_range}
-        entries = self._nlcs_entries(grid, n_pulses) + [("reference", columns), ("reference_r", columns),
-                                                         ("reference_t_n", columns)]
+        return [("reference", {**columns, "rows": n}), ("reference_r", columns), ("reference_t_n", columns),
+                ("fft_scratch", {"n": n, "cols": grid.n_range}), ("fft_twiddle", {"n": n})]
+
+    def nlcs_footprint(self, grid: nlcs.FocusGrid, n_pulses: int, aperture_m: float) -> int:
+        """Device bytes `nlcs_focus` needs for a pass of `n_pulses` pulses on `grid` (from the buffer table;
+        the exact-reference spectra for an antenna of aperture_m included)."""
+        entries = self._nlcs_entries(grid, n_pulses) + self._reference_entries(grid, aperture_m)
         return sum(self.footprint(grid, entries).values())
 
     # ------------------------------------------------------------------------------------------ NLCS stages
@@ -289,15 +296,21 @@ class FocusEngine(OpenclProcessing):
 
     def _enqueue_reference_spectra(self, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, aperture_m: float):
         """Queue the device part of `reference_spectra` and its read-back: (host array, read event)."""
-        h7 = self._pass_filters(grid, k).h7
+        long = nlcs.reference_grid(grid, aperture_m)  # D5: the whole beam's response fits its axis
+        h7 = self._pass_filters(grid, k).h7 if long == grid else None
         with self.stage("reference spectra"):
-            ref = self.point_response(k.r_m, np.zeros(grid.n_range), grid, aperture_m, "reference")
+            ref = self.point_response(k.r_m, np.zeros(grid.n_range), long, aperture_m, "reference")
             self.fft(ref, 0)
-            self.nlcs_filter(ref, k, grid, with_h5=False)
+            self.nlcs_filter(ref, k, long, with_h5=False)
             self.fft(ref, 0, inverse=True)
-            self._launch("apply_filter", grid.n_azimuth, grid.n_range, s=ref, filter=h7, n_range=grid.n_range)
+            if h7 is None:
+                self.nlcs_scaling(ref, k, long)
+            else:
+                self._launch("apply_filter", grid.n_azimuth, grid.n_range, s=ref, filter=h7,
+                             n_range=grid.n_range)
             self.fft(ref, 0)
-            return self.host_async(ref)
+            host, read = self.host_async(ref)
+            return nlcs.on_grid_frequencies(host, long, grid), read
 
     def _reference_spectra_result(self, pending, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid,
                                   aperture_m: float) -> np.ndarray:
@@ -314,7 +327,8 @@ class FocusEngine(OpenclProcessing):
         """`nlcs.slow_time_point_response` on the device, one (r, t_n) per column, FFT order, into the buffer
         `name` ("reference" or "calibration")."""
         columns = r_m.size
-        out = self.buffer(name, grid, columns=columns)
+        rows = {"rows": grid.n_azimuth} if name == "reference" else {}
+        out = self.buffer(name, grid, columns=columns, **rows)
         self._launch("point_response", grid.n_azimuth, columns, out=out,
                      r_m=self.reals(f"{name}_r", r_m, grid, columns=columns),
                      t_n_s=self.reals(f"{name}_t_n", t_n_s, grid, columns=columns), n_cols=columns,
@@ -389,15 +403,14 @@ class FocusEngine(OpenclProcessing):
             raise ValueError(f"unknown azimuth compression mode {ac_mode!r} (exact|series)")
         grid = nlcs.focus_grid(scan) if grid is None else grid
         echo, x_rel = nlcs.prepare_track(scan, grid)
-        columns = {"columns": grid.n_range}
-        self.check_footprint("nlcs_focus", grid, self._nlcs_entries(grid, echo.shape[0]) + [
-            ("reference", columns), ("reference_r", columns), ("reference_t_n", columns)])
+        aperture = scan.radar.antenna_aperture_m
+        self.check_footprint("nlcs_focus", grid, self._nlcs_entries(grid, echo.shape[0])
+                             + self._reference_entries(grid, aperture))
         k = coef.nlcs_coefficients(grid.range_bins_m, grid.speed_m_s, grid.sin_squint, grid.wavelength_m)
         p2 = coef.enlcs_coefficient(grid.range_bins_m, grid.speed_m_s, grid.sin_squint)
         if np.ptp(p2) > 0:
             raise NotImplementedError("the engine applies H2 with one p2 per pass; "
                                       "p2 varies across range here")
-        aperture = scan.radar.antenna_aperture_m
         ac = compression or (nlcs.series_azimuth_compression(k, grid) if ac_mode == "series" else None)
         pending = self._enqueue_reference_spectra(k, grid, aperture) if ac is None else None
         # queued behind the reference spectra: the device runs the chain while the host fits H8 to them

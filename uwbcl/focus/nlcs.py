@@ -132,7 +132,18 @@ class FocusGrid:
                        bins.size - 1).astype(int)
 
 
-def focus_grid(scan: ScanPass, azimuth_oversampling: int = 8) -> FocusGrid:
+# The padded azimuth axis (docs/method.md D5). The data chain's axis spans AZIMUTH_GUARD times the centred
+# interval that its signal occupies after H6, over the Doppler band of the range frequencies where the
+# compressed pulse's spectrum P^2 is above COMPRESSED_SPECTRUM_FLOOR of its peak (the Gaussian pulse's P from
+# `pulse_spectrum`).
+AZIMUTH_GUARD = 1.5
+COMPRESSED_SPECTRUM_FLOOR = 1e-2
+
+
+def focus_grid(scan: ScanPass, azimuth_oversampling: float | None = None) -> FocusGrid:
+    """The pass's processing frame. The azimuth axis is the shortest power of two that holds the chain's
+    signal (D5: `azimuth_half_support_s` with its guard); azimuth_oversampling > 0 instead pads the track to
+    that many times its length (the rule before D5: 8)."""
     x = np.sort(scan.pulse_position_m)
     n_track = scan.n_pulses | 1
     length = x[-1] - x[0]
@@ -142,15 +153,87 @@ def focus_grid(scan: ScanPass, azimuth_oversampling: int = 8) -> FocusGrid:
     theta_q = geo.slant_squint_rad(g.reference_point_m, x_c, g.height_m)
     tx, ty, tz = g.reference_point_m
     r_ref = math.sqrt((tx - x_c) ** 2 + ty**2 + (tz - g.height_m) ** 2)
-    n_az = 1 << math.ceil(math.log2(azimuth_oversampling * n_track))
-    return FocusGrid(
+    grid = FocusGrid(
         aperture_centre_m=x_c, speed_m_s=speed, track_spacing_m=length / (n_track - 1), n_track=n_track,
-        n_azimuth=n_az, sin_squint=math.sin(theta_q), reference_range_m=r_ref,
+        n_azimuth=0, sin_squint=math.sin(theta_q), reference_range_m=r_ref,
         range_window_start_s=scan.range_window_start_s, sample_rate_hz=scan.radar.sample_rate_hz,
         n_range=scan.samples_per_pulse, carrier_frequency_hz=scan.radar.carrier_frequency_hz,
         pulse_sigma_s=scan.radar.pulse_sigma_s, measured_pulse=scan.radar.measured_pulse,
         doppler_band=geo.slant_doppler_band(g, scan.radar.antenna_aperture_m, scan.radar.wavelength_m),
     )
+    if azimuth_oversampling:
+        n_az = 1 << math.ceil(math.log2(azimuth_oversampling * n_track))
+    else:
+        n_az = _power_of_two_holding(2.0 * AZIMUTH_GUARD * azimuth_half_support_s(grid), grid)
+    return dataclasses.replace(grid, n_azimuth=max(n_az, 2))
+
+
+def _power_of_two_holding(duration_s: float, grid: FocusGrid) -> int:
+    """The shortest power-of-two azimuth axis of at least duration_s and of the whole track."""
+    return 1 << math.ceil(math.log2(max(duration_s / grid.dt_s, grid.n_track)))
+
+
+def h6_group_delay_s(f_hz, k: coef.NlcsCoefficients) -> np.ndarray:
+    """-d arg H6 / d(2 pi f_a): the azimuth time H6 (eq. 15) moves the component at f_a by, per bin (D5).
+    Shape (f_hz.size, n_bins)."""
+    f = np.asarray(f_hz, dtype=float)[:, None]
+    return -0.5 * (3.0 * k.y3 * f**2 + 4.0 * k.y4 * f**3)
+
+
+def max_h6_delay_s(f_lo_hz: float, f_hi_hz: float, k: coef.NlcsCoefficients) -> float:
+    """max |h6_group_delay_s| over f_a in [f_lo, f_hi] and every bin: the cubic's extremes are at the ends and
+    where its derivative -(3 Y3 f + 6 Y4 f^2) vanishes (f = 0, f = -Y3 / (2 Y4))."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        turn = np.where(k.y4 != 0, -k.y3 / (2.0 * k.y4), 0.0)
+    turn = np.clip(turn, f_lo_hz, f_hi_hz)
+    f = np.stack([np.full_like(turn, f_lo_hz), np.full_like(turn, f_hi_hz), turn])
+    return float(np.abs(0.5 * (3.0 * k.y3 * f**2 + 4.0 * k.y4 * f**3)).max())
+
+
+def _azimuth_frequencies_hz(x_sine, f_abs_hz, grid: FocusGrid) -> np.ndarray:
+    """f_a = 2 v F (X - s) / c of slant-squint sines X at absolute frequencies F (broadcast)."""
+    return 2.0 * grid.speed_m_s * np.asarray(f_abs_hz) * (np.asarray(x_sine) - grid.sin_squint) / C
+
+
+def _grid_coefficients(grid: FocusGrid) -> coef.NlcsCoefficients:
+    return coef.nlcs_coefficients(grid.range_bins_m, grid.speed_m_s, grid.sin_squint, grid.wavelength_m)
+
+
+def azimuth_half_support_s(grid: FocusGrid) -> float:
+    """The largest |t_a| the data chain's signal reaches after H6 (D5): the rail's half length plus the
+    largest |H6 group delay| over the Doppler band (eqs. 9-10's mask) at the carrier and at the upper range
+    frequency where the compressed pulse's spectrum is COMPRESSED_SPECTRUM_FLOOR of its peak, every bin."""
+    lo, hi = grid.doppler_band
+    f_r = pulse_frequency_at_hz(math.sqrt(COMPRESSED_SPECTRUM_FLOOR), grid.pulse_sigma_s)
+    edges = _azimuth_frequencies_hz(np.array([[max(lo, -SQUINT_SINE_CAP)], [min(hi, SQUINT_SINE_CAP)]]),
+                                    [grid.carrier_frequency_hz, grid.carrier_frequency_hz + f_r], grid)
+    k = _grid_coefficients(grid)
+    return grid.half_track_s + max_h6_delay_s(float(edges.min()), float(edges.max()), k)
+
+
+def reference_grid(grid: FocusGrid, aperture_m: float) -> FocusGrid:
+    """The azimuth axis the whole-beam reference of the exact-reference H8 is computed on (D5): long enough
+    that the reference's response after H6 stays inside it (every bin), and a power-of-two multiple of the
+    grid's, so its spectrum at the grid's frequencies is every m-th row (`on_grid_frequencies`)."""
+    beam = geo.beam_half_width_rad(aperture_m, grid.wavelength_m)
+    squint = math.asin(grid.sin_squint)
+    x = np.array([max(math.sin(max(squint - beam, -math.pi / 2)), -SQUINT_SINE_CAP),
+                  min(math.sin(min(squint + beam, math.pi / 2)), SQUINT_SINE_CAP)])
+    k = _grid_coefficients(grid)
+    # the reference is a carrier-frequency response; its stationary time at slant squint X (P1, t_n = 0),
+    # v t = r (s - X cos(theta_q) / sqrt(1 - X^2)), decreases with X: largest |t| at the main lobe's edges.
+    # |t_ref| + |H6 delay| bounds it (triangle inequality): the stationary time alone is only the centre of a
+    # component, and the beam's edge components reach past it (measured: 1e-3 of X_ref's peak, 3 s)
+    t_ref = np.abs(grid.sin_squint - x * grid.cos_squint / np.sqrt(1.0 - x**2)).max() * k.r_m.max()
+    f = _azimuth_frequencies_hz(x, grid.carrier_frequency_hz, grid)
+    reach = float(t_ref) / grid.speed_m_s + max_h6_delay_s(float(f.min()), float(f.max()), k)
+    return dataclasses.replace(grid, n_azimuth=max(_power_of_two_holding(2.0 * reach, grid), grid.n_azimuth))
+
+
+def on_grid_frequencies(x: np.ndarray, long_grid: FocusGrid, grid: FocusGrid) -> np.ndarray:
+    """Rows of an azimuth spectrum on long_grid (centred or FFT order) at the frequencies of grid: every m-th
+    row, m = long_grid.n_azimuth / grid.n_azimuth (both axes centred at index N/2: row 0 maps to row 0)."""
+    return x[::long_grid.n_azimuth // grid.n_azimuth]
 
 
 # --------------------------------------------------------------------------------------------- range stages
@@ -164,6 +247,11 @@ def range_ifft(spectrum: np.ndarray, grid: FocusGrid) -> np.ndarray:
 
 
 pulse_spectrum = gaussian_pulse_spectrum  # P(f) of the Gaussian pulse, P(0) = 1 (`FocusGrid.pulse_filter`)
+
+
+def pulse_frequency_at_hz(level: float, sigma_s: float) -> float:
+    """The range frequency |f_r| where `pulse_spectrum` falls to level (0 < level <= 1)."""
+    return math.sqrt(0.5 * math.log(1.0 / level)) / (math.pi * sigma_s)
 
 
 def linear_range_walk_phase(x_rel_m: np.ndarray, grid: FocusGrid) -> np.ndarray:
@@ -346,11 +434,13 @@ def select_bins(obj, j):
 
 
 def reference_spectra(k: coef.NlcsCoefficients, grid: FocusGrid, aperture_m: float) -> np.ndarray:
-    """X_ref: the t_n = 0 reference target of each bin of `k` after H6/H7, centred f_a (C11).
-    The reference sees the whole beam (no rail ends): its spectrum is then smooth, and the fit is of the
-    stationary-phase law rather than of the Gibbs ripple of one particular truncation."""
-    ref = az_fft(slow_time_point_response(k.r_m, 0.0, grid, aperture_m, rail_only=False))
-    return _azimuth_nlcs_chain(ref, k, grid)
+    """X_ref: the t_n = 0 reference target of each bin of `k` after H6/H7, centred f_a (C11), at the grid's
+    frequencies. The reference sees the whole beam (no rail ends): its spectrum is then smooth, and the fit is
+    of the stationary-phase law rather than of the Gibbs ripple of one particular truncation. It is computed
+    on `reference_grid`, which holds the whole beam's response after H6 (D5)."""
+    long = reference_grid(grid, aperture_m)
+    ref = az_fft(slow_time_point_response(k.r_m, 0.0, long, aperture_m, rail_only=False))
+    return on_grid_frequencies(_azimuth_nlcs_chain(ref, k, long), long, grid)
 
 
 # The H8 fit keeps the part of each bin's band where |X_ref| exceeds this fraction of its peak.
@@ -362,10 +452,7 @@ def exact_reference_azimuth_compression(k: coef.NlcsCoefficients, grid: FocusGri
     """H8 matched to the simulated t_n = 0 reference of each bin after H6/H7 (C11, "exact-reference AC"),
     carried as a polynomial in f_a so a kernel can evaluate it from a few scalars. The carrier phase
     arg X_ref(0) is removed (C11)."""
-    # The reference sees the whole beam (no rail ends): its spectrum is then smooth, and the fit is of the
-    # stationary-phase law rather than of the Gibbs ripple of one particular truncation.
-    ref = az_fft(slow_time_point_response(k.r_m, 0.0, grid, aperture_m, rail_only=False))
-    return fit_azimuth_compression(_azimuth_nlcs_chain(ref, k, grid), k, grid, degree)
+    return fit_azimuth_compression(reference_spectra(k, grid, aperture_m), k, grid, degree)
 
 
 def _unwrap_from(p: np.ndarray, start: np.ndarray) -> np.ndarray:

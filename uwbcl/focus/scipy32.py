@@ -149,9 +149,11 @@ def exact_reference_azimuth_compression(k: coef.NlcsCoefficients, grid: nlcs.Foc
     """As `nlcs.exact_reference_azimuth_compression`. The reference spectra stay complex128: the fit keeps
     the samples above a hard 1e-2 magnitude threshold, so float32 rounding can move a bin's band edge by one
     sample and change that bin's H8 (seen: 2e-3 relative image error)."""
-    ref = _fft(reference_point_response(k, grid, aperture_m, np.complex128), 0)
-    x_ref = azimuth_nlcs_chain(ref, np.arange(grid.n_azimuth), k, grid, with_h5=False)
-    return nlcs.fit_azimuth_compression(np.fft.fftshift(x_ref, axes=0), k, grid)
+    long = nlcs.reference_grid(grid, aperture_m)  # D5: the whole beam's response fits its axis
+    ref = _fft(reference_point_response(k, long, aperture_m, np.complex128), 0)
+    x_ref = azimuth_nlcs_chain(ref, np.arange(long.n_azimuth), k, long, with_h5=False)
+    return nlcs.fit_azimuth_compression(np.fft.fftshift(nlcs.on_grid_frequencies(x_ref, long, grid), axes=0),
+                                        k, grid)
 
 
 def azimuth_compression(s: np.ndarray, ac: nlcs.AzimuthCompression, grid: nlcs.FocusGrid) -> np.ndarray:
