@@ -5,7 +5,7 @@ background subtraction (docs/method.md section 4).
 Bent rail (PAPER_SIM1, cycle 0, h = 0.15 m, no noise): the antenna bows 10 mm cross-track
 (dy = 10 mm (1 - u^2), u the rail position over the half-aperture) and sways +-5 mm vertically
 (dz = 5 mm sin(pi u)). Located errors (along track, R_c) of the three targets, numpy NLCS: straight rail
-(+1.4, -1.6), (-0.2, -0.8), (-1.9, +0.2) mm; bent, compensated (+0.4, -0.1), (-0.2, -0.8), (-3.7, +0.4) mm;
+(+1.4, -1.6), (-0.1, -0.8), (-1.9, +0.2) mm; bent, compensated (+0.4, -0.1), (-0.1, -0.8), (-3.7, +0.4) mm;
 bent, uncompensated (-15.1, +15.8), (+2.8, +9.1), (+11.8, -0.0) mm.
 """
 
