@@ -170,6 +170,79 @@ def _focus(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def _calibrate(args: argparse.Namespace) -> int:
+    """`uwbcl calibrate ARCHIVE... --reflector X,Y,Z ...`: exit 2 on usage errors, 1 when an archive cannot be
+    read or no reflector is found."""
+    import dataclasses
+    import math
+
+    from . import calibrate
+
+    name = "uwbcl calibrate"
+    try:
+        reflectors = [calibrate.parse_reflector(r) for r in args.reflector]
+        if not (math.isfinite(args.gate_m) and args.gate_m > 0):
+            raise ValueError(f"--gate-m must be finite and > 0, got {args.gate_m}")
+    except ValueError as exc:
+        print(f"{name}: {exc}", file=sys.stderr)
+        return 2
+    try:
+        site = config.load_config(args.config) if args.config else config.SiteConfig()
+        if "search" not in site.detection:  # reflectors often stand beyond the rail's ends
+            site = dataclasses.replace(site, detection={**site.detection, "search": "footprint"})
+        settings = config.override(site, algorithm=args.algorithm, backend=args.backend).processing_settings()
+    except ConfigError as exc:
+        print(f"{name}: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.write_config) if args.write_config else None
+    if out is not None and (out.is_dir() or not out.parent.is_dir()):
+        print(f"{name}: --write-config {out}: " + ("is a directory" if out.is_dir() else
+                                                   f"{out.parent} is not a directory"), file=sys.stderr)
+        return 2
+    if settings.backend == "opencl" and not _engine_ready(settings.device):
+        return 2
+    scans = _read_archives(args.archives, settings.limits, name)
+    if scans is None:
+        return 1
+    try:
+        result = calibrate.calibrate(scans, reflectors, settings, start_delay_s=site.range_delay_s,
+                                     gate_m=args.gate_m)
+    except ValueError as exc:
+        print(f"{name}: {exc}", file=sys.stderr)
+        return 1
+    for line in calibrate.report_lines(result, [s.range_delay_s for s in scans]):
+        print(line)
+    if out is not None:
+        try:
+            calibrate.write_config(out, Path(args.config) if args.config else None, result.delay_s)
+        except ConfigError as exc:
+            print(f"{name}: {exc}", file=sys.stderr)
+            return 1
+        except OSError as exc:
+            print(f"{name}: --write-config {out}: {exc.strerror or exc}", file=sys.stderr)
+            return 1
+        print(f"wrote [radar] range_delay_s = {result.delay_s:.6e} to {out}")
+    return 0
+
+
+def _read_archives(paths: list[str], limits, name: str) -> list | None:
+    """Every archive read, or None after a message naming each one that cannot be."""
+    scans, failed = [], 0
+    for path in paths:
+        try:
+            scans.append(archive.read_pass(path, limits))
+        except archive.ArchiveError as exc:  # names the file itself
+            print(f"{name}: {exc}", file=sys.stderr)
+            failed += 1
+        except OSError as exc:
+            print(f"{name}: {path}: {exc.strerror or exc}", file=sys.stderr)
+            failed += 1
+    if failed:
+        print(f"{name}: {failed} archives could not be read; nothing calibrated", file=sys.stderr)
+        return None
+    return scans
+
+
 def _directories_problem(in_dir: Path, out_dir: Path) -> str:
     """Why ARCHIVE_DIR and --out cannot be used together ("" when they can)."""
     if not in_dir.is_dir():
@@ -253,6 +326,12 @@ def _import_options(args: argparse.Namespace) -> passes.ImportOptions:
     if args.config:
         site = config.read_toml(args.config)
         values = passes.options_from_table(site.get("import", {}), args.config)
+        if isinstance(site.get("radar"), dict):  # the calibrated delay (`uwbcl calibrate`), checked
+            calibrated = config.parse_config({"radar": site["radar"]}, args.config).range_delay_s
+            if calibrated is not None and values.setdefault("range_delay_s", calibrated) != calibrated:
+                raise ConfigError(args.config, "import.range_delay_s",
+                                  f"{values['range_delay_s']!r} differs from radar.range_delay_s "
+                                  f"({calibrated!r}); keep one")
     flags = {"height_m": args.height_m, "rotation_table_angle_deg": args.table_angle_deg,
              "boresight_y_sign": args.boresight_y_sign, "reference_range_m": args.reference_range_m,
              "reference_point_m": tuple(args.reference_point) if args.reference_point else None,
@@ -427,6 +506,21 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--algorithm", choices=ALGORITHMS, default=None, help="default nlcs")
     f.add_argument("--config", help="site configuration, TOML (docs/configuration.md); flags override it")
     f.set_defaults(func=_focus)
+
+    k = sub.add_parser("calibrate", help="the radar's delay offset from passes over surveyed reflectors "
+                                         "(docs/outputs.md)")
+    k.add_argument("archives", nargs="+", metavar="ARCHIVE")
+    k.add_argument("--reflector", action="append", required=True, metavar="X,Y,Z",
+                   help="a surveyed reflector in the radar frame, metres; repeat for each")
+    k.add_argument("--config", help="site configuration, TOML: detection settings and the start delay "
+                                    "([radar] range_delay_s)")
+    k.add_argument("--write-config", metavar="OUT.toml",
+                   help="write the site file (--config's, else a new one) with [radar] range_delay_s set")
+    k.add_argument("--gate-m", type=float, default=0.5,
+                   help="a reflector's detection lies this close to its surveyed (x, R_c), m (default 0.5)")
+    k.add_argument("--backend", choices=BACKENDS, default=None, help="opencl (default) or numpy")
+    k.add_argument("--algorithm", choices=ALGORITHMS, default=None, help="default nlcs")
+    k.set_defaults(func=_calibrate)
 
     _add_import_commands(sub)
 

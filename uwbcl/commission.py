@@ -18,7 +18,9 @@ from pathlib import Path
 import numpy as np
 
 from . import archive, pipeline
+from . import geometry as geo
 from .atomic import write_csv_atomic
+from .model import SPEED_OF_LIGHT_M_S
 from .outputs import _pyplot, _save, safe_name
 from .records import Detection, ProcessingSettings
 
@@ -155,12 +157,13 @@ class FocusedPass:
     detections: list[Detection]
     responses: list[PointResponse]
     png: Path
+    delay: str = ""  # delay_note
 
     def summary(self) -> str:
         best = max((d.snr_db for d in self.detections), default=None)
         snr = f"strongest SNR {best:.1f} dB" if best is not None else "no SNR"
         return (f"{self.file}: {self.n_pulses} pulses x {self.n_samples} samples, "
-                f"{len(self.detections)} detections, {snr}")
+                f"{len(self.detections)} detections, {snr}" + (f"; {self.delay}" if self.delay else ""))
 
     def rows(self) -> list[dict]:
         return [{"file": self.file, **{k: getattr(d, k) for k in COLUMNS[1:9]},
@@ -185,16 +188,33 @@ def focus_one(path: Path, png: Path, settings: ProcessingSettings, label: str) -
     responses = [point_response(image, az, rg, d.image_azimuth_m, d.image_range_m) for d in detections]
     rail = (float(scan.pulse_position_m.min() - products.grid.aperture_centre_m),
             float(scan.pulse_position_m.max() - products.grid.aperture_centre_m))
+    beam = geo.pass_footprint(*rail, scan.geometry.rotation_table_angle_rad, scan.radar.antenna_aperture_m,
+                              scan.radar.wavelength_m, "3db")
+    edges = beam.u_edges_m(rg, products.grid.sin_squint)
     plot_pass(png, image, az, rg, detections, rail,
-              f"{label}: {settings.algorithm}, {len(detections)} detections")
-    return FocusedPass(label, scan.n_pulses, scan.samples_per_pulse, detections, responses, png)
+              f"{label}: {settings.algorithm}, {len(detections)} detections", footprint_u_m=edges)
+    return FocusedPass(label, scan.n_pulses, scan.samples_per_pulse, detections, responses, png,
+                       delay_note(scan.range_delay_s, settings.range_delay_s))
+
+
+def delay_note(recorded_s: float, site_s: float | None) -> str:
+    """Which two-way delay a pass was focused with, for the summary line (docs/configuration.md [radar])."""
+    if site_s is None:
+        if recorded_s == 0.0:
+            return "range delay: none recorded or configured (uncalibrated unless the radar needs none)"
+        return f"range delay {recorded_s * 1e9:.4f} ns (recorded)"
+    moved = -0.5 * SPEED_OF_LIGHT_M_S * (site_s - recorded_s)
+    return (f"range delay {site_s * 1e9:.4f} ns (site; archive records {recorded_s * 1e9:.4f} ns: ranges "
+            f"{moved * 1e3:+.1f} mm)")
 
 
 def plot_pass(png: Path, image: np.ndarray, az: np.ndarray, rg: np.ndarray, detections: list[Detection],
-              rail_m: tuple[float, float], title: str) -> None:
+              rail_m: tuple[float, float], title: str,
+              footprint_u_m: tuple[np.ndarray, np.ndarray] | None = None) -> None:
     """|image| in dB (DYNAMIC_RANGE_DB below its peak), detections circled, the rail's extent at the
-    processing squint (image azimuth of the rail's ends) as dashed lines, azimuth shown to half the rail's
-    length beyond its ends; written atomically."""
+    processing squint (image azimuth of the rail's ends) as dashed lines and, when given, the beam's -3 dB
+    footprint edges (image azimuth at each range of `rg`, `BeamFootprint.u_edges_m`) as dotted lines;
+    azimuth shown to half the rail's length beyond its ends or to the footprint; written atomically."""
     plt = _pyplot()
     mag = np.abs(image)
     db = 20 * np.log10(mag / max(mag.max(), 1e-300) + 1e-12)
@@ -208,7 +228,14 @@ def plot_pass(png: Path, image: np.ndarray, az: np.ndarray, rg: np.ndarray, dete
         ax.axvline(x, color="orange", ls="--", lw=1.2,
                    label="rail extent at the processing squint" if k == 0 else None)
     margin = 0.5 * (rail_m[1] - rail_m[0])  # targets beyond the rail ends can focus there too
-    ax.set_xlim(rail_m[0] - margin, rail_m[1] + margin)  # blank where the image does not reach (bp)
+    lo, hi = rail_m[0] - margin, rail_m[1] + margin
+    if footprint_u_m is not None:
+        for k, edge in enumerate(footprint_u_m):
+            ax.plot(edge, rg, color="white", ls=":", lw=1.2,
+                    label="beam -3 dB footprint (at t_n)" if k == 0 else None)
+        lo = min(lo, float(np.min(footprint_u_m[0])) - 0.1)
+        hi = max(hi, float(np.max(footprint_u_m[1])) + 0.1)
+    ax.set_xlim(lo, hi)  # blank where the image does not reach (bp)
     ax.set_xlabel("image azimuth (m)")
     ax.set_ylabel("range r_LRCM (m)")
     ax.set_title(title, fontsize=9)

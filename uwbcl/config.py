@@ -18,6 +18,7 @@ from .records import (
     ALGORITHMS,
     BACKENDS,
     BACKGROUND_MODES,
+    SEARCH_REGIONS,
     AssociationSettings,
     BatchOptions,
     ConfigError,
@@ -26,6 +27,9 @@ from .records import (
     ProcessingSettings,
     ReadLimits,
 )
+
+# A two-way delay beyond +-1 us (150 m of range) is no antenna/cable delay: a unit error (ns for s).
+MAX_RANGE_DELAY_S = 1e-6
 
 try:
     import tomllib
@@ -57,6 +61,7 @@ class SiteConfig:
     detection: dict[str, Any] = dataclasses.field(default_factory=dict)  # DetectionSettings overrides
     limits: dict[str, Any] = dataclasses.field(default_factory=dict)  # ReadLimits overrides
     output: OutputOptions = OutputOptions()
+    range_delay_s: float | None = None  # [radar] range_delay_s: the site's calibrated delay (uwbcl calibrate)
 
     def association_settings(self) -> AssociationSettings:
         kw = dict(self.association)
@@ -81,7 +86,8 @@ class SiteConfig:
         chosen = {k: getattr(self, k) for k in ("algorithm", "backend", "device", "ac_mode")
                   if getattr(self, k) is not None}
         return dataclasses.replace(ProcessingSettings(), **chosen, detection=self.detection_settings(),
-                                   association=self.association_settings(), limits=ReadLimits(**self.limits))
+                                   association=self.association_settings(), limits=ReadLimits(**self.limits),
+                                   range_delay_s=self.range_delay_s)
 
     def batch_options(self, **extra):
         return BatchOptions(jobs=self.jobs, cache=self.cache, heights_m=self.heights_m,
@@ -132,6 +138,7 @@ _SCHEMA = {
                     "motion_model": _bool, "second_look": _bool},
     "output": {f.name: _bool for f in dataclasses.fields(OutputOptions)},
     "limits": {f.name: _int for f in dataclasses.fields(ReadLimits)},
+    "radar": {"range_delay_s": _number},
 }
 
 
@@ -173,7 +180,8 @@ def parse_config(data: dict[str, Any], path: str | os.PathLike[str] | None = Non
     max_bridge = assoc.pop("max_bridge_cycles", SiteConfig.max_bridge_cycles)
     cfg = SiteConfig(**proc, **site, max_bridge_cycles=max_bridge, association=assoc,
                      detection=values.get("detection", {}), limits=values.get("limits", {}),
-                     output=OutputOptions(**values.get("output", {})))
+                     output=OutputOptions(**values.get("output", {})),
+                     range_delay_s=values.get("radar", {}).get("range_delay_s"))
     validate(cfg, path)
     return cfg
 
@@ -202,6 +210,7 @@ _RANGES = {
     "detection.max_range_m": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0 (0: no upper bound)"),
     "detection.cfar_db": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0 (0: off)"),
     "detection.cancel_max_targets": (lambda v: 0 <= v <= 4096, "between 0 (all) and 4096"),
+    "detection.cancel_time_budget_s": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0 (0: none)"),
     **{f"limits.{f.name}": (lambda v: v >= 1, ">= 1") for f in dataclasses.fields(ReadLimits)},
 }
 
@@ -221,6 +230,11 @@ def _check_ranges(settings: ProcessingSettings, path) -> None:
     if d.background not in BACKGROUND_MODES:
         raise ConfigError(path, "detection.background",
                           f"must be one of {', '.join(map(repr, BACKGROUND_MODES))}, got {d.background!r}")
+    if d.search not in SEARCH_REGIONS:
+        raise ConfigError(path, "detection.search", f"{d.search!r} is not one of {', '.join(SEARCH_REGIONS)}")
+    if settings.range_delay_s is not None and not abs(settings.range_delay_s) < MAX_RANGE_DELAY_S:
+        raise ConfigError(path, "radar.range_delay_s",
+                          f"must be within +-{MAX_RANGE_DELAY_S:g} s, got {settings.range_delay_s!r}")
     if 0 < d.max_range_m <= d.min_range_m:
         raise ConfigError(path, "detection.max_range_m",
                           f"must be 0 (no upper bound) or > detection.min_range_m ({d.min_range_m}), "

@@ -12,6 +12,7 @@ so that eq. (1) holds exactly with theta_s = theta_q (P1: docs/method.md C2).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -117,3 +118,67 @@ def slant_doppler_band(geometry: PassGeometry, aperture_m: float, wavelength_m: 
     hi = math.sin(min(math.pi / 2, geometry.rotation_table_angle_rad + half))
     shrink = math.cos(max_elevation_rad)
     return min(lo, lo * shrink), max(hi, hi * shrink)
+
+
+# Two-way amplitude of the beam at its "-3 dB" edge: sinc^2(u) = 10^(-3/20) at u = 0.3013 (beam_edge_rad).
+BEAM_EDGE_3DB = 10.0 ** (-3.0 / 20.0)
+# The footprint's angles stop short of grazing: tan(psi) of a beam edge at or past 90 deg would be unbounded.
+MAX_FOOTPRINT_ANGLE_RAD = math.radians(85.0)
+
+
+def beam_edge_rad(aperture_m: float, wavelength_m: float, edge: str = "3db") -> float:
+    """Angle from boresight to the edge of the two-way pattern of `two_way_beam_gain`: "3db", where its
+    amplitude is 3 dB below boresight (sinc^2(u) = 10^(-3/20), u = 0.3013), or "null", its first null
+    (`beam_half_width_rad`)."""
+    if edge == "null":
+        return beam_half_width_rad(aperture_m, wavelength_m)
+    if edge != "3db":
+        raise ValueError(f"unknown beam edge {edge!r} (3db|null)")
+    lo, hi = 0.0, 1.0  # sinc^2 falls monotonically from 1 at u = 0 to 0 at u = 1: bisection to 1e-12
+    while hi - lo > 1e-12:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if np.sinc(mid) ** 2 > BEAM_EDGE_3DB else (lo, mid)
+    return math.asin(min(1.0, 0.5 * (lo + hi) * wavelength_m / aperture_m))
+
+
+@dataclasses.dataclass(frozen=True)
+class BeamFootprint:
+    """What a pass's beam illuminates in the horizontal plane: from rail positions [rail_lo_m, rail_hi_m]
+    (relative to the aperture centre), horizontal look angles in [angle_lo_rad, angle_hi_rad] from the wall
+    normal towards +X_r (boresight at the rotation table angle, +- the beam edge)."""
+
+    rail_lo_m: float
+    rail_hi_m: float
+    angle_lo_rad: float
+    angle_hi_rad: float
+
+    def x_rel_bounds_m(self, rc_m) -> tuple[np.ndarray, np.ndarray]:
+        """Along-track extent (x_M - x_c, m) of the footprint at closest-approach range R_c: a target at
+        x = x_pos + |y| tan(psi) is inside when psi is inside for some rail position; |y| is taken as R_c
+        (a target at the rail's height), the widest the footprint gets."""
+        rc = np.asarray(rc_m, dtype=float)
+        lo = max(self.angle_lo_rad, -MAX_FOOTPRINT_ANGLE_RAD)
+        hi = min(self.angle_hi_rad, MAX_FOOTPRINT_ANGLE_RAD)
+        return self.rail_lo_m + rc * math.tan(lo), self.rail_hi_m + rc * math.tan(hi)
+
+    def u_edges_m(self, r_lrcm_m, sin_squint: float) -> tuple[np.ndarray, np.ndarray]:
+        """The footprint's edges on an image's (u = v t_n, r_LRCM) axes at the processing squint: with
+        r0 = r_LRCM - s u, x_rel = u + r0 s and R_c = r0 c (P1), the edge x_rel = x_b + R_c tan(psi) gives
+        u = (x_b + r_LRCM (c tan(psi) - s)) / (c^2 + s c tan(psi)), s = sin(theta_q), c = cos(theta_q)."""
+        r = np.asarray(r_lrcm_m, dtype=float)
+        s, c = sin_squint, math.sqrt(1.0 - sin_squint**2)
+        out = []
+        for x_b, psi in ((self.rail_lo_m, max(self.angle_lo_rad, -MAX_FOOTPRINT_ANGLE_RAD)),
+                         (self.rail_hi_m, min(self.angle_hi_rad, MAX_FOOTPRINT_ANGLE_RAD))):
+            t = math.tan(psi)
+            out.append((x_b + r * (c * t - s)) / (c * c + s * c * t))
+        return out[0], out[1]
+
+
+def pass_footprint(rail_lo_m: float, rail_hi_m: float, rotation_table_angle_rad: float, aperture_m: float,
+                   wavelength_m: float, edge: str = "3db") -> BeamFootprint:
+    """The `BeamFootprint` of a pass whose antenna travels [rail_lo_m, rail_hi_m] (relative to the aperture
+    centre) with boresight at the rotation table angle, to the beam's `edge` ("3db" or "null")."""
+    half = beam_edge_rad(aperture_m, wavelength_m, edge)
+    return BeamFootprint(float(rail_lo_m), float(rail_hi_m), rotation_table_angle_rad - half,
+                         rotation_table_angle_rad + half)

@@ -7,6 +7,7 @@ the calibration targets with the same focuser. Cycle-to-cycle displacement is `c
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Sequence
 
@@ -15,7 +16,7 @@ from .focus import backprojection, nlcs
 from .focus.engine import shared_engine  # pyopencl and pyvkfft are imported when an engine is built, not here
 from .focus.protocol import Focuser
 from .focus.reference import NUMPY_FOCUSER
-from .model import ScanPass
+from .model import SPEED_OF_LIGHT_M_S, ScanPass
 from .records import (
     ALGORITHMS,
     BACKENDS,
@@ -42,6 +43,43 @@ BP_PIXEL_M = 0.01  # backprojection image pixel (backprojection.backprojection_f
 BP_RANGE_MARGIN_M = 0.1
 
 
+def apply_range_delay(scan: ScanPass, site_delay_s: float | None) -> ScanPass:
+    """The pass with the site's calibrated delay in place of the one its archive records
+    (docs/configuration.md [radar]): the window start moves earlier by site - recorded, so an echo's range is
+    that of the radar's axis less the site's delay. None: the pass as recorded. An archive that records no
+    delay (0: a 1.0 file, or an uncalibrated import) gets the site's delay in full, with a warning. Logged."""
+    if site_delay_s is None or site_delay_s == scan.range_delay_s:
+        return scan
+    shift_s = site_delay_s - scan.range_delay_s
+    if scan.range_delay_s == 0.0:
+        log.warning("%s records no range_delay_s: the site's %.4f ns applied in full (window start %+.4f ns, "
+                    "ranges %+.4f m)", scan.source or "pass", site_delay_s * 1e9, -shift_s * 1e9,
+                    -0.5 * SPEED_OF_LIGHT_M_S * shift_s)
+    else:
+        log.info("%s: range_delay_s %.4f ns recorded, site %.4f ns: window start %+.4f ns",
+                 scan.source or "pass", scan.range_delay_s * 1e9, site_delay_s * 1e9, -shift_s * 1e9)
+    return shift_range_delay(scan, site_delay_s)
+
+
+def shift_range_delay(scan: ScanPass, delay_s: float) -> ScanPass:
+    """The pass as if its archive had been written with `delay_s` removed instead of the delay it records:
+    window start - (delay_s - recorded), range_delay_s = delay_s (`apply_range_delay`, quietly)."""
+    shift_s = delay_s - scan.range_delay_s
+    return dataclasses.replace(scan, range_window_start_s=scan.range_window_start_s - shift_s,
+                               range_delay_s=delay_s)
+
+
+def bp_u_extent_m(scan: ScanPass, settings: ProcessingSettings) -> tuple[float, float] | None:
+    """The backprojection image's u extent for the search `settings.detection.search` asks for (None: the
+    rail's)."""
+    footprint = detect.search_footprint(scan, settings.detection)
+    if footprint is None:
+        return None
+    grid = nlcs.focus_grid(scan)
+    _, r = backprojection.image_axes(grid, BP_PIXEL_M, BP_RANGE_MARGIN_M)
+    return detect.peaks.search_extent_u_m(grid, r, footprint)
+
+
 def check_plan(scan: ScanPass, settings: ProcessingSettings) -> None:
     """LimitExceeded when focusing or detecting this pass would allocate more cells than
     settings.limits.max_focus_cells: the arrays are sized from the pass's metadata (rail length, pulse
@@ -51,7 +89,7 @@ def check_plan(scan: ScanPass, settings: ProcessingSettings) -> None:
     grid = nlcs.focus_grid(scan)
     range_bin_m = grid.range_bins_m[1] - grid.range_bins_m[0] if grid.n_range > 1 else 1.0
     if settings.algorithm == "bp":
-        u, r = backprojection.image_axes(grid, BP_PIXEL_M, BP_RANGE_MARGIN_M)
+        u, r = backprojection.image_axes(grid, BP_PIXEL_M, BP_RANGE_MARGIN_M, bp_u_extent_m(scan, settings))
         cells, what, pixel_m = u.size * r.size, "backprojection image", (BP_PIXEL_M, BP_PIXEL_M)
     else:
         cells, what = grid.n_azimuth * grid.n_range, "NLCS focus grid"
@@ -71,18 +109,21 @@ def check_plan(scan: ScanPass, settings: ProcessingSettings) -> None:
 def focus_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSettings()):
     """Focus one pass and detect its point targets: (the focused products, the detections). The products are
     `NlcsProducts` or `BackprojectionProducts` by settings.algorithm; LimitExceeded, before any allocation,
-    for a pass too large for settings.limits."""
+    for a pass too large for settings.limits. The site's delay, if any, is applied first
+    (`apply_range_delay`), and the search covers what `settings.detection.search` asks for."""
     if settings.algorithm not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {settings.algorithm!r}; available: {', '.join(ALGORITHMS)}")
+    scan = apply_range_delay(scan, settings.range_delay_s)
     check_plan(scan, settings)
     scan = nlcs.condition_pass(scan, settings.detection.background)  # every backend: host-side, before upload
     focuser = _focuser(settings)
+    footprint = detect.search_footprint(scan, settings.detection)
     if settings.algorithm == "nlcs":
         products = focuser.nlcs_focus(scan, ac_mode=settings.ac_mode)
         # The echo lets detection model the neighbours, focused by the same backend.
-        return products, detect.detect_nlcs(products, settings.detection, scan, focuser)
-    products = focuser.backprojection_focus(scan)
-    return products, detect.detect_bp(products, settings.detection)
+        return products, detect.detect_nlcs(products, settings.detection, scan, focuser, footprint)
+    products = focuser.backprojection_focus(scan, u_extent_m=bp_u_extent_m(scan, settings))
+    return products, detect.detect_bp(products, settings.detection, footprint)
 
 
 def detect_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSettings()) -> list[Detection]:

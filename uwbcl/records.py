@@ -13,6 +13,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+SEARCH_REGIONS = ("rail", "footprint", "main_lobe")
 ALGORITHMS = ("nlcs", "bp")
 BACKGROUND_MODES = ("none", "mean")  # DetectionSettings.background
 BACKENDS = ("opencl", "numpy")  # the OpenCL engine, and the float64 numpy reference it is checked against
@@ -86,6 +87,13 @@ class DetectionSettings:
     # Background subtraction before focusing (docs/method.md section 4): "none", or "mean" to remove each
     # fast-time sample's mean over the pass's pulses (direct coupling, static clutter), for every backend.
     background: str = "none"
+    # Where peaks are sought along track (docs/method.md section 4): "rail", the rail's extent at the
+    # processing squint; "footprint", the beam's -3 dB footprint over the ranges of the window (reflectors
+    # beyond the rail ends); "main_lobe", out to the beam's first nulls.
+    search: str = "rail"
+    # Wall-clock budget of neighbour cancellation per pass (s, 0: none): the strongest targets are modelled
+    # first, and once a pass has used the budget the remaining ones keep their first refinement.
+    cancel_time_budget_s: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,6 +149,10 @@ class ProcessingSettings:
     detection: DetectionSettings = dataclasses.field(default_factory=DetectionSettings)
     association: AssociationSettings = dataclasses.field(default_factory=AssociationSettings)
     limits: ReadLimits = dataclasses.field(default_factory=ReadLimits)
+    # The site's calibrated two-way antenna/cable delay ([radar] range_delay_s, `uwbcl calibrate`; None: use
+    # every archive as recorded). Each pass's window start is shifted by it minus the delay its archive
+    # records (`pipeline.apply_range_delay`, docs/configuration.md).
+    range_delay_s: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)

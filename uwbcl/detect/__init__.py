@@ -14,9 +14,11 @@ calibration targets with the backend that focused the pass.
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 
+from .. import geometry as geo
 from ..focus import backprojection as bp
 from ..focus import nlcs
 from ..focus.protocol import Focuser
@@ -25,11 +27,15 @@ from ..model import ScanPass
 from ..records import Detection, DetectionSettings
 from . import calibration, cancel, peaks, refine
 
-__all__ = ["detect_bp", "detect_nlcs"]
+# The lattice (m) of the backprojection refinement of NLCS detections beyond the rail ends (BP's pixel).
+BP_SUBSCENE_CELL_M = 0.01
+
+__all__ = ["detect_bp", "detect_nlcs", "search_footprint"]
 
 
 def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = DetectionSettings(),
-                scan: ScanPass | None = None, focuser: Focuser = NUMPY_FOCUSER) -> list[Detection]:
+                scan: ScanPass | None = None, focuser: Focuser = NUMPY_FOCUSER,
+                footprint: geo.BeamFootprint | None = None) -> list[Detection]:
     """Point targets of an NLCS image, in the pass's closest-approach coordinates.
 
     Parameters
@@ -43,6 +49,8 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
         (`cancel.NlcsModel`); without it, on the image alone.
     focuser : Focuser
         Focuses the neighbours' models and the calibration targets: the backend that focused `products`.
+    footprint : BeamFootprint, optional
+        Search the beam's footprint beside the rail (`settings.search`, `search_footprint`); None: the rail.
 
     Returns
     -------
@@ -51,9 +59,13 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
         the SNR over the image's median magnitude (dB).
     """
     grid = products.grid
-    pixels, floor = peaks.nlcs_peaks(products, settings)
+    pixels, floor = peaks.nlcs_peaks(products, settings, footprint)
     rows, spectrum, interpolant = refine.nlcs_interpolant(products)
     cells = [interpolant.maximise(float(i), float(j)) for i, j in pixels]
+    if footprint is not None and cells:  # a peak past where the focus-position map reaches cannot be placed
+        t_n = calibration.peak_track_times(products, [c[0] for c in cells], [c[1] for c in cells], focuser)[2]
+        placed = np.isfinite(t_n)
+        cells = [c for c, ok in zip(cells, placed) if ok]
     if settings.neighbour_cancellation_passes > 0 and len(cells) > 1 and scan is not None:
         model = cancel.NlcsModel.of(products, scan, focuser, rows, spectrum)
         cells = _cancel(cells, model, settings)
@@ -62,13 +74,15 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     a, b = [c[0] for c in cells], [c[1] for c in cells]
     t_f, r, t_n = calibration.peak_track_times(products, a, b, focuser)
     r0 = r - grid.speed_m_s * grid.sin_squint * t_n  # eq. (19), C12: r_LC = r_LRCM - v sin(theta_q) t_nc
+    if footprint is not None and scan is not None:
+        t_n, r0 = _beyond_rail_by_backprojection(scan, grid, t_n, r0)
     found = [_detection(grid, float(t_n[i]), float(r0[i]), grid.speed_m_s * float(t_f[i]), float(r[i]),
                         abs(val), floor) for i, (_, _, val) in enumerate(cells)]
-    return _in_range(found, settings)
+    return _in_range(_in_footprint(found, grid, footprint), settings)
 
 
-def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings = DetectionSettings()
-              ) -> list[Detection]:
+def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings = DetectionSettings(),
+              footprint: geo.BeamFootprint | None = None) -> list[Detection]:
     """Point targets of a backprojection image, in the pass's closest-approach coordinates.
 
     The image's pixels are already on (u = v t_n, r_LRCM): no focus-position calibration. Neighbour
@@ -81,6 +95,8 @@ def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings =
         The focused pass (`Focuser.backprojection_focus`).
     settings : DetectionSettings
         Floors, non-maximum suppression and neighbour cancellation.
+    footprint : BeamFootprint, optional
+        As `detect_nlcs` (the image must reach it: `peaks.search_extent_u_m`).
 
     Returns
     -------
@@ -90,7 +106,7 @@ def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings =
     grid = products.grid
     du = products.u_axis_m[1] - products.u_axis_m[0]
     dr = products.r_axis_m[1] - products.r_axis_m[0]
-    pixels, floor = peaks.bp_peaks(products, settings)
+    pixels, floor = peaks.bp_peaks(products, settings, footprint)
     value = refine.bp_evaluator(products, products.compressed)
     cells = [refine.maximise_nelder_mead(value, float(i), float(j), step=refine.BP_SIMPLEX_STEP_CELLS)
              for i, j in pixels]
@@ -105,16 +121,68 @@ def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings =
     return _in_range(out, settings)
 
 
+def search_footprint(scan: ScanPass, settings: DetectionSettings) -> geo.BeamFootprint | None:
+    """The beam footprint `settings.search` asks for (docs/method.md section 4): None for "rail", else the
+    pass's footprint to the beam's -3 dB edges ("footprint") or first nulls ("main_lobe"), from the rail's
+    extent about the aperture centre, the rotation table angle and the antenna aperture."""
+    if settings.search == "rail":
+        return None
+    edge = {"footprint": "3db", "main_lobe": "null"}.get(settings.search)
+    if edge is None:
+        raise ValueError(f"unknown detection search region {settings.search!r} (rail|footprint|main_lobe)")
+    x = scan.pulse_position_m - scan.aperture_centre_m
+    return geo.pass_footprint(float(x.min()), float(x.max()),
+                              scan.geometry.rotation_table_angle_rad, scan.radar.antenna_aperture_m,
+                              scan.radar.wavelength_m, edge)
+
+
 def _cancel(cells: list[cancel.Cell], model: cancel.CancellationModel, settings: DetectionSettings
             ) -> list[cancel.Cell]:
     """Neighbour cancellation of the strongest `cancel_max_targets` cells (all when 0; `cells` are strongest
-    first); the weaker ones keep their first refinement."""
+    first) within `cancel_time_budget_s` (0: none); the others keep their first refinement."""
     n = len(cells) if settings.cancel_max_targets <= 0 else min(settings.cancel_max_targets, len(cells))
     if n < 2:
         return cells
+    budget = settings.cancel_time_budget_s
+    deadline = time.monotonic() + budget if budget > 0 else math.inf
     return cancel.cancel_neighbours(cells[:n], model, settings.neighbour_cancellation_passes,
-                                    settings.neighbour_cancellation_tol_m, settings.neighbour_gain_degree
-                                    ) + cells[n:]
+                                    settings.neighbour_cancellation_tol_m, settings.neighbour_gain_degree,
+                                    deadline) + cells[n:]
+
+
+def _beyond_rail_by_backprojection(scan: ScanPass, grid: nlcs.FocusGrid, t_n_s: np.ndarray, r0_m: np.ndarray
+                                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(t_n, r0) of NLCS detections beyond the rail's ends placed again on the backprojection sum (a
+    subscene per detection: one processing squint focuses them poorly there, docs/method.md section 4),
+    started from the NLCS estimate on a BP_SUBSCENE_CELL_M lattice; the others unchanged."""
+    beyond = np.flatnonzero(np.abs(t_n_s) > grid.half_track_s)
+    if beyond.size == 0:
+        return t_n_s, r0_m
+    t_n_s, r0_m = t_n_s.copy(), r0_m.copy()
+    rc = bp.range_compress(scan, grid)
+    cell = BP_SUBSCENE_CELL_M
+    for i in beyond:
+        u0 = grid.speed_m_s * t_n_s[i]
+        r_lrcm0 = r0_m[i] + grid.sin_squint * u0
+        a, b, _ = refine.maximise_nelder_mead(
+            lambda a, b, u0=u0, r_lrcm0=r_lrcm0: complex(bp.backproject_points(rc, grid, u0 + a * cell,
+                                                                               r_lrcm0 + b * cell)),
+            0.0, 0.0, step=refine.BP_SIMPLEX_STEP_CELLS)
+        u = u0 + a * cell
+        t_n_s[i], r0_m[i] = u / grid.speed_m_s, r_lrcm0 + b * cell - grid.sin_squint * u
+    return t_n_s, r0_m
+
+
+def _in_footprint(found: list[Detection], grid: nlcs.FocusGrid, footprint: geo.BeamFootprint | None
+                  ) -> list[Detection]:
+    """The NLCS detections whose own (t_n, r0) lie on the rail or in the footprint (the pixels were searched
+    with a margin for the focus-position distortion, `peaks.NLCS_FOOTPRINT_MARGIN_M`)."""
+    if footprint is None:
+        return found
+    u = np.array([grid.speed_m_s * d.t_n_s for d in found])
+    r_lrcm = np.array([d.r0_m for d in found]) + grid.sin_squint * u
+    keep = peaks.in_search(grid, u, r_lrcm, footprint) if found else []
+    return [d for d, k in zip(found, keep) if k]
 
 
 def _in_range(found: list[Detection], settings: DetectionSettings) -> list[Detection]:

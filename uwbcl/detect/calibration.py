@@ -9,6 +9,8 @@ through them (`invert_focus_position`, cached per range in the products).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..focus import nlcs
@@ -18,6 +20,13 @@ from ..focus.reference import NUMPY_FOCUSER
 # Simulated targets per calibrated range, evenly across the rail's t_a: more than twice the fit's
 # coefficients, so the fit is a least-squares one through every part of the aperture.
 CALIBRATION_TARGETS = 13
+# Beyond the rail's ends (docs/method.md section 4, footprint search) t_f(t_n) is far from the identity (at
+# 1 m past the end of paper-sim1's rail a target focuses 0.44 m further out) and ends where the rail sees too
+# little of a target: it is simulated every 5 cm from 0.1 m inside the rail's end to 3 m past it, and inverted
+# locally about each peak.
+BEYOND_STEP_M = 0.05
+BEYOND_OVERLAP_M = 0.1
+BEYOND_REACH_M = 3.0
 # Degree of the t_n(t_f) polynomial: the distortion is a smooth series in t_n (t_n + (b/2) t_n^2 + ...).
 CALIBRATION_DEGREE = 5
 # Newton on |Y(t)|^2 for each focused peak: stop once every step is shorter than 1e-10 s (well under a
@@ -123,7 +132,9 @@ def invert_focus_position(products: nlcs.NlcsProducts, r_m, t_f_s, degree: int =
                           focuser: Focuser = NUMPY_FOCUSER):
     """t_n from the focused t_f: t_n(t_f) fitted through `CALIBRATION_TARGETS` simulated targets across the
     rail, per range (cached in `products.focus_calibration` under (r, degree)); the missing fits are simulated
-    together.
+    together. A peak focused beyond the rail's ends (|t_f| more than half the rail plus BEYOND_STEP_M / 2)
+    is inverted on a map simulated past that end (`_beyond_map`, cached under (r, degree, side)); NaN where
+    the map does not reach it.
 
     Parameters
     ----------
@@ -145,16 +156,55 @@ def invert_focus_position(products: nlcs.NlcsProducts, r_m, t_f_s, degree: int =
     """
     cache = products.focus_calibration
     r = [float(x) for x in np.atleast_1d(r_m)]
-    missing = list(dict.fromkeys(x for x in r if (x, degree) not in cache))
-    if missing:
-        grid = products.grid
-        half = 0.5 * (grid.n_track - 1) * grid.dt_s
-        t_n = np.linspace(-half, half, CALIBRATION_TARGETS)
-        for x, t_f in zip(missing, focus_position(products, np.array(missing), t_n, focuser)):
-            cache[(x, degree)] = np.polynomial.polynomial.polyfit(t_f, t_n, degree)
     t_f = np.broadcast_to(np.asarray(t_f_s, dtype=float), (len(r),))
-    out = np.array([np.polynomial.polynomial.polyval(t, cache[(x, degree)]) for x, t in zip(r, t_f)])
+    grid = products.grid
+    half = grid.half_track_s
+    beyond = half + 0.5 * BEYOND_STEP_M / grid.speed_m_s  # a rail search's peaks are never there
+    keys = [(x, degree) if abs(t) <= beyond else (x, degree, 1 if t > 0 else -1) for x, t in zip(r, t_f)]
+    missing = list(dict.fromkeys(k for k in keys if len(k) == 2 and k not in cache))
+    if missing:
+        t_n = np.linspace(-half, half, CALIBRATION_TARGETS)
+        fits = focus_position(products, np.array([k[0] for k in missing]), t_n, focuser)
+        for k, t_fit in zip(missing, fits):
+            cache[k] = np.polynomial.polynomial.polyfit(t_fit, t_n, degree)
+    for k in dict.fromkeys(k for k in keys if len(k) == 3 and k not in cache):
+        cache[k] = _beyond_map(products, k[0], k[2], focuser)
+    out = np.array([np.polynomial.polynomial.polyval(t, cache[k]) if len(k) == 2
+                    else _invert_beyond(cache[k], t, degree) for k, t in zip(keys, t_f)])
     return out if np.ndim(r_m) or np.ndim(t_f_s) else float(out[0])
+
+
+def _beyond_map(products: nlcs.NlcsProducts, r_m: float, sign: int, focuser: Focuser
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """(t_n, t_f) of simulated targets at range r from inside the rail's `sign` end outwards, every
+    BEYOND_STEP_M out to BEYOND_REACH_M past it, cut where t_f stops moving outwards (past it the rail sees
+    too little of a target for the chain to focus it: docs/method.md section 4)."""
+    grid = products.grid
+    v = grid.speed_m_s
+    start = grid.half_track_s - BEYOND_OVERLAP_M / v
+    steps = np.arange(int(round((BEYOND_REACH_M + BEYOND_OVERLAP_M) / BEYOND_STEP_M)) + 1)
+    t_n = sign * (start + (BEYOND_STEP_M / v) * steps)
+    t_f = focus_position(products, r_m, t_n, focuser)
+    outwards = np.diff(sign * t_f) > 0
+    n = t_n.size if outwards.all() else int(np.argmin(outwards)) + 1
+    return t_n[:n], t_f[:n]
+
+
+def _invert_beyond(table: tuple[np.ndarray, np.ndarray], t_f_s: float, degree: int) -> float:
+    """t_n of a peak at t_f beyond the rail's end: a polynomial t_n(t_f) through the CALIBRATION_TARGETS
+    simulated targets nearest it (`_beyond_map`); NaN where t_f is outside what the map reaches (the peak
+    cannot be placed)."""
+    t_n, t_f = table
+    lo, hi = min(t_f[0], t_f[-1]), max(t_f[0], t_f[-1])
+    if t_n.size < degree + 1 or not lo <= t_f_s <= hi:
+        return math.nan
+    k = int(np.argmin(np.abs(t_f - t_f_s)))
+    first = int(np.clip(k - CALIBRATION_TARGETS // 2, 0, max(t_n.size - CALIBRATION_TARGETS, 0)))
+    window = slice(first, first + CALIBRATION_TARGETS)
+    centre = t_f[k]  # fitted about the nearest target: a well-conditioned local polynomial
+    coeffs = np.polynomial.polynomial.polyfit(t_f[window] - centre, t_n[window],
+                                              min(degree, t_n[window].size - 1))
+    return float(np.polynomial.polynomial.polyval(t_f_s - centre, coeffs))
 
 
 def peak_track_times(products: nlcs.NlcsProducts, a: np.ndarray, b: np.ndarray,

@@ -15,6 +15,9 @@ focused by the pass's own `Focuser`; the BP range-compressed echo) and how a pea
 from __future__ import annotations
 
 import dataclasses
+import logging
+import math
+import time
 from typing import Protocol
 
 import numpy as np
@@ -24,6 +27,8 @@ from ..focus import nlcs
 from ..focus.protocol import Focuser
 from ..model import ScanPass
 from . import calibration, refine
+
+log = logging.getLogger("uwbcl")
 
 Cell = tuple[float, float, complex]  # a peak: fractional (row, column) indices of the image and its value
 
@@ -100,13 +105,18 @@ class CancellationModel(Protocol):
         and its gains."""
         ...
 
-    def refine_peaks(self, at: np.ndarray, models) -> list[Cell]:
-        """Each peak refined from `at` on the data minus the other targets' models."""
+    def refine_peak(self, at: np.ndarray, i: int, residual, models) -> Cell:
+        """Peak i refined from `at[i]` on the data minus the other targets' models: `residual` (the data
+        minus every model) plus its own model, `models[i]`."""
+        ...
+
+    def residual(self, models):
+        """The data minus every target's model."""
         ...
 
 
-def cancel_neighbours(cells: list[Cell], model: CancellationModel, passes: int, tol_m: float, degree: int
-                      ) -> list[Cell]:
+def cancel_neighbours(cells: list[Cell], model: CancellationModel, passes: int, tol_m: float, degree: int,
+                      deadline_s: float = math.inf) -> list[Cell]:
     """Re-refine every peak on the data with the modelled responses of all the other peaks subtracted.
 
     Parameters
@@ -121,6 +131,9 @@ def cancel_neighbours(cells: list[Cell], model: CancellationModel, passes: int, 
         Stop early once no peak moved by more than this (m).
     degree : int
         Legendre degree of the fitted gains (`fit_pulse_gains`).
+    deadline_s : float
+        `time.monotonic()` after which no peak is re-refined (the time budget): the peaks not reached keep
+        their previous refinement, the strongest (first) being reached first; no new pass starts after it.
 
     Returns
     -------
@@ -129,13 +142,27 @@ def cancel_neighbours(cells: list[Cell], model: CancellationModel, passes: int, 
     """
     rc, grid = model.compressed, model.grid
     for _ in range(passes):
+        if time.monotonic() > deadline_s:
+            log.warning("neighbour cancellation stopped by its time budget before a pass (%d targets)",
+                        len(cells))
+            break
         at = np.array([(a, b) for a, b, _ in cells])
         u, r = model.positions(at)
         echoes = [bp.point_target_echo(grid, rc.x_rel_m, rc.t_s, u[j], r[j]) for j in range(len(at))]
         gains = fit_pulse_gains(rc.data, rc.x_rel_m, echoes, degree)
         models = model.models(u, r, echoes, gains)
         del echoes  # one model per target is held: n_pulses x n_t each for BP
-        cells = model.refine_peaks(at, models)
+        residual = model.residual(models)
+        refined: list[Cell] = []
+        for i in range(len(at)):
+            if time.monotonic() > deadline_s:
+                log.warning("neighbour cancellation stopped by its time budget after %d of %d targets",
+                            i, len(at))
+                break
+            refined.append(model.refine_peak(at, i, residual, models))
+        if len(refined) < len(cells):
+            return refined + cells[len(refined):]
+        cells = refined
         moved = np.hypot((np.array([c[0] for c in cells]) - at[:, 0]) * model.cell_m[0],
                          (np.array([c[1] for c in cells]) - at[:, 1]) * model.cell_m[1])
         if moved.max() <= tol_m:
@@ -169,12 +196,13 @@ class BackprojectionModel:
     def models(self, u_m, r_m, echoes, gains) -> list[np.ndarray]:
         return [e * g[:, None] for g, (e, _) in zip(gains, echoes)]
 
-    def refine_peaks(self, at: np.ndarray, models: list[np.ndarray]) -> list[Cell]:
-        rc = self.compressed
-        residual = rc.data - sum(models)
-        return [refine.maximise_nelder_mead(
-            refine.bp_evaluator(self.products, dataclasses.replace(rc, data=residual + models[i])),
-            at[i, 0], at[i, 1], step=BP_RECANCEL_STEP_CELLS) for i in range(len(at))]
+    def residual(self, models: list[np.ndarray]) -> np.ndarray:
+        return self.compressed.data - sum(models)
+
+    def refine_peak(self, at: np.ndarray, i: int, residual: np.ndarray, models: list[np.ndarray]) -> Cell:
+        data = dataclasses.replace(self.compressed, data=residual + models[i])
+        return refine.maximise_nelder_mead(refine.bp_evaluator(self.products, data), at[i, 0], at[i, 1],
+                                           step=BP_RECANCEL_STEP_CELLS)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -213,8 +241,9 @@ class NlcsModel:
                                                           matched=False)[0] for j, g in enumerate(gains)])
         return self.focuser.nlcs_model_spectra(self.products, rc.x_rel_m, raw, self.rows)
 
-    def refine_peaks(self, at: np.ndarray, models: np.ndarray) -> list[Cell]:
-        residual = self.spectrum - models.sum(axis=0)
-        n = self.grid.n_azimuth
-        return [refine.TrigInterpolant.from_rows(self.rows, residual + models[i], n)
-                .maximise(at[i, 0], at[i, 1], step=NLCS_RECANCEL_STEP_CELLS) for i in range(len(at))]
+    def residual(self, models: np.ndarray) -> np.ndarray:
+        return self.spectrum - models.sum(axis=0)
+
+    def refine_peak(self, at: np.ndarray, i: int, residual: np.ndarray, models: np.ndarray) -> Cell:
+        interpolant = refine.TrigInterpolant.from_rows(self.rows, residual + models[i], self.grid.n_azimuth)
+        return interpolant.maximise(at[i, 0], at[i, 1], step=NLCS_RECANCEL_STEP_CELLS)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from .. import geometry as geo
 from ..focus import backprojection as bp
 from ..focus import nlcs
 from ..records import DetectionSettings
@@ -20,10 +21,16 @@ NLCS_RANGE_EDGE_BINS = 2
 # Rows kept beyond the separation ellipse's reach at each end of the rail when the NLCS image is cropped: one
 # for the 3x3 maximum filter, one to spare, so the crop's edges cannot change any test of a pixel on the rail.
 NLCS_CROP_MARGIN_ROWS = 2
+# A footprint search of an NLCS image looks this much further along track than the footprint itself: beyond
+# the rail's ends one processing squint focuses a target up to ~0.45 m further out than its t_n (the
+# focus-position map, detect.calibration), and the detections are checked against the footprint on their
+# own t_n afterwards.
+NLCS_FOOTPRINT_MARGIN_M = 0.5
 
 
 def local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float], s: DetectionSettings,
-                rc_m: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+                rc_m: np.ndarray | None = None, floor_mask: np.ndarray | None = None
+                ) -> tuple[np.ndarray, float]:
     """Pixels above the floors that are the maximum of their separation ellipse (non-maximum suppression).
 
     Parameters
@@ -39,15 +46,19 @@ def local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float]
     rc_m : ndarray, shape (n_a, n_r), optional
         Each pixel's closest-approach range (m): the adaptive threshold's bins (`s.cfar_db`); without it,
         the image's columns.
+    floor_mask : ndarray of bool, shape (n_a, n_r), optional
+        The pixels whose median is the noise level (default `valid`): a footprint search keeps the rail's,
+        where the aperture is whole, so its SNRs and floor are those of a rail search.
 
     Returns
     -------
     pixels : ndarray of int, shape (n_peaks, 2)
         (row, column) of each peak, strongest first, at most `s.max_targets`.
     floor : float
-        The median magnitude over `valid` (0 where nothing is valid): the noise level of the SNR.
+        The median magnitude over `floor_mask` (0 where it is empty): the noise level of the SNR.
     """
-    floor = np.median(mag[valid]) if valid.any() else 0.0
+    floor_mask = valid if floor_mask is None else floor_mask
+    floor = np.median(mag[floor_mask]) if floor_mask.any() else 0.0
     peak_max = mag[valid].max() if valid.any() else 0.0
     threshold = max(peak_max * 10 ** (s.relative_floor_db / 20), floor * 10 ** (s.min_snr_db / 20))
     candidates = valid & (mag > threshold)
@@ -109,12 +120,14 @@ def range_of_interest(rc_m: np.ndarray, s: DetectionSettings) -> np.ndarray:
     return inside
 
 
-def nlcs_peaks(products: nlcs.NlcsProducts, s: DetectionSettings) -> tuple[np.ndarray, float]:
-    """`local_peaks` of an NLCS image, searched along the rail only.
+def nlcs_peaks(products: nlcs.NlcsProducts, s: DetectionSettings,
+               footprint: geo.BeamFootprint | None = None) -> tuple[np.ndarray, float]:
+    """`local_peaks` of an NLCS image, searched along the rail, or with `footprint` over the rail and the
+    beam's footprint (`in_search`).
 
-    Targets focus at t_f within the rail's t_a (a few hundred of the padded rows): the image is cropped to
+    Targets focus at t_f within the searched t_a (a few hundred of the padded rows): the image is cropped to
     those rows plus the separation ellipse's reach, beyond which the crop's edges cannot change any test, so
-    the peaks and the floor are those of the whole image with the rail's rows valid.
+    the peaks and the floor are those of the whole image with the searched pixels valid.
 
     Parameters
     ----------
@@ -122,36 +135,81 @@ def nlcs_peaks(products: nlcs.NlcsProducts, s: DetectionSettings) -> tuple[np.nd
         The focused pass: `image` (n_azimuth, n_range) on the centred (t_a, r_LRCM) grid.
     s : DetectionSettings
         Floors, the separation ellipse and the most peaks kept.
+    footprint : BeamFootprint, optional
+        The pass's beam footprint (`geometry.pass_footprint`); None: the rail only.
 
     Returns
     -------
     pixels : ndarray of int, shape (n_peaks, 2)
         (row, column) in the whole image (row n_azimuth/2 is t_a = 0), strongest first.
     floor : float
-        Median |image| over the rail's rows.
+        Median |image| over the searched pixels.
     """
     grid = products.grid
-    half_s = 0.5 * (grid.n_track - 1) * grid.dt_s
+    half_s = grid.half_track_s
     dr = grid.range_bins_m[1] - grid.range_bins_m[0]
-    on_rail = np.flatnonzero(np.abs(grid.t_azimuth_s) <= half_s)
     reach = int(s.separation_m / grid.track_spacing_m) + NLCS_CROP_MARGIN_ROWS
-    top, bottom = max(on_rail[0] - reach, 0), min(on_rail[-1] + reach + 1, grid.n_azimuth)
+    if footprint is None:
+        searched = np.flatnonzero(np.abs(grid.t_azimuth_s) <= half_s)
+    else:  # rows whose t_a can hold a footprint pixel, short of the image's ends by the crop's reach
+        lo_m, hi_m = search_extent_u_m(grid, grid.range_bins_m, footprint)
+        lo_m, hi_m = lo_m - NLCS_FOOTPRINT_MARGIN_M, hi_m + NLCS_FOOTPRINT_MARGIN_M
+        u = grid.t_azimuth_s * grid.speed_m_s
+        searched = np.flatnonzero((u >= lo_m) & (u <= hi_m))
+        searched = searched[(searched >= reach) & (searched < grid.n_azimuth - reach)]
+    top, bottom = max(searched[0] - reach, 0), min(searched[-1] + reach + 1, grid.n_azimuth)
     mag = np.abs(products.image[top:bottom])
     valid = np.zeros(mag.shape, dtype=bool)
-    valid[on_rail - top, NLCS_RANGE_EDGE_BINS:-NLCS_RANGE_EDGE_BINS] = True
-    rc = None
-    if s.min_range_m > 0 or s.max_range_m > 0 or s.cfar_db > 0:
+    valid[searched - top, NLCS_RANGE_EDGE_BINS:-NLCS_RANGE_EDGE_BINS] = True
+    rc, on_rail = None, None
+    if footprint is not None or s.min_range_m > 0 or s.max_range_m > 0 or s.cfar_db > 0:
         # R_c with t_n taken as t_a: the focus-position calibration moves a peak by at most a few cm
         t_a = grid.t_azimuth_s[top:bottom, None]
         rc = (grid.range_bins_m[None, :] - grid.speed_m_s * grid.sin_squint * t_a) * grid.cos_squint
+        if footprint is not None:
+            valid &= in_search(grid, grid.speed_m_s * t_a, grid.range_bins_m[None, :], footprint,
+                               NLCS_FOOTPRINT_MARGIN_M)
         valid &= range_of_interest(rc, s)
-    pixels, floor = local_peaks(mag, valid, (grid.track_spacing_m, dr), s, rc)
+        if footprint is not None:
+            on_rail = valid & (np.abs(t_a) <= half_s)
+    pixels, floor = local_peaks(mag, valid, (grid.track_spacing_m, dr), s, rc, on_rail)
     return pixels + (top, 0), floor
 
 
-def bp_peaks(products: bp.BackprojectionProducts, s: DetectionSettings) -> tuple[np.ndarray, float]:
-    """`local_peaks` of a backprojection image, its outermost pixels left out (a peak there is the image's
-    edge, not a maximum).
+def in_search(grid: nlcs.FocusGrid, u_m: np.ndarray, r_lrcm_m: np.ndarray, footprint: geo.BeamFootprint,
+              margin_m: float = 0.0) -> np.ndarray:
+    """Where pixels at image azimuth u = v t_n and range r_LRCM (broadcast) are searched with a footprint:
+    on the rail at the processing squint (|u| <= half the rail), or inside the footprint at their R_c,
+    widened by `margin_m` along track."""
+    x_rel, rc = bp.pixel_track_coordinates(u_m, r_lrcm_m, grid)
+    lo, hi = footprint.x_rel_bounds_m(rc)
+    inside = (x_rel >= lo - margin_m) & (x_rel <= hi + margin_m)
+    return (np.abs(u_m) <= grid.half_track_s * grid.speed_m_s) | inside
+
+
+def search_extent_u_m(grid: nlcs.FocusGrid, r_lrcm_m: np.ndarray, footprint: geo.BeamFootprint | None
+                      ) -> tuple[float, float]:
+    """Image azimuth u (m) covering the rail and, when given, the footprint at the ranges r_LRCM: the
+    footprint's bounds are linear in R_c and u = x_rel - R_c tan(theta_q), so its ends at the nearest and
+    farthest R_c bound it."""
+    half = grid.half_track_s * grid.speed_m_s
+    if footprint is None:
+        return -half, half
+    tan_q = grid.sin_squint / grid.cos_squint
+    lo, hi = -half, half
+    for r in (float(np.min(r_lrcm_m)), float(np.max(r_lrcm_m))):
+        for u in (-half, half):  # R_c of the window's corners
+            _, rc = bp.pixel_track_coordinates(u, r, grid)
+            x_lo, x_hi = footprint.x_rel_bounds_m(rc)
+            lo, hi = min(lo, float(x_lo - rc * tan_q)), max(hi, float(x_hi - rc * tan_q))
+    return lo, hi
+
+
+def bp_peaks(products: bp.BackprojectionProducts, s: DetectionSettings,
+             footprint: geo.BeamFootprint | None = None) -> tuple[np.ndarray, float]:
+    """`local_peaks` of a backprojection image over the rail, or with `footprint` over the rail and the
+    footprint (`in_search`; the image must reach it: `search_extent_u_m`), its outermost pixels left out (a
+    peak there is the image's edge, not a maximum).
 
     Parameters
     ----------
@@ -159,6 +217,8 @@ def bp_peaks(products: bp.BackprojectionProducts, s: DetectionSettings) -> tuple
         The focused pass: `image` (n_u, n_r) on the axes `u_axis_m`, `r_axis_m` (m).
     s : DetectionSettings
         Floors, the separation ellipse and the most peaks kept.
+    footprint : BeamFootprint, optional
+        The pass's beam footprint; None: the rail only.
 
     Returns
     -------
@@ -172,9 +232,17 @@ def bp_peaks(products: bp.BackprojectionProducts, s: DetectionSettings) -> tuple
     dr = products.r_axis_m[1] - products.r_axis_m[0]
     valid = np.ones(mag.shape, dtype=bool)
     valid[[0, -1], :] = valid[:, [0, -1]] = False
-    rc = None
-    if s.min_range_m > 0 or s.max_range_m > 0 or s.cfar_db > 0:
-        grid = products.grid
+    grid = products.grid
+    if footprint is None:  # the rail only, whatever the image's extent
+        valid &= (np.abs(products.u_axis_m) <= grid.half_track_s * grid.speed_m_s + 1e-9)[:, None]
+    else:
+        valid &= in_search(grid, products.u_axis_m[:, None], products.r_axis_m[None, :], footprint)
+    rc, on_rail = None, None
+    if footprint is not None or s.min_range_m > 0 or s.max_range_m > 0 or s.cfar_db > 0:
         rc = (products.r_axis_m[None, :] - grid.sin_squint * products.u_axis_m[:, None]) * grid.cos_squint
         valid &= range_of_interest(rc, s)
-    return local_peaks(mag, valid, (du, dr), s, rc)
+    if footprint is not None:  # the noise level of a rail search: its pixels, the rail's inner ones
+        rail_rows = np.flatnonzero(np.abs(products.u_axis_m) <= grid.half_track_s * grid.speed_m_s + 1e-9)
+        on_rail = np.zeros(mag.shape, dtype=bool)
+        on_rail[rail_rows[1:-1]] = valid[rail_rows[1:-1]]
+    return local_peaks(mag, valid, (du, dr), s, rc, on_rail)

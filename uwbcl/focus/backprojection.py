@@ -111,19 +111,28 @@ class BackprojectionProducts:
     compressed: RangeCompressed
 
 
-def image_axes(grid: nlcs.FocusGrid, pixel_m: float, range_margin_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """u (= v t_n) and r_LRCM axes of the BP image: the rail's extent, the range window less a margin."""
+def image_axes(grid: nlcs.FocusGrid, pixel_m: float, range_margin_m: float,
+               u_extent_m: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """u (= v t_n) and r_LRCM axes of the BP image: the rail's extent (or `u_extent_m` = (lo, hi), e.g. the
+    beam's footprint, on the same pixel lattice), the range window less a margin."""
     half = 0.5 * (grid.n_track - 1) * grid.track_spacing_m
-    u_axis = np.arange(-half, half + 1e-9, pixel_m)
+    if u_extent_m is None:
+        u_axis = np.arange(-half, half + 1e-9, pixel_m)
+    else:  # the rail's lattice extended by whole pixels, so the rail's pixels are the same
+        below = math.ceil(max(0.0, -half - u_extent_m[0]) / pixel_m - 1e-9)
+        above = math.ceil(max(0.0, u_extent_m[1] - half) / pixel_m - 1e-9)
+        u_axis = -half + pixel_m * np.arange(-below, int(np.floor(2 * half / pixel_m + 1e-9)) + 1 + above)
     bins = grid.range_bins_m
     return u_axis, np.arange(bins[0] + range_margin_m, bins[-1] - range_margin_m, pixel_m)
 
 
 def backprojection_focus(scan: ScanPass, *, pixel_m: float = 0.01, grid: nlcs.FocusGrid | None = None,
-                         range_margin_m: float = 0.1) -> BackprojectionProducts:
-    """BP image over the scene the pass can image: t_n within the rail, r_LRCM within the range window."""
+                         range_margin_m: float = 0.1, u_extent_m: tuple[float, float] | None = None
+                         ) -> BackprojectionProducts:
+    """BP image over the scene the pass can image: t_n within the rail (or `u_extent_m`), r_LRCM within the
+    range window."""
     grid = nlcs.focus_grid(scan) if grid is None else grid
     rc = range_compress(scan, grid)
-    u_axis, r_axis = image_axes(grid, pixel_m, range_margin_m)
+    u_axis, r_axis = image_axes(grid, pixel_m, range_margin_m, u_extent_m)
     image = backproject_points(rc, grid, u_axis[:, None], r_axis[None, :])
     return BackprojectionProducts(image=image, u_axis_m=u_axis, r_axis_m=r_axis, grid=grid, compressed=rc)

@@ -561,7 +561,8 @@ class FocusEngine(OpenclProcessing):
 
     def backprojection_focus(self, scan: ScanPass, *, pixel_m: float = 0.01,
                              grid: nlcs.FocusGrid | None = None,
-                             range_margin_m: float = 0.1) -> bp.BackprojectionProducts:
+                             range_margin_m: float = 0.1,
+                             u_extent_m: tuple[float, float] | None = None) -> bp.BackprojectionProducts:
         """BP image on the device (mirrors `backprojection.backprojection_focus`).
 
         Parameters
@@ -570,13 +571,14 @@ class FocusEngine(OpenclProcessing):
         pixel_m : pixel size (m) along both image axes.
         grid : the focus grid (default `nlcs.focus_grid(scan)`).
         range_margin_m : image extent beyond the range window (m).
+        u_extent_m : the image's u extent (m); default the rail's (`bp.image_axes`).
 
         Returns
         -------
         BackprojectionProducts: image (n_u, n_r) complex64 on the (u = v t_n, r_LRCM) axes (m), the
         range-compressed pulses."""
         grid = nlcs.focus_grid(scan) if grid is None else grid
-        u_axis, r_axis = bp.image_axes(grid, pixel_m, range_margin_m)
+        u_axis, r_axis = bp.image_axes(grid, pixel_m, range_margin_m, u_extent_m)
         pulses = {"n_pulses": scan.n_pulses}
         self.check_footprint("backprojection_focus", grid, [
             ("echo", pulses), ("pulse_filter", {}), ("fine", {**pulses, "upsample": BP_UPSAMPLE}),

@@ -52,7 +52,8 @@ class Focuser(Protocol):
         ...
 
     def backprojection_focus(self, scan: ScanPass, *, pixel_m: float = 0.01, grid: FocusGrid | None = None,
-                             range_margin_m: float = 0.1) -> BackprojectionProducts:
+                             range_margin_m: float = 0.1, u_extent_m: tuple[float, float] | None = None
+                             ) -> BackprojectionProducts:
         """Time-domain backprojection of one pass onto the (u = v t_n, r_LRCM) plane (docs/method.md, 3).
 
         Parameters
@@ -65,6 +66,9 @@ class Focuser(Protocol):
             The processing grid; default `nlcs.focus_grid(scan)`.
         range_margin_m : float
             Range left out at each end of the range window (m).
+        u_extent_m : (float, float), optional
+            The image's u extent (m), e.g. the beam's footprint (`detect.peaks.search_extent_u_m`);
+            default the rail's (`backprojection.image_axes`).
 
         Returns
         -------

@@ -26,11 +26,12 @@ class NumpyFocuser:
         return nlcs.nlcs_focus(scan, ac_mode=ac_mode, grid=grid, compression=compression)
 
     def backprojection_focus(self, scan: ScanPass, *, pixel_m: float = 0.01,
-                             grid: nlcs.FocusGrid | None = None, range_margin_m: float = 0.1
+                             grid: nlcs.FocusGrid | None = None, range_margin_m: float = 0.1,
+                             u_extent_m: tuple[float, float] | None = None
                              ) -> backprojection.BackprojectionProducts:
         """`backprojection.backprojection_focus` (see `Focuser.backprojection_focus`)."""
         return backprojection.backprojection_focus(scan, pixel_m=pixel_m, grid=grid,
-                                                   range_margin_m=range_margin_m)
+                                                   range_margin_m=range_margin_m, u_extent_m=u_extent_m)
 
     def nlcs_model_spectra(self, products: nlcs.NlcsProducts, x_rel_m: np.ndarray,
                            echoes: Sequence[np.ndarray], rows: np.ndarray) -> np.ndarray:

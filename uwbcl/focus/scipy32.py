@@ -226,11 +226,12 @@ class Scipy32Focuser:
         return nlcs_focus_scipy32(scan, ac_mode=ac_mode, grid=grid, compression=compression)
 
     def backprojection_focus(self, scan: ScanPass, *, pixel_m: float = 0.01,
-                             grid: nlcs.FocusGrid | None = None, range_margin_m: float = 0.1
+                             grid: nlcs.FocusGrid | None = None, range_margin_m: float = 0.1,
+                             u_extent_m: tuple[float, float] | None = None
                              ) -> backprojection.BackprojectionProducts:
         """The float64 reference's `backprojection.backprojection_focus`."""
         return backprojection.backprojection_focus(scan, pixel_m=pixel_m, grid=grid,
-                                                   range_margin_m=range_margin_m)
+                                                   range_margin_m=range_margin_m, u_extent_m=u_extent_m)
 
     def nlcs_model_spectra(self, products: nlcs.NlcsProducts, x_rel_m: np.ndarray, echoes,
                            rows: np.ndarray) -> np.ndarray:
