@@ -78,6 +78,15 @@ __kernel void secondary_range_compression(__global float2 *restrict s, const int
     s[idx] = h4 * cmul(s[idx], cis(phase));
 }
 
+/* The measured pulse's matched filter H4 = conj(P(f_r)) (eq. 10), sampled on the range frequencies by the host
+ * (`FocusGrid.pulse_filter`): s[row, k] *= h4[k]. The Gaussian's H4 stays in the kernels above (pulse_sigma_s);
+ * with a measured pulse they get pulse_sigma_s = 0 (H4 = 1) and this kernel follows. */
+__kernel void range_gain(__global float2 *restrict s, __global const float2 *restrict h4, const int n_range) {
+    const int k = get_global_id(0), row = get_global_id(1);
+    if (k >= n_range) return;
+    s[row * n_range + k] = cmul(s[row * n_range + k], h4[k]);
+}
+
 /* Gather a band of azimuth rows: out[r] = full[(r + row_origin) mod n_azimuth] * filter[r]. The engine keeps a
  * pass's grid-only filters (SRC, H5/H6, H8 on their bands of rows) as tables computed once by the kernels above
  * from their scalars, and applies them to every echo of the pass (the image and detection's models). */

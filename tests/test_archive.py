@@ -365,7 +365,7 @@ def test_unknown_older_format_version_is_rejected(scan_file):
         ("/radar", "sample_rate_hz", -4.0e9, "must be > 0"),
         ("/radar", "carrier_frequency_hz", np.nan, "must be finite"),
         ("/radar", "bandwidth_definition", "-3 dB", "expected '-10 dB'"),
-        ("/radar", "pulse_shape", "chirp", "expected 'gaussian'"),
+        ("/radar", "pulse_shape", "chirp", "expected one of 'gaussian', 'measured'"),
         ("/radar", "bandwidth_hz", "1.7 GHz", "expected a real number"),
         ("/geometry", "boresight_y_sign", np.int64(0), "must be -1 or +1"),
         ("/geometry", "rotation_table_angle_deg", 95.0, "within (-90, 90)"),

@@ -24,6 +24,7 @@ from uwbcl.focus import coefficients as coef
 from uwbcl.focus import nlcs
 from uwbcl.focus.processing import DeviceMemory, DeviceMemoryError, KernelArgumentError
 from uwbcl.focus.protocol import Focuser
+from uwbcl.model import MeasuredPulse
 from uwbcl.records import ProcessingSettings
 from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2
 
@@ -453,6 +454,10 @@ def test_every_kernel_of_the_program_is_launched_by_name_in_a_run_of_every_entry
     eng.nlcs_model_spectra(products, x_rel, [echo], np.arange(-20, 20))
     eng.calibration_spectra(products, grid.range_bins_m[[30]], np.linspace(-1.0, 1.0, 5))
     eng.backprojection_focus(jittery_pass)
+    # a measured pulse (archive 1.2) adds its H4 (range.cl: range_gain) to both focusers
+    f = np.linspace(-0.5 * grid.sample_rate_hz, 0.5 * grid.sample_rate_hz, 65)
+    radar = dataclasses.replace(jittery_pass.radar, measured_pulse=MeasuredPulse(f, np.exp(-(f / 1e9) ** 2)))
+    eng.nlcs_focus(dataclasses.replace(jittery_pass, radar=radar), ac_mode="series")
     for n in (1 << 10, 1 << 11):  # lengths whose radix plans hold a radix-2 and a radix-4 pass
         eng.fft(cla.zeros(eng.queue, (n, 4), np.complex64), 0)
     profiled = {label for _, label, _, _ in eng._profile} & set(eng.signatures)

@@ -29,16 +29,22 @@ import h5py
 import numpy as np
 
 from uwbcl.atomic import PARTIAL_SUFFIX, atomic_path
-from uwbcl.model import PassGeometry, RadarParameters, RawRF, ScanPass
+from uwbcl.model import MeasuredPulse, PassGeometry, RadarParameters, RawRF, ScanPass
 from uwbcl.names import safe_name
 from uwbcl.records import ReadLimits
 from uwbcl.utc import parse_utc
 
 FORMAT_NAME = "uwbcl-scan"
 FORMAT_VERSION = 1  # major version: bumped only by changes an existing reader would misread
-FORMAT_MINOR_VERSION = 1  # additions this reader knows (section 5): 1.1 = range_delay_s, /raw/rf
+# additions this reader knows (section 5): 1.1 = range_delay_s, /raw/rf; 1.2 = the measured pulse
+# (/radar@pulse_shape = "measured", /radar/pulse_frequency_hz, /radar/pulse_spectrum) and the rail deviations
+# /pulses/antenna_y_m, /pulses/antenna_z_m
+FORMAT_MINOR_VERSION = 2
 BANDWIDTH_DEFINITION = "-10 dB"
 PULSE_SHAPE = "gaussian"
+PULSE_SHAPES = (PULSE_SHAPE, "measured")  # "measured": format 1.2, the pulse in /radar/pulse_spectrum
+MAX_PULSE_SPECTRUM_SAMPLES = 65536  # samples of a measured pulse's spectrum (1.2)
+MAX_RAIL_DEVIATION_M = 0.5  # |antenna_y_m|, |antenna_z_m| (1.2): beyond, first-order compensation fails
 ECHO_DTYPES = ("complex64", "complex128", "int16")
 INT16_FULL_SCALE = 32767  # symmetric: -32768 is never written, so +-peak maps to +-32767
 FILE_SUFFIX = ".h5"
@@ -46,7 +52,9 @@ FILE_SUFFIX = ".h5"
 _LIBVER = ("v110", "v110")  # the h5py wheel bundles HDF5 2.0; "latest" would lock out older readers
 _GZIP_LEVEL = 4
 _CHUNK_TARGET_BYTES = 1 << 20
-_UNITS = {"/pulses/time_s": "s", "/pulses/position_m": "m", "/echo": "arb"}
+_UNITS = {"/pulses/time_s": "s", "/pulses/position_m": "m", "/echo": "arb",
+          "/radar/pulse_frequency_hz": "Hz", "/radar/pulse_spectrum": "arb",  # 1.2
+          "/pulses/antenna_y_m": "m", "/pulses/antenna_z_m": "m"}  # 1.2
 # HDF5 filter id -> name: the standard lossless filters a reader may decode. Anything else (a plugin, szip,
 # a filter that needs code we do not ship) is refused rather than handed to a decoder we did not choose.
 ALLOWED_FILTERS = {1: "gzip", 2: "shuffle", 3: "fletcher32", 32000: "lzf"}
@@ -297,7 +305,7 @@ def _header_from_scan(scan: ScanPass, pass_id: str | None, created_by: str | Non
         "carrier_frequency_hz": float(r.carrier_frequency_hz),
         "bandwidth_hz": float(r.bandwidth_hz),
         "bandwidth_definition": BANDWIDTH_DEFINITION,
-        "pulse_shape": PULSE_SHAPE,
+        "pulse_shape": PULSE_SHAPE if r.measured_pulse is None else "measured",
         "sample_rate_hz": float(r.sample_rate_hz),
         "pulse_repetition_frequency_hz": float(r.pulse_repetition_frequency_hz),
         "antenna_aperture_m": float(r.antenna_aperture_m),
@@ -385,13 +393,17 @@ def read_pass(path: str | os.PathLike[str], limits: ReadLimits = ReadLimits()) -
         position_m = _read_values(f, path, "/pulses/position_m").astype(np.float64)
         raw = _read_values(f, path, "/echo")
         scale = h.pop("echo_scale")
+        measured = (_read_measured_pulse(f, path, h["sample_rate_hz"]) if h["pulse_shape"] == "measured"
+                    else None)
+        deviations = [_read_deviation(f, path, name, h["n_pulses"]) if name in h["rail_deviations"] else None
+                      for name in _DEVIATION_DATASETS]
     _check_pulses(path, time_s, position_m, h["n_pulses"])
     if h["echo_layout"] == "int16_iq":
         echo = scale * (raw[..., 0].astype(np.float64) + 1j * raw[..., 1].astype(np.float64))
     else:
         echo = scale * raw.astype(np.complex128)
         _check_echo_finite(path, echo)
-    radar = RadarParameters(**{k: h[k] for k in _RADAR_POSITIVE})
+    radar = RadarParameters(**{k: h[k] for k in _RADAR_POSITIVE}, measured_pulse=measured)
     geometry = PassGeometry(
         height_m=h["height_m"],
         rotation_table_angle_deg=h["rotation_table_angle_deg"],
@@ -411,6 +423,8 @@ def read_pass(path: str | os.PathLike[str], limits: ReadLimits = ReadLimits()) -
         cycle=h["cycle"],
         pass_start_time=h["pass_start_time"],
         source=str(path),
+        antenna_y_m=deviations[0],
+        antenna_z_m=deviations[1],
     )
 
 
@@ -619,8 +633,9 @@ def _check_radar_attrs(h: dict[str, Any], fail: Callable[[str, str], NoReturn]) 
             "/radar@bandwidth_definition",
             f"expected {BANDWIDTH_DEFINITION!r}, got {h['bandwidth_definition']!r}",
         )
-    if h["pulse_shape"] != PULSE_SHAPE:
-        fail("/radar@pulse_shape", f"expected {PULSE_SHAPE!r}, got {h['pulse_shape']!r}")
+    if h["pulse_shape"] not in PULSE_SHAPES:
+        fail("/radar@pulse_shape", f"expected one of {', '.join(map(repr, PULSE_SHAPES))}, "
+             f"got {h['pulse_shape']!r}")
     if h["samples_per_pulse"] < 1:
         fail("/radar@samples_per_pulse", f"must be >= 1, got {h['samples_per_pulse']}")
 
@@ -780,18 +795,34 @@ _KNOWN_ATTRIBUTES = {
     "/radar": {*_RADAR_FLOAT, "bandwidth_definition", "pulse_shape", "samples_per_pulse", "range_delay_s"},
     "/geometry": {"height_m", "rotation_table_angle_deg", "reference_point_m", "boresight_y_sign"},
 }
-_KNOWN_PULSE_DATASETS = {"time_s", "position_m"}
+_KNOWN_PULSE_DATASETS = {"time_s", "position_m", "antenna_y_m", "antenna_z_m"}
+_DEVIATION_DATASETS = ("/pulses/antenna_y_m", "/pulses/antenna_z_m")
+_PULSE_DATASETS = ("/radar/pulse_frequency_hz", "/radar/pulse_spectrum")
 
 
 def _write_additions(f: h5py.File, path: Path, scan: ScanPass) -> None:
-    """range_delay_s (a record of the delay already removed from the window start) and /raw/rf."""
+    """range_delay_s (a record of the delay already removed from the window start) and /raw/rf (1.1); the
+    measured pulse and the rail deviations (1.2). The minor version is the lowest that has them all."""
     delay = float(scan.range_delay_s)
     if not math.isfinite(delay):
         raise ArchiveError(path, "/radar@range_delay_s", f"must be finite, got {delay}")
     raw = scan.raw_rf
-    if delay == 0.0 and raw is None:
+    pulse = scan.radar.measured_pulse
+    deviations = {name: np.asarray(d, dtype=np.float64) for name, d in
+                  zip(_DEVIATION_DATASETS, (scan.antenna_y_m, scan.antenna_z_m)) if d is not None}
+    if pulse is not None:
+        _check_measured_pulse(path, pulse.frequency_hz, pulse.spectrum, scan.radar.sample_rate_hz)
+    for name, d in deviations.items():
+        _check_deviation(path, name, d, scan.n_pulses)
+    minor = 2 if pulse is not None or deviations else 1 if delay != 0.0 or raw is not None else 0
+    if minor == 0:
         return
-    f.attrs["format_minor_version"] = np.int64(FORMAT_MINOR_VERSION)
+    f.attrs["format_minor_version"] = np.int64(minor)
+    if pulse is not None:
+        _write_dataset(f, "/radar/pulse_frequency_hz", pulse.frequency_hz)
+        _write_dataset(f, "/radar/pulse_spectrum", pulse.spectrum)
+    for name, d in deviations.items():
+        _write_dataset(f, name, d)
     if delay != 0.0:  # provenance only: the stored window start is absolute, as a 1.0 reader expects
         f["radar"].attrs["range_delay_s"] = np.float64(delay)
     if raw is not None:
@@ -832,7 +863,83 @@ def _read_additions(f: h5py.File, path: Any, h: dict[str, Any]) -> None:
     if not math.isfinite(delay):
         raise ArchiveError(path, "/radar@range_delay_s", f"must be finite, got {delay}")
     h["range_delay_s"] = delay
+    _check_pulse_additions(f, path, h)
     _warn_unknown(f, path)
+
+
+def _check_pulse_additions(f: h5py.File, path: Any, h: dict[str, Any]) -> None:
+    """1.2: the measured pulse's datasets (present with pulse_shape "measured", absent otherwise) and the rail
+    deviations, by their declared shapes and types before any value is read; h["rail_deviations"] lists the
+    deviation datasets present."""
+    if h["pulse_shape"] == "measured":
+        sizes = []
+        for name, kinds in zip(_PULSE_DATASETS, ("f", "c")):
+            ds = _dataset(f, name, path)
+            if ds.ndim != 1 or ds.dtype.kind not in kinds:
+                raise ArchiveError(path, name, f"expected a 1-D {'real' if kinds == 'f' else 'complex'} "
+                                   f"dataset, got {ds.dtype} {ds.shape}")
+            if not 2 <= ds.shape[0] <= MAX_PULSE_SPECTRUM_SAMPLES:
+                raise ArchiveError(path, name, f"{ds.shape[0]} samples, expected 2 to "
+                                   f"{MAX_PULSE_SPECTRUM_SAMPLES}")
+            sizes.append(ds.shape[0])
+        if sizes[0] != sizes[1]:
+            raise ArchiveError(path, _PULSE_DATASETS[1], f"{sizes[1]} samples, but "
+                               f"{_PULSE_DATASETS[0]} has {sizes[0]} (one spectrum value per frequency)")
+    else:
+        for name in _PULSE_DATASETS:
+            if _resolve(f, name, path) is not None:
+                raise ArchiveError(path, name, f"present, but /radar@pulse_shape is {h['pulse_shape']!r} "
+                                   "(a measured pulse needs pulse_shape \"measured\")")
+    h["rail_deviations"] = []
+    for name in _DEVIATION_DATASETS:
+        if _resolve(f, name, path) is None:
+            continue
+        ds = _dataset(f, name, path)
+        if ds.shape != (h["n_pulses"],) or ds.dtype.kind not in "fiu":
+            raise ArchiveError(path, name, f"expected real numbers of shape ({h['n_pulses']},) (one per echo "
+                               f"row), got {ds.dtype} {ds.shape}")
+        h["rail_deviations"].append(name)
+
+
+def _check_measured_pulse(path: Any, f_hz: np.ndarray, spectrum: np.ndarray, sample_rate_hz: float) -> None:
+    name_f, name_p = _PULSE_DATASETS
+    if f_hz.ndim != 1 or not 2 <= f_hz.size <= MAX_PULSE_SPECTRUM_SAMPLES or spectrum.shape != f_hz.shape:
+        raise ArchiveError(path, name_p, f"expected 2 to {MAX_PULSE_SPECTRUM_SAMPLES} samples, one per "
+                           f"frequency, got {spectrum.shape} values at {f_hz.shape} frequencies")
+    bad = np.flatnonzero(~(np.abs(f_hz) <= sample_rate_hz))
+    if bad.size:
+        raise ArchiveError(path, name_f, f"{f_hz[bad[0]]} Hz at sample {bad[0]}: must be finite and within "
+                           f"+-sample_rate_hz ({sample_rate_hz} Hz) of the carrier")
+    if not (np.diff(f_hz) > 0).all():
+        raise ArchiveError(path, name_f,
+                           f"not strictly increasing (at sample {np.argmax(np.diff(f_hz) <= 0) + 1})")
+    bad = np.flatnonzero(~np.isfinite(spectrum))
+    if bad.size:
+        raise ArchiveError(path, name_p, f"NaN or inf at sample {bad[0]}")
+    if not np.any(spectrum != 0):
+        raise ArchiveError(path, name_p, "all zero (no pulse)")
+
+
+def _check_deviation(path: Any, name: str, d: np.ndarray, n_pulses: int) -> None:
+    if d.shape != (n_pulses,):
+        raise ArchiveError(path, name, f"shape {d.shape}, expected ({n_pulses},) (one per echo row)")
+    bad = np.flatnonzero(~np.isfinite(d) | (np.abs(d) > MAX_RAIL_DEVIATION_M))
+    if bad.size:
+        raise ArchiveError(path, name, f"{d[bad[0]]} m at pulse {bad[0]}: must be finite and within "
+                           f"+-{MAX_RAIL_DEVIATION_M} m of the straight rail")
+
+
+def _read_measured_pulse(f: h5py.File, path: Any, sample_rate_hz: float) -> MeasuredPulse:
+    f_hz = np.asarray(_read_values(f, path, _PULSE_DATASETS[0]), dtype=np.float64)
+    spectrum = np.asarray(_read_values(f, path, _PULSE_DATASETS[1]), dtype=np.complex128)
+    _check_measured_pulse(path, f_hz, spectrum, sample_rate_hz)
+    return MeasuredPulse(frequency_hz=f_hz, spectrum=spectrum)
+
+
+def _read_deviation(f: h5py.File, path: Any, name: str, n_pulses: int) -> np.ndarray:
+    d = np.asarray(_read_values(f, path, name), dtype=np.float64)
+    _check_deviation(path, name, d, n_pulses)
+    return d
 
 
 def _warn_unknown(f: h5py.File, path: Any) -> None:

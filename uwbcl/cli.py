@@ -361,7 +361,9 @@ def _import_options(args: argparse.Namespace) -> passes.ImportOptions:
              "range_delay_s": args.range_delay_s, "rig_id": args.rig_id, "cycle": args.cycle,
              "pass_start_time": args.pass_start_time, "carrier_frequency_hz": args.carrier_hz,
              "decimation": args.decimation, "min_step_m": args.min_step_m,
-             "keep_raw_rf": False if args.no_raw_rf else None}
+             "keep_raw_rf": False if args.no_raw_rf else None, "pulse": args.pulse,
+             "pulse_window_start_m": args.pulse_window_m[0] if args.pulse_window_m else None,
+             "pulse_window_stop_m": args.pulse_window_m[1] if args.pulse_window_m else None}
     values.update({k: v for k, v in flags.items() if v is not None})
     options = passes.ImportOptions(**values)
     passes.check_options(options, args.config or "command line")
@@ -443,6 +445,12 @@ def _add_import_commands(sub) -> None:
         r.add_argument("--prf-hz", type=float, help="nominal PRF (default: 1 / median scan interval)")
         r.add_argument("--range-delay-s", type=float,
                        help="calibrated two-way antenna/cable delay, s (default 0: uncalibrated)")
+        r.add_argument("--pulse", choices=("gaussian", "measured"),
+                       help="the archive's pulse: the Gaussian of the -10 dB band (default) or measured from "
+                            "the reference echo in --pulse-window-m (archive 1.2)")
+        r.add_argument("--pulse-window-m", type=float, nargs=2, metavar=("START", "STOP"),
+                       help="one-way range window of the pulse's reference echo, the direct coupling "
+                            "(default 1.5 2.6)")
         r.add_argument("--rig-id")
         r.add_argument("--cycle", type=int)
         r.add_argument("--pass-start-time", help="ISO 8601 UTC (default: file time minus the recording)")

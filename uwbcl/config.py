@@ -17,6 +17,7 @@ from .records import (
     AC_MODES,
     ALGORITHMS,
     BACKENDS,
+    BACKGROUND_MODES,
     SEARCH_REGIONS,
     AssociationSettings,
     BatchOptions,
@@ -226,6 +227,9 @@ def _check_ranges(settings: ProcessingSettings, path) -> None:
             if not check(value):
                 raise ConfigError(path, key, f"must be {want}, got {value!r}")
     d = settings.detection
+    if d.background not in BACKGROUND_MODES:
+        raise ConfigError(path, "detection.background",
+                          f"must be one of {', '.join(map(repr, BACKGROUND_MODES))}, got {d.background!r}")
     if d.search not in SEARCH_REGIONS:
         raise ConfigError(path, "detection.search", f"{d.search!r} is not one of {', '.join(SEARCH_REGIONS)}")
     if settings.range_delay_s is not None and not abs(settings.range_delay_s) < MAX_RANGE_DELAY_S:

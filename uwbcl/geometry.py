@@ -48,10 +48,27 @@ def p1_to_track(t_n_s, r0_m, aperture_centre_m, theta_q_rad, speed_m_s):
     return x_m, rc
 
 
-def range_history_m(positions_m, target_m, height_m: float) -> np.ndarray:
-    """Exact antenna-to-target range for antenna positions (x, 0, h) (eq. 1 before its Taylor expansion)."""
+def range_history_m(positions_m, target_m, height_m: float, antenna_y_m=None, antenna_z_m=None) -> np.ndarray:
+    """Exact antenna-to-target range for antenna positions (x, 0, h) (eq. 1 before its Taylor expansion), or
+    (x, dy, h + dz) with the per-pulse deviations from the straight rail antenna_y_m, antenna_z_m."""
     x, y, z = target_m
-    return np.sqrt((np.asarray(positions_m) - x) ** 2 + y * y + (z - height_m) ** 2)
+    if antenna_y_m is None and antenna_z_m is None:
+        return np.sqrt((np.asarray(positions_m) - x) ** 2 + y * y + (z - height_m) ** 2)
+    dy = 0.0 if antenna_y_m is None else np.asarray(antenna_y_m)
+    dz = 0.0 if antenna_z_m is None else np.asarray(antenna_z_m)
+    return np.sqrt((np.asarray(positions_m) - x) ** 2 + (y - dy) ** 2 + (z - height_m - dz) ** 2)
+
+
+def line_of_sight_range_change_m(positions_m, antenna_y_m, antenna_z_m, target_m, height_m: float
+                                 ) -> np.ndarray:
+    """First-order change of the range to target_m when the antenna at rail position x leaves the straight
+    rail by (0, dy, dz): dr = -(dy y_los + dz z_los), (y_los, z_los) the Y and Z components of the unit line
+    of sight from (x, 0, h) to the target (docs/method.md, C14)."""
+    x, y, z = target_m
+    r = range_history_m(positions_m, target_m, height_m)
+    dy = np.zeros_like(r) if antenna_y_m is None else np.asarray(antenna_y_m, dtype=float)
+    dz = np.zeros_like(r) if antenna_z_m is None else np.asarray(antenna_z_m, dtype=float)
+    return -(dy * y + dz * (z - height_m)) / r
 
 
 def range_polynomial_coefficients(r0_m, speed_m_s, theta_s_rad):

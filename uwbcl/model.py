@@ -15,6 +15,124 @@ import numpy as np
 SPEED_OF_LIGHT_M_S = 299_792_458.0
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class MeasuredPulse:
+    """A measured transmit pulse (archive 1.2 ``/radar/pulse_spectrum``): its baseband spectrum P(f) at the
+    increasing frequency offsets f from the carrier, normalised to max |P| = 1, phase referred to the pulse's
+    delay origin (a target at range R echoes p(t - 2R / c) exp(-j 4 pi f_c R / c), as the Gaussian of eq. 2).
+    Between samples P is interpolated linearly in its real and imaginary parts; outside it is 0.
+    Equal (and hashed) by value, so a focus grid that carries it stays a cache key."""
+
+    frequency_hz: np.ndarray  # (M,) increasing
+    spectrum: np.ndarray  # (M,) complex, max |P| = 1
+
+    def __post_init__(self) -> None:
+        f = np.asarray(self.frequency_hz, dtype=np.float64)
+        p = np.asarray(self.spectrum, dtype=np.complex128)
+        if f.ndim != 1 or f.shape != p.shape or f.size < 2 or not (np.diff(f) > 0).all():
+            raise ValueError("a measured pulse needs >= 2 increasing frequencies, one spectrum value each")
+        peak = np.abs(p).max()
+        if not (np.isfinite(f).all() and np.isfinite(p).all() and peak > 0):
+            raise ValueError("a measured pulse's frequencies and spectrum must be finite, the spectrum not 0")
+        object.__setattr__(self, "frequency_hz", f)
+        object.__setattr__(self, "spectrum", p / peak if peak != 1.0 else p)
+        object.__setattr__(self, "_tables", {})
+
+    def __eq__(self, other) -> bool:
+        return (isinstance(other, MeasuredPulse) and np.array_equal(self.frequency_hz, other.frequency_hz)
+                and np.array_equal(self.spectrum, other.spectrum))
+
+    def __hash__(self) -> int:
+        return hash((self.frequency_hz.tobytes(), self.spectrum.tobytes()))
+
+    def at(self, f_hz) -> np.ndarray:
+        """P(f) at the baseband frequencies f_hz (any shape)."""
+        f = np.asarray(f_hz, dtype=np.float64)
+        re = np.interp(f, self.frequency_hz, self.spectrum.real, left=0.0, right=0.0)
+        im = np.interp(f, self.frequency_hz, self.spectrum.imag, left=0.0, right=0.0)
+        return re + 1j * im
+
+    # the waveform's table: steps per period of the band's width (cubic interpolation error ~1e-7 of peak),
+    # at most this half-span (a pulse is a few ns long), from at most TABLE_SPECTRUM_SAMPLES of P (a longer
+    # spectrum is first interpolated onto that many uniform samples): the table's cost stays bounded
+    TABLE_OVERSAMPLING = 32
+    TABLE_HALF_SPAN_S = 64e-9
+    TABLE_SPECTRUM_SAMPLES = 1024
+
+    def waveform(self, t_s, matched: bool = False) -> np.ndarray:
+        """p(t) = int P(f) exp(j 2 pi f t) df / int |P| df at the delays t_s (any shape): the sampled echo of
+        a unit target whose zero-phase pulse would peak at 1 (for the Gaussian, exp(-t^2 / 2 sigma^2)). With
+        `matched` the pulse after its matched filter conj(P): int |P|^2 exp(j 2 pi f t) df / int |P| df
+        (Gaussian: exp(-t^2 / 4 sigma^2) / sqrt(2)). Trapezoid rule over the samples of P, tabulated once
+        (`exact_waveform`) over |t| <= 1 / (2 df), df the median spectral step (beyond it the sampled spectrum
+        only repeats the pulse: 0 there), demodulated to the band's centre and interpolated by cubic Lagrange
+        at TABLE_OVERSAMPLING steps per 1 / bandwidth."""
+        f = self.frequency_hz
+        source = self
+        if f.size > self.TABLE_SPECTRUM_SAMPLES:
+            f = np.linspace(f[0], f[-1], self.TABLE_SPECTRUM_SAMPLES)
+            source = MeasuredPulse(f, self.at(f))
+        f_mid, width = 0.5 * (f[0] + f[-1]), f[-1] - f[0]
+        step = 1.0 / (self.TABLE_OVERSAMPLING * width)
+        half = min(0.5 / float(np.median(np.diff(f))), self.TABLE_HALF_SPAN_S)
+        table = self._tables.get(matched)
+        if table is None:
+            n = int(np.ceil(half / step))
+            tt = np.arange(-n - 2, n + 3) * step
+            demodulated = source.exact_waveform(tt, matched) * np.exp(-2j * np.pi * f_mid * tt)
+            table = self._tables[matched] = (n + 2, demodulated)
+        origin, values = table
+        t = np.asarray(t_s, dtype=np.float64)
+        x = t / step + origin
+        i = np.clip(np.floor(x).astype(np.int64), 1, values.size - 3)
+        u = x - i
+        q = (values[i - 1] * (-u * (u - 1) * (u - 2) / 6) + values[i] * ((u + 1) * (u - 1) * (u - 2) / 2)
+             + values[i + 1] * (-(u + 1) * u * (u - 2) / 2) + values[i + 2] * ((u + 1) * u * (u - 1) / 6))
+        return np.where(np.abs(t) <= half, q * np.exp(2j * np.pi * f_mid * t), 0.0)
+
+    def exact_waveform(self, t_s, matched: bool = False, chunk: int = 1 << 16) -> np.ndarray:
+        """`waveform` summed directly at every delay (the reference for its table)."""
+        f = self.frequency_hz
+        w = np.zeros_like(f)
+        w[1:] += 0.5 * np.diff(f)
+        w[:-1] += 0.5 * np.diff(f)
+        p = np.abs(self.spectrum) ** 2 if matched else self.spectrum
+        coeff = w * p / np.sum(w * np.abs(self.spectrum))
+        t = np.asarray(t_s, dtype=np.float64)
+        flat = t.ravel()
+        out = np.empty(flat.size, dtype=np.complex128)
+        step = max(1, chunk // f.size)
+        for a in range(0, flat.size, step):
+            out[a:a + step] = np.exp(2j * np.pi * np.outer(flat[a:a + step], f)) @ coeff
+        return out.reshape(t.shape)
+
+
+def gaussian_pulse_spectrum(f_hz, sigma_s: float) -> np.ndarray:
+    """P(f) of the Gaussian pulse exp(-t^2 / 2 sigma^2), normalised to P(0) = 1 (eq. 10's H4 is its
+    conjugate, the same real function)."""
+    return np.exp(-2.0 * (np.pi * sigma_s * np.asarray(f_hz)) ** 2)
+
+
+def pulse_filter(f_hz, sigma_s: float, measured: MeasuredPulse | None) -> np.ndarray:
+    """The range matched filter H4 = conj(P(f)) (eq. 10) at baseband frequencies f_hz: the Gaussian's (real,
+    P(0) = 1) or the measured pulse's. One home for every focuser's range compression."""
+    if measured is None:
+        return gaussian_pulse_spectrum(f_hz, sigma_s)
+    return np.conj(measured.at(f_hz))
+
+
+def pulse_waveform(t_s, sigma_s: float, measured: MeasuredPulse | None, matched: bool = False) -> np.ndarray:
+    """The echo envelope p(t) of a unit target (eq. 2), or with `matched` the pulse after H4: the Gaussian
+    exp(-t^2 / 2 sigma^2) and exp(-t^2 / 4 sigma^2) / sqrt(2), or `MeasuredPulse.waveform`. One home for every
+    point-response model (simulator, backprojection's models, detection's cancellation)."""
+    if measured is not None:
+        return measured.waveform(t_s, matched)
+    t = np.asarray(t_s)
+    if matched:
+        return np.exp(-((t / (2.0 * sigma_s)) ** 2)) / math.sqrt(2.0)
+    return np.exp(-0.5 * (t / sigma_s) ** 2)
+
+
 @dataclasses.dataclass(frozen=True)
 class RadarParameters:
     """The radar as configured for a pass (paper Table 1/4/7)."""
@@ -24,6 +142,8 @@ class RadarParameters:
     sample_rate_hz: float = 4.0e9  # complex (I/Q) fast-time sampling
     pulse_repetition_frequency_hz: float = 20.0
     antenna_aperture_m: float = 0.14
+    # None: the Gaussian pulse of the -10 dB bandwidth (eq. 2); else the measured pulse (archive 1.2)
+    measured_pulse: MeasuredPulse | None = None
 
     @property
     def wavelength_m(self) -> float:
@@ -79,6 +199,10 @@ class ScanPass:
     # the calibrated antenna/cable delay already removed from the window start (record)
     range_delay_s: float = 0.0
     raw_rf: RawRF | None = None  # the radar's real RF, when an importer kept it (archive 1.1)
+    # (N_a,) deviations of the antenna from the straight rail, cross-track (Y_r) and up (Z_r), per pulse
+    # (archive 1.2 /pulses/antenna_y_m, antenna_z_m); None: on the rail. Focusing compensates them (C14).
+    antenna_y_m: np.ndarray | None = None
+    antenna_z_m: np.ndarray | None = None
 
     @property
     def n_pulses(self) -> int:

@@ -115,6 +115,7 @@ def focus_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSettings
         raise ValueError(f"unknown algorithm {settings.algorithm!r}; available: {', '.join(ALGORITHMS)}")
     scan = apply_range_delay(scan, settings.range_delay_s)
     check_plan(scan, settings)
+    scan = nlcs.condition_pass(scan, settings.detection.background)  # every backend: host-side, before upload
     focuser = _focuser(settings)
     footprint = detect.search_footprint(scan, settings.detection)
     if settings.algorithm == "nlcs":

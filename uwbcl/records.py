@@ -15,6 +15,7 @@ import numpy as np
 
 SEARCH_REGIONS = ("rail", "footprint", "main_lobe")
 ALGORITHMS = ("nlcs", "bp")
+BACKGROUND_MODES = ("none", "mean")  # DetectionSettings.background
 BACKENDS = ("opencl", "numpy")  # the OpenCL engine, and the float64 numpy reference it is checked against
 AC_MODES = ("exact", "series")  # NLCS azimuth compression: exact reference, or the series of eq. 17
 
@@ -83,6 +84,9 @@ class DetectionSettings:
     # Neighbour cancellation models only this many of the strongest peaks (0: all); the weaker ones keep their
     # first refinement, so a clutter-filled pass cannot cost minutes.
     cancel_max_targets: int = 0
+    # Background subtraction before focusing (docs/method.md section 4): "none", or "mean" to remove each
+    # fast-time sample's mean over the pass's pulses (direct coupling, static clutter), for every backend.
+    background: str = "none"
     # Where peaks are sought along track (docs/method.md section 4): "rail", the rail's extent at the
     # processing squint; "footprint", the beam's -3 dB footprint over the ranges of the window (reflectors
     # beyond the rail ends); "main_lobe", out to the beam's first nulls.

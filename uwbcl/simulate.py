@@ -1,6 +1,9 @@
 """Echo simulator: demodulated baseband echoes of point targets (eq. 2) with a real rail's imperfections.
 
-* Gaussian pulse p(t) = exp(-t^2 / 2 sigma^2), sigma from the -10 dB bandwidth.
+* Gaussian pulse p(t) = exp(-t^2 / 2 sigma^2), sigma from the -10 dB bandwidth, or the radar's measured
+  pulse (`model.pulse_waveform`).
+* Optionally a bent rail: per-pulse deviations (dy, dz) of the antenna from the straight rail; the echo uses
+  the true antenna position (x, dy, h + dz).
 * Two-way main-lobe beam pattern of the 0.14 m aperture, frequency independent (eq. 2's w_a).
 * Pulses at a fixed repetition frequency; the carriage speed fluctuates by up to +-speed_jitter (a smooth
   random process), so the rail positions are not uniform. They are logged per pulse, as the encoder does.
@@ -15,7 +18,7 @@ import math
 import numpy as np
 
 from . import geometry as geo
-from .model import SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters, ScanPass
+from .model import SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters, ScanPass, pulse_waveform
 
 
 def rail_motion(n_pulses: int, prf_hz: float, speed_m_s: float, start_m: float, speed_jitter: float,
@@ -39,10 +42,6 @@ def rail_motion(n_pulses: int, prf_hz: float, speed_m_s: float, start_m: float, 
     else:
         x = speed_m_s * t
     return t, start_m + direction * x
-
-
-def pulse_envelope(t_s, sigma_s: float) -> np.ndarray:
-    return np.exp(-0.5 * (np.asarray(t_s) / sigma_s) ** 2)
 
 
 BEAM_SEEN_GAIN = 1e-3  # two-way beam gain (-60 dB) above which a pulse counts as seeing a target
@@ -82,8 +81,9 @@ def range_window(radar: RadarParameters, positions_m, targets_m, height_m: float
 
 def simulate_echo(radar: RadarParameters, geometry: PassGeometry, positions_m, targets_m, amplitudes,
                   range_window_start_s: float, samples_per_pulse: int, snr_db: float | None,
-                  rng: np.random.Generator) -> np.ndarray:
-    """s(t_r, t_a) = sum_M A_M w_a p(t_r - 2R/c) exp(-j 4 pi f_c R / c) + n   (eq. 2)."""
+                  rng: np.random.Generator, antenna_y_m=None, antenna_z_m=None) -> np.ndarray:
+    """s(t_r, t_a) = sum_M A_M w_a p(t_r - 2R/c) exp(-j 4 pi f_c R / c) + n   (eq. 2), R from the true antenna
+    position (x, dy, h + dz) when the per-pulse rail deviations antenna_y_m, antenna_z_m are given."""
     positions_m = np.asarray(positions_m, dtype=float)
     t_r = range_window_start_s + np.arange(samples_per_pulse) / radar.sample_rate_hz
     sigma = radar.pulse_sigma_s
@@ -91,13 +91,14 @@ def simulate_echo(radar: RadarParameters, geometry: PassGeometry, positions_m, t
     echo = np.zeros((positions_m.size, samples_per_pulse), dtype=np.complex128)
     for target, amplitude in zip(np.atleast_2d(targets_m),
                                  np.broadcast_to(amplitudes, len(np.atleast_2d(targets_m)))):
-        r = geo.range_history_m(positions_m, target, geometry.height_m)
+        r = geo.range_history_m(positions_m, target, geometry.height_m, antenna_y_m, antenna_z_m)
         psi = geo.horizontal_look_angle_rad(positions_m, target, geometry.boresight_y_sign)
         gain = amplitude * geo.two_way_beam_gain(psi, geometry.rotation_table_angle_rad,
                                                  radar.antenna_aperture_m, radar.wavelength_m)
         seen = gain > 0
         delay = t_r[None, :] - 2.0 * r[seen, None] / SPEED_OF_LIGHT_M_S
-        echo[seen] += (gain[seen] * np.exp(-1j * k * r[seen]))[:, None] * pulse_envelope(delay, sigma)
+        envelope = pulse_waveform(delay, sigma, radar.measured_pulse)
+        echo[seen] += (gain[seen] * np.exp(-1j * k * r[seen]))[:, None] * envelope
     if snr_db is not None and np.isfinite(snr_db):
         noise_power = 10.0 ** (-snr_db / 10.0)
         echo += math.sqrt(noise_power / 2.0) * (rng.standard_normal(echo.shape)
@@ -110,8 +111,10 @@ def simulate_pass(radar: RadarParameters, geometry: PassGeometry, targets_m, *, 
                   snr_db: float | None = None, speed_jitter: float = 0.0,
                   rng: np.random.Generator | None = None, rig_id: str = "rig-1", cycle: int = 0,
                   pass_start_time: str = "1970-01-01T00:00:00Z", direction: int = 1,
-                  range_margin_m: float = 1.0) -> ScanPass:
-    """One pass of the carriage over the nominal aperture, as the rig would record it."""
+                  range_margin_m: float = 1.0, rail_deviation=None) -> ScanPass:
+    """One pass of the carriage over the nominal aperture, as the rig would record it. `rail_deviation`:
+    a bent rail, a function of the rail positions (m) giving the antenna's (dy, dz) deviations (m), recorded
+    in the pass (as a surveyed rail would be) and used for the echo."""
     rng = np.random.default_rng() if rng is None else rng
     # An even number of intervals (odd pulse count) centred on the nominal aperture centre.
     n_intervals = 2 * round(0.5 * aperture_length_m / speed_m_s * radar.pulse_repetition_frequency_hz)
@@ -122,7 +125,10 @@ def simulate_pass(radar: RadarParameters, geometry: PassGeometry, targets_m, *, 
                                    speed_jitter, rng, direction)
     targets_m = np.atleast_2d(np.asarray(targets_m, dtype=float))
     t0, n_r = range_window(radar, positions, targets_m, geometry.height_m, range_margin_m)
-    echo = simulate_echo(radar, geometry, positions, targets_m, amplitudes, t0, n_r, snr_db, rng)
+    dy = dz = None
+    if rail_deviation is not None:
+        dy, dz = (np.asarray(d, dtype=float) * np.ones_like(positions) for d in rail_deviation(positions))
+    echo = simulate_echo(radar, geometry, positions, targets_m, amplitudes, t0, n_r, snr_db, rng, dy, dz)
     return ScanPass(radar=radar, geometry=geometry, range_window_start_s=t0, pulse_time_s=times,
                     pulse_position_m=positions, echo=echo, rig_id=rig_id, cycle=cycle,
-                    pass_start_time=pass_start_time)
+                    pass_start_time=pass_start_time, antenna_y_m=dy, antenna_z_m=dz)

@@ -37,7 +37,7 @@ def range_compress(scan: ScanPass, grid: nlcs.FocusGrid, upsample: int = 16) -> 
     """Matched filter H4 (eq. 10) and band-limited upsampling of every pulse."""
     echo, x_rel = nlcs.prepare_track(scan, grid)
     n = grid.n_range
-    spec = np.fft.fft(echo, axis=1) * nlcs.pulse_spectrum(grid.f_range_hz, grid.pulse_sigma_s)[None, :]
+    spec = np.fft.fft(echo, axis=1) * grid.pulse_filter(grid.f_range_hz)[None, :]
     padded = np.zeros((echo.shape[0], n * upsample), dtype=np.complex128)
     half = n // 2
     padded[:, :half] = spec[:, :half]
@@ -86,9 +86,10 @@ def point_target_echo(grid: nlcs.FocusGrid, x_rel_m: np.ndarray, t_s: np.ndarray
     rail positions x_rel_m at the absolute delays t_s, and the pulses whose slant squint to it lies in the
     Doppler band (those `backproject_points` sums).
 
-    Per pulse exp(-j 4 pi f_c R / c) p(t - 2R / c), R exact, with p the Gaussian pulse of eq. (2),
-    exp(-t^2 / 2 sigma^2), or with `matched` the pulse after its matched filter H4 (P(0) = 1),
-    exp(-t^2 / 4 sigma^2) / sqrt(2), as `range_compress` gives it. The beam gain w_a is the caller's.
+    Per pulse exp(-j 4 pi f_c R / c) p(t - 2R / c), R exact, with p the pulse of eq. (2) (the Gaussian
+    exp(-t^2 / 2 sigma^2) or the measured pulse, `FocusGrid.pulse_waveform`), or with `matched` the pulse
+    after its matched filter H4 (Gaussian: exp(-t^2 / 4 sigma^2) / sqrt(2)), as `range_compress` gives it.
+    The beam gain w_a is the caller's.
     """
     x_rel, rc_range = pixel_track_coordinates(float(u_m), float(r_lrcm_m), grid)
     dx = x_rel - np.asarray(x_rel_m)
@@ -97,10 +98,7 @@ def point_target_echo(grid: nlcs.FocusGrid, x_rel_m: np.ndarray, t_s: np.ndarray
     in_band = (dx >= lo * rng) & (dx <= hi * rng)
     delay = np.asarray(t_s)[None, :] - 2.0 * rng[:, None] / C
     k = 4.0 * math.pi * grid.carrier_frequency_hz / C
-    if matched:
-        envelope = np.exp(-((delay / (2.0 * grid.pulse_sigma_s)) ** 2)) / math.sqrt(2.0)
-    else:
-        envelope = np.exp(-0.5 * (delay / grid.pulse_sigma_s) ** 2)
+    envelope = grid.pulse_waveform(delay, matched)
     return np.exp(-1j * k * rng)[:, None] * envelope, in_band
 
 

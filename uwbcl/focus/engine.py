@@ -80,6 +80,8 @@ BUFFERS = (
     BufferSpec("filter_h5h6", _band_shape, COMPLEX64, doc="H5 H6 on the band rows"),
     BufferSpec("filter_h7", _full_shape, COMPLEX64, doc="H7, whole azimuth axis"),
     *(BufferSpec(name, _per_bin, REAL, True, "NLCS coefficient per bin") for name in NLCS_COEFFICIENTS),
+    BufferSpec("pulse_filter", _per_bin, COMPLEX64, True,
+               "measured pulse's H4 = conj(P) per range frequency"),
     BufferSpec("ac_poly", lambda g, n_terms: (g.n_range, n_terms), REAL, True, "H8 polynomial per bin"),
     BufferSpec("ac_first", _per_bin, np.int32, True, "H8 band: first signed azimuth index per bin"),
     BufferSpec("ac_last", _per_bin, np.int32, True, "H8 band: last signed azimuth index per bin"),
@@ -169,7 +171,8 @@ class FocusEngine(OpenclProcessing):
                 ("weights", {"taps": LAGRANGE_TAPS}), ("azimuth", {}),
                 ("fft_scratch", {"n": grid.n_azimuth, "cols": grid.n_range}),
                 ("fft_twiddle", {"n": grid.n_azimuth}),
-                ("doppler_rows", {}), ("filter_src", {}), ("filter_h5h6", {}), ("filter_h7", {}),
+                ("doppler_rows", {}), ("pulse_filter", {}),
+                ("filter_src", {}), ("filter_h5h6", {}), ("filter_h7", {}),
                 *((name, {}) for name in NLCS_COEFFICIENTS), ("ac_poly", {"n_terms": AC_TERMS_BOUND}),
                 ("ac_first", {}), ("ac_last", {}), ("filter_h8", {"rows": rows}), ("h8_rows", {"rows": rows})]
 
@@ -222,8 +225,22 @@ class FocusEngine(OpenclProcessing):
                      n_azimuth=grid.n_azimuth, sample_rate_hz=grid.sample_rate_hz,
                      window_start_s=grid.range_window_start_s, carrier_hz=grid.carrier_frequency_hz,
                      azimuth_df_hz=grid.azimuth_df_hz, speed_m_s=grid.speed_m_s, sin_squint=grid.sin_squint,
-                     reference_range_m=grid.reference_range_m, pulse_sigma_s=grid.pulse_sigma_s, band_lo=lo,
-                     band_hi=hi, row_origin=self._row_origin(grid, first_row))
+                     reference_range_m=grid.reference_range_m, pulse_sigma_s=self._kernel_pulse_sigma_s(grid),
+                     band_lo=lo, band_hi=hi, row_origin=self._row_origin(grid, first_row))
+        self._measured_pulse_filter(s, grid)
+
+    @staticmethod
+    def _kernel_pulse_sigma_s(grid: nlcs.FocusGrid) -> float:
+        """The kernels' Gaussian H4 width: the grid's, or 0 (H4 = 1) when `_measured_pulse_filter` applies
+        the measured pulse's."""
+        return grid.pulse_sigma_s if grid.measured_pulse is None else 0.0
+
+    def _measured_pulse_filter(self, s, grid: nlcs.FocusGrid) -> None:
+        """With a measured pulse, H4 = conj(P(f_r)) (eq. 10) on every row of a range spectrum s, in place."""
+        if grid.measured_pulse is None:
+            return
+        h4 = self.to_device("pulse_filter", grid.pulse_filter(grid.f_range_hz), grid)
+        self._launch("range_gain", s.shape[0], grid.n_range, s=s, h4=h4, n_range=grid.n_range)
 
     def nlcs_filter(self, s, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, *, with_h5: bool = True,
                     first_row: int | None = None) -> None:
@@ -532,10 +549,11 @@ class FocusEngine(OpenclProcessing):
         with self.stage("range compression (BP)"):
             s = self.to_device("echo", echo, grid, n_pulses=echo.shape[0])
             self.fft(s, 1)
+            self._measured_pulse_filter(s, grid)
             fine = self.buffer("fine", grid, n_pulses=echo.shape[0], upsample=upsample)
             self._launch("pulse_compression_upsample", echo.shape[0], n_fine, spec=s, fine=fine,
                          n_range=grid.n_range, n_fine=n_fine, sample_rate_hz=grid.sample_rate_hz,
-                         pulse_sigma_s=grid.pulse_sigma_s)
+                         pulse_sigma_s=self._kernel_pulse_sigma_s(grid))
             self.fft(fine, 1, inverse=True)
             data = self.host(fine)
         return fine, bp.RangeCompressed(data, x_rel, grid.range_window_start_s,
@@ -563,7 +581,8 @@ class FocusEngine(OpenclProcessing):
         u_axis, r_axis = bp.image_axes(grid, pixel_m, range_margin_m, u_extent_m)
         pulses = {"n_pulses": scan.n_pulses}
         self.check_footprint("backprojection_focus", grid, [
-            ("echo", pulses), ("fine", {**pulses, "upsample": BP_UPSAMPLE}), ("x_rel_f32", pulses),
+            ("echo", pulses), ("pulse_filter", {}), ("fine", {**pulses, "upsample": BP_UPSAMPLE}),
+            ("x_rel_f32", pulses),
             ("bp_image", {"n_u": u_axis.size, "n_r": r_axis.size})])
         fine, rc = self.range_compress(scan, grid)
         with self.stage("backprojection"):

@@ -20,7 +20,9 @@ import math
 import numpy as np
 
 from .. import geometry as geo
-from ..model import SPEED_OF_LIGHT_M_S, ScanPass
+from ..model import SPEED_OF_LIGHT_M_S, MeasuredPulse, ScanPass, gaussian_pulse_spectrum
+from ..model import pulse_filter as _pulse_filter
+from ..model import pulse_waveform as _pulse_waveform
 from . import coefficients as coef
 
 C = SPEED_OF_LIGHT_M_S
@@ -71,6 +73,15 @@ class FocusGrid:
     carrier_frequency_hz: float
     pulse_sigma_s: float
     doppler_band: tuple[float, float]  # [X_lo, X_hi], support of the sine of the slant squint
+    measured_pulse: MeasuredPulse | None = None  # None: the Gaussian of pulse_sigma_s
+
+    def pulse_filter(self, f_hz) -> np.ndarray:
+        """H4 = conj(P(f)) at baseband frequencies f_hz (eq. 10): every focuser's range matched filter."""
+        return _pulse_filter(f_hz, self.pulse_sigma_s, self.measured_pulse)
+
+    def pulse_waveform(self, t_s, matched: bool = False) -> np.ndarray:
+        """The pulse p(t), or after H4 with `matched`: every point-response model's envelope."""
+        return _pulse_waveform(t_s, self.pulse_sigma_s, self.measured_pulse, matched)
 
     @property
     def cos_squint(self) -> float:
@@ -147,7 +158,7 @@ def focus_grid(scan: ScanPass, azimuth_oversampling: float | None = None) -> Foc
         n_azimuth=0, sin_squint=math.sin(theta_q), reference_range_m=r_ref,
         range_window_start_s=scan.range_window_start_s, sample_rate_hz=scan.radar.sample_rate_hz,
         n_range=scan.samples_per_pulse, carrier_frequency_hz=scan.radar.carrier_frequency_hz,
-        pulse_sigma_s=scan.radar.pulse_sigma_s,
+        pulse_sigma_s=scan.radar.pulse_sigma_s, measured_pulse=scan.radar.measured_pulse,
         doppler_band=geo.slant_doppler_band(g, scan.radar.antenna_aperture_m, scan.radar.wavelength_m),
     )
     if azimuth_oversampling:
@@ -235,9 +246,7 @@ def range_ifft(spectrum: np.ndarray, grid: FocusGrid) -> np.ndarray:
     return np.fft.ifft(spectrum * np.exp(2j * np.pi * grid.f_range_hz * grid.range_window_start_s), axis=1)
 
 
-def pulse_spectrum(f_r_hz, sigma_s: float) -> np.ndarray:
-    """P(f) of the Gaussian pulse, normalised to P(0) = 1."""
-    return np.exp(-2.0 * (np.pi * sigma_s * np.asarray(f_r_hz)) ** 2)
+pulse_spectrum = gaussian_pulse_spectrum  # P(f) of the Gaussian pulse, P(0) = 1 (`FocusGrid.pulse_filter`)
 
 
 def pulse_frequency_at_hz(level: float, sigma_s: float) -> float:
@@ -320,7 +329,7 @@ def secondary_range_compression(s2: np.ndarray, grid: FocusGrid) -> np.ndarray:
     h3 = np.exp(-1j * (phi - phi0 + 4.0 * np.pi * grid.f_range_hz[None, :] * grid.reference_range_m / C))
     lo, hi = grid.doppler_band
     mask = (x >= lo) & (x <= hi) & (np.abs(x) < SQUINT_SINE_CAP)
-    h4 = pulse_spectrum(grid.f_range_hz, grid.pulse_sigma_s)  # conj(P) of a real, even pulse
+    h4 = grid.pulse_filter(grid.f_range_hz)  # conj(P): the Gaussian's (real, even) or the measured pulse's
     return s2 * h3 * mask * h4[None, :]
 
 
@@ -576,10 +585,52 @@ def spectrum_rows(grid: FocusGrid, ac: AzimuthCompression) -> np.ndarray:
     return band_rows(grid.n_azimuth, spectrum_band(grid, ac))
 
 
+def rail_deviation_range_m(scan: ScanPass) -> np.ndarray | None:
+    """Per pulse (scan order), the first-order line-of-sight range change towards the scene reference T
+    caused by the antenna's deviations from the straight rail (C14); None on a straight rail."""
+    if scan.antenna_y_m is None and scan.antenna_z_m is None:
+        return None
+    g = scan.geometry
+    return geo.line_of_sight_range_change_m(scan.pulse_position_m, scan.antenna_y_m, scan.antenna_z_m,
+                                            g.reference_point_m, g.height_m)
+
+
+def compensate_rail_deviations(echo: np.ndarray, dr_m: np.ndarray, grid: FocusGrid) -> np.ndarray:
+    """First-order motion compensation (C14): each pulse's range spectrum times exp(+j 4 pi (f_c + f) dr / c),
+    a range shift by -dr with its carrier phase, which moves the scene reference's echo back onto the
+    straight rail's range history. Host-side float64 for every backend (via `prepare_track`)."""
+    phase = 4.0 * np.pi * np.outer(dr_m, grid.carrier_frequency_hz + grid.f_range_hz) / C
+    return np.fft.ifft(np.fft.fft(echo, axis=1) * np.exp(1j * phase), axis=1)
+
+
+def subtract_background(echo: np.ndarray, mode: str) -> np.ndarray:
+    """Background subtraction before focusing (docs/method.md section 4): "none" returns the echo itself;
+    "mean" removes each fast-time sample's mean over the pulses, the echoes that stay at one range over the
+    pass (the antenna's direct coupling, static clutter). A point target's echo migrates in range over the
+    aperture, so its mean, and its loss, is small."""
+    if mode == "none":
+        return echo
+    if mode == "mean":
+        return echo - echo.mean(axis=0, keepdims=True)
+    raise ValueError(f"unknown background mode {mode!r} (none|mean)")
+
+
+def condition_pass(scan: ScanPass, background: str) -> ScanPass:
+    """The pass with its background removed (`subtract_background`); the pass itself for "none"."""
+    if background == "none":
+        return scan
+    return dataclasses.replace(scan, echo=subtract_background(scan.echo, background))
+
+
 def prepare_track(scan: ScanPass, grid: FocusGrid) -> tuple[np.ndarray, np.ndarray]:
-    """Echo rows in increasing rail position, and positions relative to the aperture centre."""
+    """Echo rows in increasing rail position, rail deviations compensated (C14), and positions relative to
+    the aperture centre."""
     order = np.argsort(scan.pulse_position_m)
-    return scan.echo[order], scan.pulse_position_m[order] - grid.aperture_centre_m
+    echo = scan.echo
+    dr = rail_deviation_range_m(scan)
+    if dr is not None:
+        echo = compensate_rail_deviations(echo, dr, grid)
+    return echo[order], scan.pulse_position_m[order] - grid.aperture_centre_m
 
 
 def nlcs_focus(scan: ScanPass, *, ac_mode: str = "exact", grid: FocusGrid | None = None,

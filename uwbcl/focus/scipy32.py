@@ -105,7 +105,8 @@ def secondary_range_compression_rows(s_rows: np.ndarray, rows: np.ndarray, x: np
     phi0 = nlcs.reference_spectrum_phase(x0, grid.carrier_frequency_hz, grid)
     phase = -(phi - phi0) + (2.0 * np.pi * (grid.range_window_start_s
                                             - 2.0 * grid.reference_range_m / C)) * f_r
-    gain = (mask * nlcs.pulse_spectrum(f_r, grid.pulse_sigma_s)[None, :]).astype(np.float32)
+    h4 = grid.pulse_filter(f_r)
+    gain = (mask * h4[None, :]).astype(np.float32 if grid.measured_pulse is None else np.complex64)
     s_rows *= cis(phase)
     s_rows *= gain
     return s_rows

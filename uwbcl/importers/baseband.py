@@ -31,6 +31,9 @@ import math
 
 import numpy as np
 
+from ..model import SPEED_OF_LIGHT_M_S, MeasuredPulse
+from . import RecordingError
+
 DEFAULT_OVERSAMPLING = 2.4  # complex rate / -10 dB bandwidth (the paper: 4.0 GHz for 1.7 GHz)
 DEFAULT_TAPER = 0.2  # fraction of the kept band (each side) in the raised-cosine roll-off
 _GUARD_BINS = 256  # zero padding beyond the scan window: room for the filter kernel, no wrap-around
@@ -197,3 +200,43 @@ def to_baseband(
         z = np.fft.ifft(np.roll(spec, -shift, axis=1), axis=1)[:, :n_out]
         out[i : i + block] = z * residual
     return out, rf_rate / decimation
+
+
+PULSE_FFT_SAMPLES = 256  # the measured pulse's spectrum: this many samples across the complex band
+PULSE_WINDOW_TAPER = 0.25  # raised-cosine fraction of the reference window at each end
+
+
+def measure_pulse(echo: np.ndarray, sample_rate_hz: float, window_start_s: float, carrier_hz: float,
+                  start_m: float, stop_m: float, source: str = "") -> MeasuredPulse:
+    """The radar's pulse from a stationary reference echo (the direct coupling): the echo's mean over the
+    pulses (moving targets average out, the coupling does not), windowed to one-way ranges [start_m, stop_m]
+    (raised-cosine ends), its spectrum S(f) with the absolute delay origin (as `nlcs.range_fft`), and the
+    delay tau of the window's envelope peak removed: P(f) = S(f) exp(+j 2 pi (f_c + f) tau), so the pulse's
+    delay origin is its envelope peak, as the Gaussian's is (docs/importing.md section 4)."""
+    c = SPEED_OF_LIGHT_M_S
+    t = window_start_s + np.arange(echo.shape[1]) / sample_rate_hz
+    r = 0.5 * c * t
+    inside = np.flatnonzero((r >= start_m) & (r <= stop_m))
+    if inside.size < 4:
+        raise RecordingError(source, None, f"the pulse's reference window {start_m}-{stop_m} m holds "
+                                           f"{inside.size} samples of the echo ({r[0]:.2f}-{r[-1]:.2f} m)")
+    s = echo[:, inside].mean(axis=0)
+    n = inside.size
+    edge = max(1, int(PULSE_WINDOW_TAPER * n))
+    w = np.ones(n)
+    ramp = 0.5 - 0.5 * np.cos(np.pi * (np.arange(edge) + 0.5) / edge)
+    w[:edge], w[n - edge:] = ramp, ramp[::-1]
+    s = s * w
+    peak = int(np.argmax(np.abs(s)))
+    if np.abs(s[peak]) == 0:
+        raise RecordingError(source, None, f"no reference echo between {start_m} and {stop_m} m")
+    # the envelope peak to a fraction of a sample (parabola through the peak's log-magnitude)
+    frac = 0.0
+    if 0 < peak < n - 1:
+        a, b, d = np.log(np.abs(s[peak - 1:peak + 2]) + 1e-300)
+        frac = 0.5 * (a - d) / (a - 2 * b + d) if a - 2 * b + d < 0 else 0.0
+    tau = t[inside[0]] + (peak + frac) / sample_rate_hz
+    m = max(PULSE_FFT_SAMPLES, n)
+    f = np.fft.fftshift(np.fft.fftfreq(m, 1.0 / sample_rate_hz))
+    spectrum = np.exp(-2j * np.pi * np.outer(f, t[inside])) @ s  # S(f), absolute delay origin
+    return MeasuredPulse(f, spectrum * np.exp(2j * np.pi * (carrier_hz + f) * tau))

@@ -56,6 +56,12 @@ class ImportOptions:
     decimation: int | None = None  # default: baseband.choose_decimation
     min_step_m: float = 1e-4  # smaller steps per scan count as standing still
     keep_raw_rf: bool = True  # /raw/rf beside the baseband, for provenance
+    # "gaussian": the archive models the pulse as the Gaussian of the measured -10 dB band; "measured": the
+    # pulse is measured from the reference echo between pulse_window_start_m and pulse_window_stop_m (one-way
+    # range on the archive's axis), the direct coupling by default (archive 1.2, docs/importing.md)
+    pulse: str = "gaussian"
+    pulse_window_start_m: float = 1.5
+    pulse_window_stop_m: float = 2.6
 
 
 OPTION_TYPES = {f.name: f.type for f in dataclasses.fields(ImportOptions)}
@@ -266,24 +272,26 @@ def build_pass(
         if track.z_m is None:
             raise RecordingError(recording.source, None, "no rail height: give --height-m (or z_m positions)")
         height = float(np.median(track.z_m))
-    for name, dev in (("y_m", track.y_m), ("z_m", track.z_m)):
-        if dev is not None and np.ptp(dev) > 0.005:
-            log.warning(
-                "%s: the rail deviates by %.1f mm in %s; per-pulse deviations are not compensated yet",
-                recording.source,
-                1e3 * np.ptp(dev),
-                name,
-            )
+    # the antenna's deviations from the straight rail (archive 1.2, compensated in focusing: method.md C14):
+    # y_m is the antenna's Y_r (the straight rail is the X_r axis), z_m - height its height above the rail's
+    dy = None if track.y_m is None else np.array(track.y_m, dtype=float)
+    dz = None if track.z_m is None else track.z_m - height
     times = recording.scan_time_s[track.scans]
     prf = options.pulse_repetition_frequency_hz or 1.0 / float(np.median(np.diff(times)))
     x_centre = 0.5 * float(track.x_m[0] + track.x_m[-1])
     reference = options.reference_point_m or default_reference_point(x_centre, options, height)
+    window_start_s = recording.scan_start_s - options.range_delay_s
+    measured = None
+    if options.pulse == "measured":
+        measured = baseband.measure_pulse(echo, rate, window_start_s, carrier, options.pulse_window_start_m,
+                                          options.pulse_window_stop_m, recording.source)
     radar = RadarParameters(
         carrier_frequency_hz=carrier,
         bandwidth_hz=band.bandwidth_hz,
         sample_rate_hz=rate,
         pulse_repetition_frequency_hz=prf,
         antenna_aperture_m=options.antenna_aperture_m,
+        measured_pulse=measured,
     )
     geometry = PassGeometry(
         height_m=height,
@@ -297,7 +305,7 @@ def build_pass(
     scan = ScanPass(
         radar=radar,
         geometry=geometry,
-        range_window_start_s=recording.scan_start_s - options.range_delay_s,
+        range_window_start_s=window_start_s,
         pulse_time_s=times - times[0],
         pulse_position_m=track.x_m,
         echo=echo,
@@ -308,6 +316,8 @@ def build_pass(
         source=recording.source,
         range_delay_s=options.range_delay_s,
         raw_rf=raw,
+        antenna_y_m=dy,
+        antenna_z_m=dz,
     )
     return ImportResult(scan=scan, band=band, decimation=decimation, track=track)
 
@@ -377,5 +387,10 @@ def check_options(options: ImportOptions, path: str | os.PathLike[str] | None = 
             fail(key, f"must be > 0, got {value}")
     if options.decimation is not None and options.decimation < 1:
         fail("decimation", f"must be >= 1, got {options.decimation}")
+    if options.pulse not in ("gaussian", "measured"):
+        fail("pulse", f"must be 'gaussian' or 'measured', got {options.pulse!r}")
+    if not (0 <= options.pulse_window_start_m < options.pulse_window_stop_m < math.inf):
+        fail("pulse_window_stop_m", "the reference window needs 0 <= pulse_window_start_m < "
+             f"pulse_window_stop_m, got {options.pulse_window_start_m}, {options.pulse_window_stop_m}")
     if not math.isfinite(options.range_delay_s):
         fail("range_delay_s", f"must be finite, got {options.range_delay_s}")

@@ -6,7 +6,8 @@ importer must cope with: real RF at 61.035 ps bins, a non-Gaussian pulse (the de
 Gaussian-modulated carrier, whose spectrum f G(f - f0) is skewed upwards and whose -3 dB width is narrower
 than a Gaussian's of the same -10 dB width), the radar's internal delay, the antenna's direct coupling (the
 same echo in every scan), static clutter at fixed ranges, rest periods at both rail ends, receiver noise and
-integer quantization.
+integer quantization; optionally a slightly bent rail (the antenna leaves the straight line by a few mm
+cross-track and vertically, `P440Scene.rail_bow_y_m`, `rail_sway_z_m`), logged by `rail_deviation_m`.
 """
 
 from __future__ import annotations
@@ -40,6 +41,20 @@ class P440Scene:
     clutter_amplitude: float = 0.3
     noise_std: float = 0.01  # receiver noise per RF sample, relative to a unit echo's peak
     counts_per_unit: float = 20000.0  # ADC counts of a unit echo's peak
+    # a bent rail (`rail_deviation_m`): a cross-track bow, dy = rail_bow_y_m (1 - u^2), and a vertical sway,
+    # dz = rail_sway_z_m sin(pi u), u = x / rail_half_length_m; 0: straight
+    rail_bow_y_m: float = 0.0
+    rail_sway_z_m: float = 0.0
+    rail_half_length_m: float = 1.0
+
+
+BENT_RAIL = {"rail_bow_y_m": 0.008, "rail_sway_z_m": 0.004}  # a PulsON-like test rail: 8 mm bow, 4 mm sway
+
+
+def rail_deviation_m(scene: P440Scene, x_m) -> tuple[np.ndarray, np.ndarray]:
+    """(dy, dz) of the antenna from the straight rail at rail positions x_m (the surveyed rail's log)."""
+    u = np.asarray(x_m, dtype=float) / scene.rail_half_length_m
+    return scene.rail_bow_y_m * (1.0 - u**2), scene.rail_sway_z_m * np.sin(np.pi * u)
 
 
 def rf_pulse(t_s: np.ndarray, centre_hz: float, bandwidth_hz: float) -> np.ndarray:
@@ -99,8 +114,10 @@ def simulate_rf(
     rf = np.zeros((positions_m.size, n_bins))
     wavelength = c / scene.pulse_centre_hz
     theta = math.radians(scene.rotation_table_angle_deg)
+    dy, dz = (None, None) if scene.rail_bow_y_m == scene.rail_sway_z_m == 0 else rail_deviation_m(scene,
+                                                                                                    positions_m)
     for target, amplitude in zip(np.atleast_2d(scene.targets_m), scene.amplitudes):
-        r = geo.range_history_m(positions_m, target, scene.height_m)
+        r = geo.range_history_m(positions_m, target, scene.height_m, dy, dz)  # the true antenna position
         psi = geo.horizontal_look_angle_rad(positions_m, target, scene.boresight_y_sign)
         gain = amplitude * geo.two_way_beam_gain(psi, theta, scene.antenna_aperture_m, wavelength)
         for k in np.flatnonzero(gain > 1e-6):
