@@ -1,10 +1,11 @@
 """The NLCS focus-position calibration t_f(t_n) and its inverse (eqs. 18-19, C12, docs/method.md section 2).
 
 NLCS focuses a target that crosses the beam centre at t_n at t_f = t_n + (b/2) t_n^2 + ...: up to 36 mm of
-distortion at the aperture ends. The map is calibrated per range by simulation: point targets across the
-aperture go through the azimuth chain of their range bin (`Focuser.calibration_spectra`, on the same backend
-as the image), each focused peak is located to 1e-10 s (`peak_times`), and t_n(t_f) is a polynomial fitted
-through them (`invert_focus_position`, cached per range in the products).
+distortion at the aperture ends. The map is calibrated per range bin by simulation: point targets at the
+bin's range across the aperture go through the bin's azimuth chain (`Focuser.calibration_spectra`, on the same
+backend as the image), each focused peak is located to 1e-10 s (`peak_times`), and t_n(t_f) is a polynomial
+fitted through them (`invert_focus_position`, cached per bin in the products), interpolated linearly in range
+between the two bins around a peak.
 """
 
 from __future__ import annotations
@@ -119,11 +120,28 @@ def focus_position(products: nlcs.NlcsProducts, r_m, t_n_s: np.ndarray, focuser:
     return t_f if np.ndim(r_m) else t_f[0]
 
 
+def bracketing_bins(grid: nlcs.FocusGrid, r_m) -> tuple[np.ndarray, np.ndarray]:
+    """The range bin j at or below each r and the fraction w of a bin that r lies above it: r between the
+    bins j and j + 1 (clipped to the first and last bins, where w is 0 or 1)."""
+    bins = grid.range_bins_m
+    if bins.size < 2:
+        return np.zeros(np.size(r_m), dtype=int), np.zeros(np.size(r_m))
+    pos = (np.atleast_1d(np.asarray(r_m, dtype=float)) - bins[0]) / (bins[1] - bins[0])
+    j = np.clip(np.floor(pos), 0, bins.size - 2).astype(int)
+    return j, np.clip(pos - j, 0.0, 1.0)
+
+
 def invert_focus_position(products: nlcs.NlcsProducts, r_m, t_f_s, degree: int = CALIBRATION_DEGREE,
                           focuser: Focuser = NUMPY_FOCUSER):
-    """t_n from the focused t_f: t_n(t_f) fitted through `CALIBRATION_TARGETS` simulated targets across the
-    rail, per range (cached in `products.focus_calibration` under (r, degree)); the missing fits are simulated
-    together.
+    """t_n from the focused t_f: per range bin, t_n(t_f) fitted through `CALIBRATION_TARGETS` simulated
+    targets at the bin's range across the rail (cached in `products.focus_calibration` under (bin, degree);
+    the missing fits are simulated together), and at a range r between two bins the two bins' t_n
+    interpolated linearly in r.
+
+    Why between bins: each bin has its own azimuth chain (per-bin coefficients, C8), so a target focuses at a
+    t_f that drifts from bin to bin, and the image between two bins is their interpolation. One bin's map
+    (the nearest's) is off by that drift, a sawtooth in the fractional bin (up to +-2 mm along track at 45 deg
+    squint), and jumps where the nearest bin changes.
 
     Parameters
     ----------
@@ -144,16 +162,20 @@ def invert_focus_position(products: nlcs.NlcsProducts, r_m, t_f_s, degree: int =
         t_n (s).
     """
     cache = products.focus_calibration
-    r = [float(x) for x in np.atleast_1d(r_m)]
-    missing = list(dict.fromkeys(x for x in r if (x, degree) not in cache))
+    grid = products.grid
+    r = np.atleast_1d(np.asarray(r_m, dtype=float))
+    j, w = bracketing_bins(grid, r)
+    upper = np.minimum(j + 1, grid.range_bins_m.size - 1)
+    missing = [int(b) for b in np.unique(np.concatenate([j, upper])) if (int(b), degree) not in cache]
     if missing:
-        grid = products.grid
         half = 0.5 * (grid.n_track - 1) * grid.dt_s
         t_n = np.linspace(-half, half, CALIBRATION_TARGETS)
-        for x, t_f in zip(missing, focus_position(products, np.array(missing), t_n, focuser)):
-            cache[(x, degree)] = np.polynomial.polynomial.polyfit(t_f, t_n, degree)
-    t_f = np.broadcast_to(np.asarray(t_f_s, dtype=float), (len(r),))
-    out = np.array([np.polynomial.polynomial.polyval(t, cache[(x, degree)]) for x, t in zip(r, t_f)])
+        for b, t_f in zip(missing, focus_position(products, grid.range_bins_m[missing], t_n, focuser)):
+            cache[(b, degree)] = np.polynomial.polynomial.polyfit(t_f, t_n, degree)
+    t_f = np.broadcast_to(np.asarray(t_f_s, dtype=float), r.shape)
+    poly = np.polynomial.polynomial.polyval
+    out = np.array([(1.0 - wi) * poly(t, cache[(int(lo), degree)]) + wi * poly(t, cache[(int(hi), degree)])
+                    for t, lo, hi, wi in zip(t_f, j, upper, w)])
     return out if np.ndim(r_m) or np.ndim(t_f_s) else float(out[0])
 
 
