@@ -17,6 +17,7 @@ import pytest
 
 from uwbcl import geometry as geo
 from uwbcl import opencl, pipeline, simulate
+from uwbcl.detect import synthesis
 from uwbcl.model import PassGeometry, RadarParameters
 from uwbcl.records import DetectionSettings, ProcessingSettings
 
@@ -83,6 +84,20 @@ def test_a_pass_without_its_echo_keeps_the_calibrated_positions():
     off = detect.detect_nlcs(products, DetectionSettings(synthesis_passes=0, neighbour_cancellation_passes=0),
                              scan)
     assert [d.x_m for d in without_scan] == [d.x_m for d in off]
+
+
+def test_the_real_gains_are_unbiased_under_noise_where_magnitudes_are_not():
+    """A beam-like gain with a constant phase plus zero-mean noise: the real part in phase with the plate's
+    mean phase averages to the gain, |g| stays above it where the beam is weak."""
+    rng = np.random.default_rng(3)
+    x = np.linspace(-1.0, 1.0, 201)
+    true = np.sinc(0.9 * x) ** 2 * np.exp(0.7j)
+    noisy = true + 0.05 * (rng.standard_normal((2000, x.size)) + 1j * rng.standard_normal((2000, x.size)))
+    edge = np.abs(x) > 0.95
+    real_bias = np.mean(synthesis.real_gains(noisy), axis=0) - np.abs(true)
+    abs_bias = np.mean(np.abs(noisy), axis=0) - np.abs(true)
+    assert np.max(np.abs(real_bias)) < 0.005
+    assert np.min(abs_bias[edge]) > 0.02
 
 
 # ------------------------------------------------------------------------------------------------ OpenCL
