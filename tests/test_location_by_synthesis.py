@@ -4,7 +4,7 @@ The t_f(t_n) calibration alone located plates that cross the beam 1-1.5 m from t
 ~2.5 mm off along track, an error that grows with the position on the rail and so accumulates over cycles (the
 availability study's drift, docs/method.md section 6.1). Tolerance: the issue's drift budget is 10 mm over 40
 cycles of ~0.9 m, i.e. a scale error along track of at most 10 mm / 36 m = 0.28 mm/m, or 0.4 mm at 1.5 m from
-the centre. Noise-free, synthesis leaves < 0.07 mm (measured); the OpenCL engine follows the numpy oracle.
+the centre. Noise-free, synthesis leaves < 0.09 mm (measured); the OpenCL engine follows the numpy oracle.
 """
 
 from __future__ import annotations
