@@ -5,6 +5,7 @@
     python scripts/reproduce_paper.py --seeds 3        # quicker noise study
     python scripts/reproduce_paper.py --no-noise       # tables only
     python scripts/reproduce_paper.py --cancellation-passes 0   # without neighbour cancellation in detection
+    python scripts/reproduce_paper.py --synthesis-passes 0      # NLCS by the t_f(t_n) calibration alone
     python scripts/reproduce_paper.py --backend opencl  # focus with OpenCL (default: the numpy reference)
 
 Part 1 (noise-free): per pass and target, the along-track (azimuth) and range errors of the located point in
@@ -162,17 +163,22 @@ def main() -> int:
     ap.add_argument("--cancellation-passes", type=int,
                     default=DetectionSettings().neighbour_cancellation_passes,
                     help="neighbour-cancelling re-refinements in detection (0: off; default %(default)s)")
+    ap.add_argument("--synthesis-passes", type=int, default=DetectionSettings().synthesis_passes,
+                    help="NLCS location by synthesis, Newton steps (0: the t_f(t_n) calibration alone; "
+                         "default %(default)s)")
     ap.add_argument("--backend", choices=BACKENDS, default="numpy",
                     help="focusing backend (default: the float64 numpy reference)")
     args = ap.parse_args()
     detection = dataclasses.replace(DetectionSettings(),
-                                    neighbour_cancellation_passes=args.cancellation_passes)
+                                    neighbour_cancellation_passes=args.cancellation_passes,
+                                    synthesis_passes=args.synthesis_passes)
     base = ProcessingSettings(backend=args.backend, detection=detection)
     chosen = [s for s in (PAPER_SIM1, PAPER_SIM2) if args.scenario in ("both", s.name)]
     print("# uwbcl against the paper's simulations")
     print("\nOurs: f_s = 4 GHz complex, antenna beam pattern, per-pulse positions. "
           "Paper: MATLAB, Tables 1-6.")
-    print(f"Backend {args.backend}, neighbour-cancellation passes {args.cancellation_passes}.")
+    print(f"Backend {args.backend}, neighbour-cancellation passes {args.cancellation_passes}, "
+          f"synthesis passes {args.synthesis_passes}.")
     for sc in chosen:
         part1(sc, base)
     if not args.no_noise:

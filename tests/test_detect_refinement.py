@@ -202,10 +202,30 @@ def test_several_peaks_are_inverted_at_once_with_the_same_cache(paper_products):
     r = products.grid.range_bins_m[[40, 41, 90]] + 0.002
     t_f = np.array([-1.5, 0.2, 3.0])
     t_n = calibration.invert_focus_position(products, r, t_f)
-    assert set(products.focus_calibration) == {(float(x), 5) for x in r}
+    assert set(products.focus_calibration) == {(b, 5) for b in (40, 41, 42, 90, 91)}  # the bins around each r
     for x, tf, tn in zip(r, t_f, t_n):
         assert calibration.invert_focus_position(products, x, tf) == tn
-    assert len(products.focus_calibration) == 3
+    assert len(products.focus_calibration) == 5
+
+
+def test_the_inverse_is_each_bins_calibration_at_its_centre_and_linear_between_bins(paper_products):
+    _, products = paper_products[0]
+    grid = products.grid
+    bins = grid.range_bins_m
+    half = 0.5 * (grid.n_track - 1) * grid.dt_s
+    t_n = np.linspace(-half, half, calibration.CALIBRATION_TARGETS)
+    t_f = calibration.focus_position(products, bins[[50, 51]], t_n)
+    fits = [np.polynomial.polynomial.polyfit(t_f[i], t_n, calibration.CALIBRATION_DEGREE) for i in (0, 1)]
+    at = 0.8 * half
+    lo, hi = (np.polynomial.polynomial.polyval(at, c) for c in fits)
+    for w in (0.0, 0.3, 0.999):
+        got = calibration.invert_focus_position(products, bins[50] + w * (bins[1] - bins[0]), at)
+        assert got == pytest.approx((1 - w) * lo + w * hi, abs=1e-12)
+    # continuous where the nearest bin changes (a nearest-bin inverse jumps there)
+    mid = bins[50] + 0.5 * (bins[1] - bins[0])
+    step = calibration.invert_focus_position(products, mid + 1e-9, at) - calibration.invert_focus_position(
+        products, mid - 1e-9, at)
+    assert abs(step) < 1e-9
 
 
 # --------------------------------------------------------------------------------------------- whole passes

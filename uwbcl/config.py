@@ -211,6 +211,8 @@ _RANGES = {
     "detection.cfar_db": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0 (0: off)"),
     "detection.cancel_max_targets": (lambda v: 0 <= v <= 4096, "between 0 (all) and 4096"),
     "detection.cancel_time_budget_s": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0 (0: none)"),
+    "detection.synthesis_passes": (lambda v: 0 <= v <= 16, "between 0 and 16"),
+    "detection.synthesis_tol_m": (_positive, "finite and > 0"),
     **{f"limits.{f.name}": (lambda v: v >= 1, ">= 1") for f in dataclasses.fields(ReadLimits)},
 }
 

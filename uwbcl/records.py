@@ -94,6 +94,12 @@ class DetectionSettings:
     # Wall-clock budget of neighbour cancellation per pass (s, 0: none): the strongest targets are modelled
     # first, and once a pass has used the budget the remaining ones keep their first refinement.
     cancel_time_budget_s: float = 0.0
+    # Location by synthesis (NLCS): Newton steps moving each modelled plate to where its focused model peaks
+    # at the image's peak (detect.synthesis, docs/method.md section 4; 0: off, the t_f(t_n) calibration
+    # alone), stopping once no plate moves by more than synthesis_tol_m. The plates modelled are those of
+    # neighbour cancellation (cancel_max_targets); a pass focused without its echo keeps the calibration.
+    synthesis_passes: int = 1
+    synthesis_tol_m: float = 1e-5
 
 
 @dataclasses.dataclass(frozen=True)

@@ -9,6 +9,8 @@
   random process), so the rail positions are not uniform. They are logged per pulse, as the encoder does.
 * Receiver noise: circular complex Gaussian, SNR defined per raw fast-time sample relative to a unit echo:
   SNR_dB = 10 log10(1 / E|n|^2), where a target of amplitude 1 on boresight gives a peak sample of modulus 1.
+* Optionally (`spreading_loss`) the two-way spreading of a real echo, amplitude (R_c / R)^2: 1 at the
+  target's closest approach R_c, so the SNR definition stands. Eq. (2) has none; a real radar's echo has it.
 """
 
 from __future__ import annotations
@@ -81,9 +83,11 @@ def range_window(radar: RadarParameters, positions_m, targets_m, height_m: float
 
 def simulate_echo(radar: RadarParameters, geometry: PassGeometry, positions_m, targets_m, amplitudes,
                   range_window_start_s: float, samples_per_pulse: int, snr_db: float | None,
-                  rng: np.random.Generator, antenna_y_m=None, antenna_z_m=None) -> np.ndarray:
+                  rng: np.random.Generator, antenna_y_m=None, antenna_z_m=None,
+                  spreading_loss: bool = False) -> np.ndarray:
     """s(t_r, t_a) = sum_M A_M w_a p(t_r - 2R/c) exp(-j 4 pi f_c R / c) + n   (eq. 2), R from the true antenna
-    position (x, dy, h + dz) when the per-pulse rail deviations antenna_y_m, antenna_z_m are given."""
+    position (x, dy, h + dz) when the per-pulse rail deviations antenna_y_m, antenna_z_m are given; A_M times
+    (R_c / R)^2 when `spreading_loss`."""
     positions_m = np.asarray(positions_m, dtype=float)
     t_r = range_window_start_s + np.arange(samples_per_pulse) / radar.sample_rate_hz
     sigma = radar.pulse_sigma_s
@@ -95,6 +99,8 @@ def simulate_echo(radar: RadarParameters, geometry: PassGeometry, positions_m, t
         psi = geo.horizontal_look_angle_rad(positions_m, target, geometry.boresight_y_sign)
         gain = amplitude * geo.two_way_beam_gain(psi, geometry.rotation_table_angle_rad,
                                                  radar.antenna_aperture_m, radar.wavelength_m)
+        if spreading_loss:
+            gain = gain * (geo.closest_approach_range_m(target, geometry.height_m) / r) ** 2
         seen = gain > 0
         delay = t_r[None, :] - 2.0 * r[seen, None] / SPEED_OF_LIGHT_M_S
         envelope = pulse_waveform(delay, sigma, radar.measured_pulse)
@@ -111,10 +117,11 @@ def simulate_pass(radar: RadarParameters, geometry: PassGeometry, targets_m, *, 
                   snr_db: float | None = None, speed_jitter: float = 0.0,
                   rng: np.random.Generator | None = None, rig_id: str = "rig-1", cycle: int = 0,
                   pass_start_time: str = "1970-01-01T00:00:00Z", direction: int = 1,
-                  range_margin_m: float = 1.0, rail_deviation=None) -> ScanPass:
+                  range_margin_m: float = 1.0, rail_deviation=None, spreading_loss: bool = False) -> ScanPass:
     """One pass of the carriage over the nominal aperture, as the rig would record it. `rail_deviation`:
     a bent rail, a function of the rail positions (m) giving the antenna's (dy, dz) deviations (m), recorded
-    in the pass (as a surveyed rail would be) and used for the echo."""
+    in the pass (as a surveyed rail would be) and used for the echo. `spreading_loss`: echoes weighted by
+    (R_c / R)^2."""
     rng = np.random.default_rng() if rng is None else rng
     # An even number of intervals (odd pulse count) centred on the nominal aperture centre.
     n_intervals = 2 * round(0.5 * aperture_length_m / speed_m_s * radar.pulse_repetition_frequency_hz)
@@ -128,7 +135,8 @@ def simulate_pass(radar: RadarParameters, geometry: PassGeometry, targets_m, *, 
     dy = dz = None
     if rail_deviation is not None:
         dy, dz = (np.asarray(d, dtype=float) * np.ones_like(positions) for d in rail_deviation(positions))
-    echo = simulate_echo(radar, geometry, positions, targets_m, amplitudes, t0, n_r, snr_db, rng, dy, dz)
+    echo = simulate_echo(radar, geometry, positions, targets_m, amplitudes, t0, n_r, snr_db, rng, dy, dz,
+                         spreading_loss)
     return ScanPass(radar=radar, geometry=geometry, range_window_start_s=t0, pulse_time_s=times,
                     pulse_position_m=positions, echo=echo, rig_id=rig_id, cycle=cycle,
                     pass_start_time=pass_start_time, antenna_y_m=dy, antenna_z_m=dz)

@@ -5,7 +5,8 @@ maxima above a floor relative to the strongest peak and to the image's noise lev
 accuracy on the underlying band-limited image (`refine`), refined again with the neighbours' modelled
 responses removed (`cancel`: close plates bias each other's sub-cell peaks through their point responses'
 arms), and mapped to the target's closest-approach coordinates (x_M, R_c) of the pass: for NLCS through the
-inverse of the focus-position map t_f(t_n) (`calibration`, eqs. 18-19, C12), for backprojection directly.
+inverse of the focus-position map t_f(t_n) (`calibration`, eqs. 18-19, C12) corrected by synthesis (each
+plate where its own focused model peaks at the image's peak: `synthesis`), for backprojection directly.
 
 The focusing backend is a `Focuser` (`uwbcl.focus.protocol`): detection models the neighbours and the
 calibration targets with the backend that focused the pass.
@@ -25,7 +26,7 @@ from ..focus.protocol import Focuser
 from ..focus.reference import NUMPY_FOCUSER
 from ..model import ScanPass
 from ..records import Detection, DetectionSettings
-from . import calibration, cancel, peaks, refine
+from . import calibration, cancel, peaks, refine, synthesis
 
 # The lattice (m) of the backprojection refinement of NLCS detections beyond the rail ends (BP's pixel).
 BP_SUBSCENE_CELL_M = 0.01
@@ -46,9 +47,10 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
         Floors, non-maximum suppression and neighbour cancellation.
     scan : ScanPass, optional
         The pass's echo: with it, the peaks are re-refined with the neighbours' modelled responses removed
-        (`cancel.NlcsModel`); without it, on the image alone.
+        (`cancel.NlcsModel`) and located by synthesis (`synthesis.locate`); without it, refined on the image
+        alone and located by the t_f(t_n) calibration alone.
     focuser : Focuser
-        Focuses the neighbours' models and the calibration targets: the backend that focused `products`.
+        Focuses the models and the calibration targets: the backend that focused `products`.
     footprint : BeamFootprint, optional
         Search the beam's footprint beside the rail (`settings.search`, `search_footprint`); None: the rail.
 
@@ -66,13 +68,20 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
         t_n = calibration.peak_track_times(products, [c[0] for c in cells], [c[1] for c in cells], focuser)[2]
         placed = np.isfinite(t_n)
         cells = [c for c, ok in zip(cells, placed) if ok]
-    if settings.neighbour_cancellation_passes > 0 and len(cells) > 1 and scan is not None:
-        model = cancel.NlcsModel.of(products, scan, focuser, rows, spectrum)
-        cells = _cancel(cells, model, settings)
     if not cells:
         return []
+    cancelling = settings.neighbour_cancellation_passes > 0 and len(cells) > 1
+    model = None
+    if scan is not None and (cancelling or settings.synthesis_passes > 0):
+        model = cancel.NlcsModel.of(products, scan, focuser, rows, spectrum)
+    if cancelling and model is not None:
+        cells = _cancel(cells, model, settings)
     a, b = [c[0] for c in cells], [c[1] for c in cells]
     t_f, r, t_n = calibration.peak_track_times(products, a, b, focuser)
+    if settings.synthesis_passes > 0 and model is not None:  # the modelled plates, by synthesis (S1)
+        n = _modelled(len(cells), settings)
+        t_f[:n], r[:n], t_n[:n] = synthesis.locate(cells[:n], model, settings.synthesis_passes,
+                                                   settings.synthesis_tol_m, settings.neighbour_gain_degree)
     r0 = r - grid.speed_m_s * grid.sin_squint * t_n  # eq. (19), C12: r_LC = r_LRCM - v sin(theta_q) t_nc
     if footprint is not None and scan is not None:
         t_n, r0 = _beyond_rail_by_backprojection(scan, grid, t_n, r0)
@@ -140,7 +149,7 @@ def _cancel(cells: list[cancel.Cell], model: cancel.CancellationModel, settings:
             ) -> list[cancel.Cell]:
     """Neighbour cancellation of the strongest `cancel_max_targets` cells (all when 0; `cells` are strongest
     first) within `cancel_time_budget_s` (0: none); the others keep their first refinement."""
-    n = len(cells) if settings.cancel_max_targets <= 0 else min(settings.cancel_max_targets, len(cells))
+    n = _modelled(len(cells), settings)
     if n < 2:
         return cells
     budget = settings.cancel_time_budget_s
@@ -183,6 +192,12 @@ def _in_footprint(found: list[Detection], grid: nlcs.FocusGrid, footprint: geo.B
     r_lrcm = np.array([d.r0_m for d in found]) + grid.sin_squint * u
     keep = peaks.in_search(grid, u, r_lrcm, footprint) if found else []
     return [d for d, k in zip(found, keep) if k]
+
+
+def _modelled(n_cells: int, settings: DetectionSettings) -> int:
+    """How many of the strongest peaks are modelled (neighbour cancellation, location by synthesis): all, or
+    `cancel_max_targets`."""
+    return n_cells if settings.cancel_max_targets <= 0 else min(settings.cancel_max_targets, n_cells)
 
 
 def _in_range(found: list[Detection], settings: DetectionSettings) -> list[Detection]:

@@ -1,10 +1,11 @@
 """The NLCS focus-position calibration t_f(t_n) and its inverse (eqs. 18-19, C12, docs/method.md section 2).
 
 NLCS focuses a target that crosses the beam centre at t_n at t_f = t_n + (b/2) t_n^2 + ...: up to 36 mm of
-distortion at the aperture ends. The map is calibrated per range by simulation: point targets across the
-aperture go through the azimuth chain of their range bin (`Focuser.calibration_spectra`, on the same backend
-as the image), each focused peak is located to 1e-10 s (`peak_times`), and t_n(t_f) is a polynomial fitted
-through them (`invert_focus_position`, cached per range in the products).
+distortion at the aperture ends. The map is calibrated per range bin by simulation: point targets at the
+bin's range across the aperture go through the bin's azimuth chain (`Focuser.calibration_spectra`, on the same
+backend as the image), each focused peak is located to 1e-10 s (`peak_times`), and t_n(t_f) is a polynomial
+fitted through them (`invert_focus_position`, cached per bin in the products), interpolated linearly in range
+between the two bins around a peak.
 """
 
 from __future__ import annotations
@@ -128,13 +129,30 @@ def focus_position(products: nlcs.NlcsProducts, r_m, t_n_s: np.ndarray, focuser:
     return t_f if np.ndim(r_m) else t_f[0]
 
 
+def bracketing_bins(grid: nlcs.FocusGrid, r_m) -> tuple[np.ndarray, np.ndarray]:
+    """The range bin j at or below each r and the fraction w of a bin that r lies above it: r between the
+    bins j and j + 1 (clipped to the first and last bins, where w is 0 or 1)."""
+    bins = grid.range_bins_m
+    if bins.size < 2:
+        return np.zeros(np.size(r_m), dtype=int), np.zeros(np.size(r_m))
+    pos = (np.atleast_1d(np.asarray(r_m, dtype=float)) - bins[0]) / (bins[1] - bins[0])
+    j = np.clip(np.floor(pos), 0, bins.size - 2).astype(int)
+    return j, np.clip(pos - j, 0.0, 1.0)
+
+
 def invert_focus_position(products: nlcs.NlcsProducts, r_m, t_f_s, degree: int = CALIBRATION_DEGREE,
                           focuser: Focuser = NUMPY_FOCUSER):
-    """t_n from the focused t_f: t_n(t_f) fitted through `CALIBRATION_TARGETS` simulated targets across the
-    rail, per range (cached in `products.focus_calibration` under (r, degree)); the missing fits are simulated
-    together. A peak focused beyond the rail's ends (|t_f| more than half the rail plus BEYOND_STEP_M / 2)
-    is inverted on a map simulated past that end (`_beyond_map`, cached under (r, degree, side)); NaN where
-    the map does not reach it.
+    """t_n from the focused t_f: per range bin, t_n(t_f) fitted through `CALIBRATION_TARGETS` simulated
+    targets at the bin's range across the rail (cached in `products.focus_calibration` under (bin, degree);
+    the missing fits are simulated together), and at a range r between two bins the two bins' t_n
+    interpolated linearly in r. A peak focused beyond the rail's ends (|t_f| more than half the rail plus
+    BEYOND_STEP_M / 2) is inverted on a map simulated past that end (`_beyond_map`, cached under
+    (r, degree, side)); NaN where the map does not reach it.
+
+    Why between bins: each bin has its own azimuth chain (per-bin coefficients, C8), so a target focuses at a
+    t_f that drifts from bin to bin, and the image between two bins is their interpolation. One bin's map
+    (the nearest's) is off by that drift, a sawtooth in the fractional bin (up to +-2 mm along track at 45 deg
+    squint), and jumps where the nearest bin changes.
 
     Parameters
     ----------
@@ -155,22 +173,29 @@ def invert_focus_position(products: nlcs.NlcsProducts, r_m, t_f_s, degree: int =
         t_n (s).
     """
     cache = products.focus_calibration
-    r = [float(x) for x in np.atleast_1d(r_m)]
-    t_f = np.broadcast_to(np.asarray(t_f_s, dtype=float), (len(r),))
     grid = products.grid
+    r = np.atleast_1d(np.asarray(r_m, dtype=float))
+    t_f = np.broadcast_to(np.asarray(t_f_s, dtype=float), r.shape)
     half = grid.half_track_s
-    beyond = half + 0.5 * BEYOND_STEP_M / grid.speed_m_s  # a rail search's peaks are never there
-    keys = [(x, degree) if abs(t) <= beyond else (x, degree, 1 if t > 0 else -1) for x, t in zip(r, t_f)]
-    missing = list(dict.fromkeys(k for k in keys if len(k) == 2 and k not in cache))
+    outside = np.abs(t_f) > half + 0.5 * BEYOND_STEP_M / grid.speed_m_s  # a rail search's peaks never are
+    j, w = bracketing_bins(grid, r)
+    upper = np.minimum(j + 1, grid.range_bins_m.size - 1)
+    bins = np.unique(np.concatenate([j[~outside], upper[~outside]]))
+    missing = [int(b) for b in bins if (int(b), degree) not in cache]
     if missing:
         t_n = np.linspace(-half, half, CALIBRATION_TARGETS)
-        fits = focus_position(products, np.array([k[0] for k in missing]), t_n, focuser)
-        for k, t_fit in zip(missing, fits):
-            cache[k] = np.polynomial.polynomial.polyfit(t_fit, t_n, degree)
-    for k in dict.fromkeys(k for k in keys if len(k) == 3 and k not in cache):
+        for b, t_fit in zip(missing, focus_position(products, grid.range_bins_m[missing], t_n, focuser)):
+            cache[(b, degree)] = np.polynomial.polynomial.polyfit(t_fit, t_n, degree)
+    sides = [(float(x), degree, 1 if t > 0 else -1) for x, t in zip(r[outside], t_f[outside])]
+    for k in dict.fromkeys(k for k in sides if k not in cache):
         cache[k] = _beyond_map(products, k[0], k[2], focuser)
-    out = np.array([np.polynomial.polynomial.polyval(t, cache[k]) if len(k) == 2
-                    else _invert_beyond(cache[k], t, degree) for k, t in zip(keys, t_f)])
+    poly = np.polynomial.polynomial.polyval
+
+    def within(t, lo, hi, wi):
+        return (1.0 - wi) * poly(t, cache[(int(lo), degree)]) + wi * poly(t, cache[(int(hi), degree)])
+
+    out = np.array([_invert_beyond(cache[(float(x), degree, 1 if t > 0 else -1)], t, degree) if o
+                    else within(t, lo, hi, wi) for x, t, o, lo, hi, wi in zip(r, t_f, outside, j, upper, w)])
     return out if np.ndim(r_m) or np.ndim(t_f_s) else float(out[0])
 
 
