@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from uwbcl import archive, cli, pipeline
-from uwbcl.importers import p440, synthetic
+from uwbcl.importers import synthetic
 from uwbcl.records import DetectionSettings, ProcessingSettings
 
 TARGETS_M = np.array([[0.786, -2.4, 0.3], [1.986, -2.4, 0.3]])
@@ -35,12 +35,7 @@ def import_pass(root: Path, clutter: bool):
     scene = synthetic.P440Scene(targets_m=TARGETS_M, amplitudes=(1.0, 1.0), height_m=HEIGHT_M)
     if not clutter:
         scene = dataclasses.replace(scene, coupling_amplitude=0.0, clutter_amplitude=0.0)
-    t, x = synthetic.rail_with_rests(-1.0, 1.0, 0.15, rest_s=1.5, scan_period_s=0.0206)
-    rf = synthetic.simulate_rf(scene, x, 9000e-12, 480, np.random.default_rng(7))
-    scan_file = p440.write_p440_stream(root / "pass.p440", rf, np.rint((100.0 + t) * 1e3).astype(int),
-                                       scan_start_ps=9000)
-    positions = root / "pos.csv"
-    positions.write_text("time_s,x_m\n" + "".join(f"{100.0 + tt:.4f},{xx:.6f}\n" for tt, xx in zip(t, x)))
+    scan_file, positions = synthetic.write_recording(root, scene)
     site = root / "site.toml"
     site.write_text('[import]\nheight_m = 0.15\nrotation_table_angle_deg = 30.0\n'
                     'reference_point_m = [1.386, -2.4, 0.3]\nrig_id = "syn"\n')

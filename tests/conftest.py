@@ -1,13 +1,15 @@
-"""Fixtures shared by the batch tests: the shift of shift_case.py, written and processed once per module."""
+"""Fixtures shared by the tests: the shift of shift_case.py, written and processed once per module (the
+batch tests), and the process's OpenCL engine."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 from shift_case import CONFIG, SETTINGS, options
 
-from uwbcl import batch, shift
+from uwbcl import batch, opencl, shift
 
 
 @pytest.fixture(scope="module")
@@ -23,3 +25,17 @@ def clean(archive_dir, tmp_path_factory):
     out = tmp_path_factory.mktemp("clean-out")
     report = batch.process_directory(archive_dir, out, SETTINGS, options())
     return out, report
+
+
+@pytest.fixture(scope="module")
+def engine():
+    """The process's OpenCL engine (`shared_engine`); skipped without OpenCL unless UWBCL_REQUIRE_OPENCL=1, as
+    CI sets it, where a missing OpenCL fails."""
+    try:
+        from uwbcl.focus.engine import shared_engine
+
+        return shared_engine()
+    except opencl.OpenClUnavailable as exc:
+        if os.environ.get("UWBCL_REQUIRE_OPENCL") == "1":
+            raise
+        pytest.skip(f"no OpenCL: {exc}")

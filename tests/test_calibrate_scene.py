@@ -30,7 +30,7 @@ import pytest
 
 from uwbcl import archive, calibrate, cli, config, pipeline
 from uwbcl import geometry as geo
-from uwbcl.importers import p440, synthetic
+from uwbcl.importers import synthetic
 from uwbcl.records import ConfigError, Detection, DetectionSettings, ProcessingSettings
 from uwbcl.scenarios import PAPER_SIM1
 
@@ -48,12 +48,7 @@ def scene(tmp_path_factory):
     """The P440 stream, its positions, the site file and the uncalibrated archive `uwbcl import` wrote."""
     root = tmp_path_factory.mktemp("calibrate")
     p440_scene = synthetic.P440Scene(targets_m=REFLECTORS_M, amplitudes=(1.0, 1.0), height_m=HEIGHT_M)
-    t, x = synthetic.rail_with_rests(-1.0, 1.0, 0.15, rest_s=1.5, scan_period_s=0.0206)
-    rf = synthetic.simulate_rf(p440_scene, x, 9000e-12, 480, np.random.default_rng(7))
-    scan_file = p440.write_p440_stream(root / "pass.p440", rf, np.rint((100.0 + t) * 1e3).astype(int),
-                                       scan_start_ps=9000)
-    positions = root / "pos.csv"
-    positions.write_text("time_s,x_m\n" + "".join(f"{100.0 + tt:.4f},{xx:.6f}\n" for tt, xx in zip(t, x)))
+    scan_file, positions = synthetic.write_recording(root, p440_scene)
     site = root / "site.toml"
     site.write_text(SITE)
     common = ["--positions", str(positions), "--pass-start-time", "2026-11-23T06:00:00Z"]

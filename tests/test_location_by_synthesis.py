@@ -10,13 +10,12 @@ the centre. Noise-free, synthesis leaves < 0.09 mm (measured); the OpenCL engine
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 import pytest
 
 from uwbcl import geometry as geo
-from uwbcl import opencl, pipeline, simulate
+from uwbcl import pipeline, simulate
 from uwbcl.detect import synthesis
 from uwbcl.model import PassGeometry, RadarParameters
 from uwbcl.records import DetectionSettings, ProcessingSettings
@@ -101,18 +100,6 @@ def test_the_real_gains_are_unbiased_under_noise_where_magnitudes_are_not():
 
 
 # ------------------------------------------------------------------------------------------------ OpenCL
-@pytest.fixture(scope="module")
-def engine():
-    try:
-        from uwbcl.focus.engine import shared_engine
-
-        return shared_engine()
-    except opencl.OpenClUnavailable as exc:
-        if os.environ.get("UWBCL_REQUIRE_OPENCL") == "1":
-            raise
-        pytest.skip(f"no OpenCL: {exc}")
-
-
 @pytest.mark.opencl
 @pytest.mark.parametrize("squint_deg", [15.0, 30.0, 45.0])
 def test_the_engine_locates_the_off_centre_plates_within_0_4_mm_and_follows_numpy(engine, squint_deg):

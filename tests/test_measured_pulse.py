@@ -12,12 +12,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 
 import numpy as np
 import pytest
 
-from uwbcl import opencl, pipeline
+from uwbcl import pipeline
 from uwbcl.focus import backprojection as bp
 from uwbcl.focus import nlcs, scipy32
 from uwbcl.model import MeasuredPulse, PassGeometry, gaussian_pulse_spectrum
@@ -116,18 +115,6 @@ def test_targets_focused_with_their_measured_pulse_are_located_within_3_mm(odd_p
         for x, rc in truth:
             d = min(found, key=lambda d: math.hypot(d.x_m - x, d.rc_m - rc))
             assert math.hypot(d.x_m - x, d.rc_m - rc) < 3.5e-3, (algorithm, d)
-
-
-@pytest.fixture(scope="module")
-def engine():
-    try:
-        from uwbcl.focus.engine import shared_engine
-
-        return shared_engine()
-    except opencl.OpenClUnavailable as exc:
-        if os.environ.get("UWBCL_REQUIRE_OPENCL") == "1":
-            raise
-        pytest.skip(f"no OpenCL: {exc}")
 
 
 @pytest.mark.opencl

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import dataclasses
 import operator
-import os
 
 import numpy as np
 import pytest
@@ -32,18 +31,6 @@ pytestmark = pytest.mark.opencl
 
 STAGE_TOL = 1e-5
 CHAIN_TOL = 1e-4
-
-
-@pytest.fixture(scope="module")
-def engine():
-    try:
-        from uwbcl.focus.engine import shared_engine
-
-        return shared_engine()
-    except opencl.OpenClUnavailable as exc:
-        if os.environ.get("UWBCL_REQUIRE_OPENCL") == "1":
-            raise
-        pytest.skip(f"no OpenCL: {exc}")
 
 
 def rel_err(out, ref) -> float:

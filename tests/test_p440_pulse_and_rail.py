@@ -18,7 +18,7 @@ import pytest
 from test_p440_import import HEIGHT_M, TARGETS_M, _errors_mm
 
 from uwbcl import archive, cli, pipeline
-from uwbcl.importers import p440, synthetic
+from uwbcl.importers import synthetic
 from uwbcl.records import ProcessingSettings
 
 
@@ -27,14 +27,7 @@ def bent_recording(tmp_path_factory):
     root = tmp_path_factory.mktemp("bent")
     scene = synthetic.P440Scene(targets_m=TARGETS_M, amplitudes=(1.0, 1.0), height_m=HEIGHT_M,
                                 **synthetic.BENT_RAIL)
-    t, x = synthetic.rail_with_rests(-1.0, 1.0, 0.15, rest_s=1.5, scan_period_s=0.0206)
-    rf = synthetic.simulate_rf(scene, x, 9000e-12, 480, np.random.default_rng(7))
-    scan_file = p440.write_p440_stream(root / "pass.p440", rf, np.rint((100.0 + t) * 1e3).astype(int),
-                                       scan_start_ps=9000)
-    dy, dz = synthetic.rail_deviation_m(scene, x)
-    positions = root / "pos.csv"
-    positions.write_text("time_s,x_m,y_m,z_m\n" + "".join(
-        f"{100.0 + tt:.4f},{xx:.6f},{yy:.6f},{HEIGHT_M + zz:.6f}\n" for tt, xx, yy, zz in zip(t, x, dy, dz)))
+    scan_file, positions = synthetic.write_recording(root, scene, log_deviations=True)
     site = root / "site.toml"
     site.write_text('[import]\nrotation_table_angle_deg = 30.0\nreference_point_m = [1.386, -2.4, 0.3]\n'
                     'rig_id = "syn"\n')

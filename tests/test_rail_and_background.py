@@ -13,12 +13,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 
 import numpy as np
 import pytest
 
-from uwbcl import config, opencl, pipeline
+from uwbcl import config, pipeline
 from uwbcl.focus import nlcs
 from uwbcl.model import PassGeometry
 from uwbcl.records import DetectionSettings, ProcessingSettings
@@ -89,18 +88,6 @@ def test_compensation_undoes_a_pure_range_shift_exactly():
     shifted = nlcs.compensate_rail_deviations(scan.echo, np.full(scan.n_pulses, -0.004), grid)
     back = nlcs.compensate_rail_deviations(shifted, np.full(scan.n_pulses, 0.004), grid)
     np.testing.assert_allclose(back, scan.echo, atol=1e-12)
-
-
-@pytest.fixture(scope="module")
-def engine():
-    try:
-        from uwbcl.focus.engine import shared_engine
-
-        return shared_engine()
-    except opencl.OpenClUnavailable as exc:
-        if os.environ.get("UWBCL_REQUIRE_OPENCL") == "1":
-            raise
-        pytest.skip(f"no OpenCL: {exc}")
 
 
 @pytest.mark.opencl

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -136,3 +137,26 @@ def simulate_rf(
     rf += static[None, :]
     rf += scene.noise_std * rng.standard_normal(rf.shape)
     return np.rint(rf * scene.counts_per_unit).astype(np.int32)
+
+
+def write_recording(root, scene: P440Scene, *, seed: int = 7, boot_s: float = 100.0,
+                    log_deviations: bool = False):
+    """A PulsON-like pass over `scene` as files, the test set of docs/importing.md section 6: the P440 stream
+    `root/pass.p440` (a 2 m rail at 0.15 m/s with 1.5 s rests, a scan every 20.6 ms, 480 bins from 9 ns) and
+    the rail's position log `root/pos.csv` (time_s on the radar's clock, which starts at boot_s; x_m, and
+    y_m, z_m of the bent rail with `log_deviations`). Returns (scan file, position log)."""
+    root = Path(root)
+    t, x = rail_with_rests(-1.0, 1.0, 0.15, rest_s=1.5, scan_period_s=0.0206)
+    rf = simulate_rf(scene, x, 9000e-12, 480, np.random.default_rng(seed))
+    scan_file = p440.write_p440_stream(root / "pass.p440", rf, np.rint((boot_s + t) * 1e3).astype(int),
+                                       scan_start_ps=9000)
+    positions = root / "pos.csv"
+    if log_deviations:
+        dy, dz = rail_deviation_m(scene, x)
+        positions.write_text("time_s,x_m,y_m,z_m\n" + "".join(
+            f"{boot_s + tt:.4f},{xx:.6f},{yy:.6f},{scene.height_m + zz:.6f}\n"
+            for tt, xx, yy, zz in zip(t, x, dy, dz)))
+    else:
+        positions.write_text("time_s,x_m\n" + "".join(f"{boot_s + tt:.4f},{xx:.6f}\n"
+                                                       for tt, xx in zip(t, x)))
+    return scan_file, positions
