@@ -149,3 +149,16 @@ def test_the_background_setting_is_checked():
     assert cfg.detection_settings().background == "mean"
     with pytest.raises(config.ConfigError, match="detection.background"):
         config.validate(config.parse_config({"detection": {"background": "median"}}))
+
+
+@pytest.mark.parametrize("algorithm", ["nlcs", "bp"])
+def test_a_plotted_pass_is_focused_as_process_focused_it_with_the_site_delay_and_background(algorithm):
+    scan = with_coupling(simulate(snr_db=10))
+    settings = ProcessingSettings(backend="numpy", algorithm=algorithm, range_delay_s=1e-10,
+                                  detection=DetectionSettings(background="mean"))
+    products, _ = pipeline.focus_pass(scan, settings)
+    plotted = pipeline.focus_only(scan, settings)  # what outputs.plot_cycle_images draws
+    np.testing.assert_array_equal(plotted.image, products.image)
+    raw = pipeline.focus_only(scan, dataclasses.replace(settings, range_delay_s=None,
+                                                        detection=DetectionSettings()))
+    assert raw.image.shape != plotted.image.shape or not np.allclose(raw.image, plotted.image)

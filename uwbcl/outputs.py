@@ -15,9 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__, archive
+from . import __version__, archive, pipeline
 from .atomic import PARTIAL_SUFFIX, atomic_path, csv_bytes, fsync_directory, write_bytes_atomic
-from .focus import backprojection, nlcs
 from .names import MAX_NAME_LENGTH, safe_name  # noqa: F401  (MAX_NAME_LENGTH: tests)
 from .records import TRUSTED_STATUSES, BatchError, CycleResult, OutputError, Problem, SeriesRow
 from .utc import parse_utc
@@ -363,20 +362,21 @@ def plot_cycle_images(plot_dir: Path, groups: dict, in_dir: Path, settings) -> N
     """plots/cycles/<rig>/c<cycle>_h<mm>.png: |image| in dB with the detections marked; existing files are
     kept.
 
-    Refocuses every pass with the numpy reference (the engine's image is the same within its tolerance).
+    Refocuses every pass with the numpy reference (the engine's image is the same within its tolerance), as
+    `uwbcl process` focused it: the site's delay, background subtraction and search extent of `settings`.
     """
     plt = _pyplot()
+    settings = dataclasses.replace(settings, backend="numpy")
     for (rig, cycle), recs in sorted(groups.items()):
         for hmm, rec in sorted(recs.items()):
             path = plot_dir / safe_name(rig) / f"c{cycle:06d}_h{hmm:04d}.png"
             if path.exists():
                 continue
             scan = archive.read_pass(in_dir / rec.file)
+            prod = pipeline.focus_only(scan, settings)
             if settings.algorithm == "bp":
-                prod = backprojection.backprojection_focus(scan)
                 az, rg = prod.u_axis_m, prod.r_axis_m
             else:
-                prod = nlcs.nlcs_focus(scan, ac_mode=settings.ac_mode)
                 az, rg = prod.grid.t_azimuth_s * prod.grid.speed_m_s, prod.grid.range_bins_m
             mag = 20 * np.log10(np.abs(prod.image) / np.abs(prod.image).max() + 1e-12)
             fig, ax = plt.subplots(figsize=(7, 5))

@@ -111,19 +111,37 @@ def focus_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSettings
     `NlcsProducts` or `BackprojectionProducts` by settings.algorithm; LimitExceeded, before any allocation,
     for a pass too large for settings.limits. The site's delay, if any, is applied first
     (`apply_range_delay`), and the search covers what `settings.detection.search` asks for."""
+    scan = prepare_pass(scan, settings)
+    focuser = _focuser(settings)
+    footprint = detect.search_footprint(scan, settings.detection)
+    products = _focus(scan, settings, focuser)
+    if settings.algorithm == "nlcs":
+        # The echo lets detection model the neighbours, focused by the same backend.
+        return products, detect.detect_nlcs(products, settings.detection, scan, focuser, footprint)
+    return products, detect.detect_bp(products, settings.detection, footprint)
+
+
+def prepare_pass(scan: ScanPass, settings: ProcessingSettings) -> ScanPass:
+    """The pass as every focuser sees it: the site's delay applied (`apply_range_delay`), checked against
+    settings.limits (LimitExceeded before any allocation), background subtracted (`nlcs.condition_pass`, on
+    the host for every backend)."""
     if settings.algorithm not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {settings.algorithm!r}; available: {', '.join(ALGORITHMS)}")
     scan = apply_range_delay(scan, settings.range_delay_s)
     check_plan(scan, settings)
-    scan = nlcs.condition_pass(scan, settings.detection.background)  # every backend: host-side, before upload
-    focuser = _focuser(settings)
-    footprint = detect.search_footprint(scan, settings.detection)
+    return nlcs.condition_pass(scan, settings.detection.background)
+
+
+def focus_only(scan: ScanPass, settings: ProcessingSettings):
+    """The focused products of one pass exactly as `focus_pass` makes them, without detection (plots)."""
+    scan = prepare_pass(scan, settings)
+    return _focus(scan, settings, _focuser(settings))
+
+
+def _focus(scan: ScanPass, settings: ProcessingSettings, focuser: Focuser):
     if settings.algorithm == "nlcs":
-        products = focuser.nlcs_focus(scan, ac_mode=settings.ac_mode)
-        # The echo lets detection model the neighbours, focused by the same backend.
-        return products, detect.detect_nlcs(products, settings.detection, scan, focuser, footprint)
-    products = focuser.backprojection_focus(scan, u_extent_m=bp_u_extent_m(scan, settings))
-    return products, detect.detect_bp(products, settings.detection, footprint)
+        return focuser.nlcs_focus(scan, ac_mode=settings.ac_mode)
+    return focuser.backprojection_focus(scan, u_extent_m=bp_u_extent_m(scan, settings))
 
 
 def detect_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSettings()) -> list[Detection]:
