@@ -139,6 +139,7 @@ class RigChain:
         # the chain's last cycles with their cumulative position and its variance (the backward second look)
         self._members: list[tuple[CycleResult, np.ndarray, np.ndarray]] = []
         self._pair_scores: dict[tuple[int, int], list[tuple[np.ndarray, float]]] = {}
+        self._learned: tuple[np.ndarray, np.ndarray] | None = None
 
     def motion(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(median per-cycle step, its per-cycle standard deviation) of the last MOTION_HISTORY ok steps (m),
@@ -160,8 +161,8 @@ class RigChain:
         """
         base = self.association.for_gap(gap)
         motion = self.motion()
-        if motion is None and self.association.second_look:
-            motion = self.learned_step()
+        if motion is None:
+            motion = self._learned
             if motion is not None and base.prior_advance_m is not None and \
                     np.any(np.abs(gap * motion[0] - base.prior_advance_m) > base.prior_window_m):
                 motion = None  # the data disagree with the configured prior: that stays a prior_conflict
@@ -184,6 +185,10 @@ class RigChain:
         return self._pair_scores[key]
 
     def learned_step(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The step `_learn` found after the last added cycle (see there), or None."""
+        return self._learned
+
+    def _learn(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The per-cycle step that the recent consecutive cycle pairs support together, before the motion
         model has its ok steps: (step, MOTION_SIGMA_FLOOR_M) or None. `prior` uses it in place of the
         web-depth prior when that is not configured, or inside the configured window (it is narrower).
@@ -346,6 +351,11 @@ class RigChain:
         Earlier rows this cycle resolved are re-issued in `revised`."""
         row = self._add(cur)
         self._history = [*self._history[-LEARN_PAIRS:], cur]
+        pairs = {(a.cycle, b.cycle) for a, b in zip(self._history, self._history[1:])}
+        self._pair_scores = {k: v for k, v in self._pair_scores.items() if k in pairs}
+        # Once per cycle, only while nothing else predicts: every measurement of the next cycle uses it.
+        needed = self.association.second_look and self.motion() is None
+        self._learned = self._learn() if needed else None
         return row
 
     def _add(self, cur: CycleResult) -> SeriesRow | None:
