@@ -48,6 +48,7 @@ MISSED_HEIGHT_SIGMA_FACTOR = 3.0  # range sigma of a plate missed at some of its
 SCALE_HISTORY = 20
 SCALE_MIN_DOF = 15
 SCALE_LIMITS = (0.25, 4.0)
+VERTICAL_HISTORY = 20  # the rig's mean vertical step is learned from the last this many ok steps (eq. M5)
 
 
 def locate_cycle(rig_id: str, cycle: int, start_time: str,
@@ -140,6 +141,10 @@ class RigChain:
         self._members: list[tuple[CycleResult, np.ndarray, np.ndarray]] = []
         self._pair_scores: dict[tuple[int, int], list[tuple[np.ndarray, float]]] = {}
         self._learned: tuple[np.ndarray, np.ndarray] | None = None
+        # (vertical step per cycle, its data variance per cycle^2, cycles spanned) of the rig's ok rows as
+        # the plates alone measured them: the rig's mean vertical step (eq. M5). Kept across chain restarts:
+        # a pitched rail stays pitched.
+        self._vertical: list[tuple[float, float, int]] = []
 
     def motion(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(median per-cycle step, its per-cycle standard deviation) of the last MOTION_HISTORY ok steps (m),
@@ -150,6 +155,31 @@ class RigChain:
             return None
         mu = np.median(steps, axis=0)
         return mu, np.maximum(1.4826 * np.median(np.abs(steps - mu), axis=0), MOTION_SIGMA_FLOOR_M)
+
+    def vertical_prior(self, gap: int) -> tuple[float, float] | None:
+        """(mean, standard deviation) of the vertical component of a displacement spanning `gap` cycles
+        (eq. M5, docs/method.md section 6.3), or None with vertical_step_sigma_m = 0.
+
+        Each step's vertical is the rig's mean step mu plus a random part of sigma_v = vertical_step_sigma_m
+        per cycle. mu has the prior N(mu_0, sigma_mu^2), mu_0 the configured prior's vertical (0 without one),
+        sigma_mu = vertical_trend_sigma_m, and is learned from the last VERTICAL_HISTORY ok steps v_k over g_k
+        cycles, each the plates' own estimate with data variance s_k^2 (per cycle^2): weights
+        w_k = 1 / (s_k^2 + sigma_v^2 / g_k), mu = (mu_0 / sigma_mu^2 + sum w_k v_k) / (1 / sigma_mu^2 +
+        sum w_k), var(mu) = 1 / (1 / sigma_mu^2 + sum w_k). The prior: gap mu, gap sigma_v^2 + gap^2 var(mu).
+        """
+        a = self.association
+        if a.vertical_step_sigma_m <= 0:
+            return None
+        mu0 = a.prior_advance_m[2] if a.prior_advance_m is not None else 0.0
+        if a.vertical_trend_sigma_m > 0:
+            hist = np.array(self._vertical[-VERTICAL_HISTORY:], dtype=float).reshape(-1, 3)
+            w = 1.0 / (hist[:, 1] + a.vertical_step_sigma_m**2 / hist[:, 2])
+            info = 1.0 / a.vertical_trend_sigma_m**2 + float(np.sum(w))
+            mu = (mu0 / a.vertical_trend_sigma_m**2 + float(np.sum(w * hist[:, 0]))) / info
+            var_mu = 1.0 / info
+        else:
+            mu, var_mu = mu0, 0.0
+        return gap * mu, float(np.sqrt(gap * a.vertical_step_sigma_m**2 + gap**2 * var_mu))
 
     def prior(self, gap: int) -> AssociationSettings:
         """The association settings for a displacement spanning `gap` cycles: the motion model's prediction.
@@ -166,6 +196,7 @@ class RigChain:
             if motion is not None and base.prior_advance_m is not None and \
                     np.any(np.abs(gap * motion[0] - base.prior_advance_m) > base.prior_window_m):
                 motion = None  # the data disagree with the configured prior: that stays a prior_conflict
+        base = dataclasses.replace(base, vertical_prior_m=self.vertical_prior(gap))
         if motion is None:
             return base
         mu, sigma = motion
@@ -241,7 +272,8 @@ class RigChain:
         var = sigma**2 * part * (span - part) / span + (frac * d.bound_m) ** 2
         return dataclasses.replace(self.association,
                                    prior_advance_m=tuple(float(v) for v in frac * d.advance_m),
-                                   prior_window_m=tuple(float(v) for v in 3.0 * np.sqrt(var)))
+                                   prior_window_m=tuple(float(v) for v in 3.0 * np.sqrt(var)),
+                                   vertical_prior_m=self.vertical_prior(part))
 
     def covariance_scale(self) -> float:
         """Variance factor for the location covariances from the recent ok rows' fit (1 until enough dof)."""
@@ -339,7 +371,11 @@ class RigChain:
         self._anchor, self._anchor_cum, self._anchor_var, self._reserve = cur, cum, var, None
         self._members = [*self._members[-self.max_bridge_cycles:], (cur, cum, var)]
         if d.status == "ok":
-            self._steps.append(d.advance_m / (cur.cycle - via.cycle))
+            gap = cur.cycle - via.cycle
+            self._steps.append(d.advance_m / gap)
+            v, sd = (float(x) for x in d.vertical_data_m)
+            if np.isfinite(v) and np.isfinite(sd):
+                self._vertical.append((v / gap, (sd / gap) ** 2, gap))
             chi2, dof = fit_chi2(via.plates, cur.plates, d.pairs, d.advance_m, self._covs[via.cycle],
                                  self._covs[cur.cycle])
             if dof:

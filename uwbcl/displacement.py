@@ -90,6 +90,22 @@ def gls_advance(d: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return est, np.linalg.inv(fisher)
 
 
+def vertical_conditioned(advance_m: np.ndarray, cov_m2: np.ndarray, mean_m: float, sigma_m: float
+                         ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Eq. M5: the GLS advance (3,) with covariance (3, 3) conditioned on a Gaussian prior N(mean, sigma^2) of
+    its vertical component (m): the Kalman update k = Sigma e_z / (Sigma_zz + sigma^2), advance + k (mean -
+    advance_z), Sigma - k k^T (Sigma_zz + sigma^2). A plate's (y, z) errors lie along its dilution direction
+    (D2), so a vertical known to centimetres pins the creep of plates far above or below the rail. None when
+    the data's vertical lies beyond three combined standard deviations of the prior: the data win.
+    """
+    s2 = float(cov_m2[2, 2]) + sigma_m**2
+    innovation = mean_m - float(advance_m[2])
+    if not innovation**2 <= 9.0 * s2:
+        return None
+    gain = cov_m2[:, 2] / s2
+    return advance_m + gain * innovation, cov_m2 - np.outer(gain, gain) * s2
+
+
 def consistent_pairs(d: np.ndarray, cov: np.ndarray, chi2_max: float) -> tuple[np.ndarray, bool]:
     """Drop the matched pairs that disagree with the others beyond chi2_max, worst first (leave-one-out).
 
@@ -321,7 +337,19 @@ def estimate_advance(before: list[Located], after: list[Located],
         scale2 = max(1.0, chi2_fit / dof) if dof > 0 else 1.0
     else:
         scale2 = chi2_fit / dof if dof > 0 else 1.0
-    bound = np.sqrt(scale2 * np.diag(gls_cov) + np.exp(-min(margin, 700.0)) * offset**2)  # eq. M3
+    cov_adv = scale2 * gls_cov
+    vertical_data = np.array([advance[2], np.sqrt(cov_adv[2, 2])])
+    if settings.vertical_prior_m is not None and settings.weighted and have_cov and \
+            settings.vertical_prior_m[1] > 0:
+        conditioned = vertical_conditioned(advance, cov_adv, *settings.vertical_prior_m)
+        if conditioned is not None:
+            advance, cov_adv = conditioned
+        elif len(pairs) == 1:
+            # One plate that moved vertically far beyond the rig's vertical motion is more likely a plate
+            # grouped across heights with another (off in y and z together) than a floor step: nothing else
+            # says which, as with two plates that disagree.
+            consistent = False
+    bound = np.sqrt(np.diag(cov_adv) + np.exp(-min(margin, 700.0)) * offset**2)  # eq. M3
 
     if not best.inside and margin < DATA_BEATS_PRIOR * settings.min_margin:
         status = "prior_conflict"
@@ -336,4 +364,4 @@ def estimate_advance(before: list[Located], after: list[Located],
     spread = d.std(axis=0) if len(d) > 1 else np.zeros(3)
     residual = float(np.sqrt(np.mean(np.sum((d - advance) ** 2, axis=1))))
     return Displacement(advance, spread, len(pairs), residual, status, pairs,
-                        len(runner_up.pairs) if runner_up else 0, bound, float(margin))
+                        len(runner_up.pairs) if runner_up else 0, bound, float(margin), vertical_data)

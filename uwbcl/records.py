@@ -122,6 +122,16 @@ class AssociationSettings:
     max_bound_m: float = 0.01
     motion_model: bool = True  # the previous trusted cycles' steps predict the next (RigChain)
     second_look: bool = True  # a later trusted cycle re-measures the untrusted ones it bridged (revision 1)
+    # The vertical step prior (eq. M5, docs/method.md section 6.3): the rig's vertical step per cycle in the
+    # radar frame is the rig's mean step plus a random part of this standard deviation per cycle (floor
+    # undulation); 0 turns the prior off.
+    vertical_step_sigma_m: float = 0.02
+    # and the prior standard deviation of that mean step per cycle (a rail pitched against the roadway by b
+    # gives web x sin b per cycle); the chain learns it from its ok steps. 0: the mean is prior_advance_m's.
+    vertical_trend_sigma_m: float = 0.02
+    # Set by the chain for one measurement (not configured): (mean, standard deviation) of the displacement's
+    # vertical component that the GLS advance is conditioned on; None: no conditioning.
+    vertical_prior_m: tuple[float, float] | None = None
 
     def for_gap(self, cycles: int) -> AssociationSettings:
         """The prior for a displacement spanning `cycles` cutting cycles (after a missing or rejected one):
@@ -218,6 +228,9 @@ class Displacement:
     # association margin); NaN when there is no estimate
     bound_m: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
     margin: float = float("nan")  # log-likelihood lead of the best translation over its best competitor
+    # (2,) the matched plates' own vertical estimate and its standard deviation (m), before the vertical step
+    # prior (eq. M5); NaN when there is no estimate. The chain learns the rig's mean vertical step from it.
+    vertical_data_m: np.ndarray = dataclasses.field(default_factory=lambda: np.full(2, np.nan))
 
     @property
     def retreat_m(self) -> float:
