@@ -1,5 +1,6 @@
 """The vertical step prior (eq. M5, docs/method.md section 6.3): the creep of plates far above or below the
-rail is pinned by the rig's small vertical motion, the data win when they disagree, a pitched rail is learned."""
+rail is pinned by the rig's small vertical motion, the data win when they disagree, a pitched rail is
+learned."""
 
 from __future__ import annotations
 
