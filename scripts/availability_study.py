@@ -19,9 +19,10 @@ and, against the truth, per scenario:
     python scripts/availability_study.py --work /tmp/avail --reuse-detections  # association only (see below)
 
 Archives are cached under WORK/<scenario>/archive (regenerated only when the scenario's parameters change).
-`--reuse-detections` copies the per-pass detection cache of an earlier run (OUT/.uwbcl-cache) to the current
-code's cache key before running `uwbcl process`: detections depend only on the focuser and detector, which
-this study does not change, so a changed association is measured in seconds instead of refocusing every pass.
+`--reuse-detections` copies the per-pass detection cache of the earlier run whose cache was written last
+(OUT/.uwbcl-cache) to the current code's cache key before running `uwbcl process`: detections depend only on
+the focuser and detector, which this study does not change, so a changed association is measured in seconds
+instead of refocusing every pass.
 A "-2h" / "-noprior" variant reprocesses its parent's archives with the extra heights excluded (`--heights`)
 or without `--web-depth`: the same data, one thing changed.
 
@@ -273,6 +274,12 @@ def share_cache(src_out: Path, out: Path) -> None:
         shutil.copytree(src, dst)
 
 
+def newest_run(root: Path) -> Path | None:
+    """The run under root whose detection cache was written last (the current detector's), or None."""
+    runs = [p for p in root.glob("*/") if (p / batch.CACHE_DIR).is_dir()]
+    return max(runs, key=lambda p: ((p / batch.CACHE_DIR).stat().st_mtime, p.name), default=None)
+
+
 def copy_detections(src_out: Path, out: Path) -> None:
     """Detections cached by an earlier run (any code version) -> the cache key of the current code."""
     settings = config.override(config.SiteConfig(), backend="numpy").processing_settings()
@@ -378,10 +385,7 @@ def main(argv=None) -> int:
         out = args.work / name / args.tag
         reuse = None
         if args.reuse_detections:
-            reuse = next((p for p in sorted((args.work / name).glob("*/"))
-                          if (p / ".uwbcl-cache").is_dir()), None)
-            reuse = reuse or next((p for p in sorted((args.work / parent).glob("*/"))
-                                   if (p / ".uwbcl-cache").is_dir()), None)
+            reuse = newest_run(args.work / name) or newest_run(args.work / parent)
         if name != parent:
             share_cache(args.work / parent / args.tag, out)
         secs = run_process(arch, out, s, heights, prior, args.jobs, reuse, args.config)
