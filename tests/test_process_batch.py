@@ -6,12 +6,15 @@ cache, so each case below only focuses the files it adds or changes.
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import csv
 import dataclasses
 import fcntl
 import hashlib
 import os
 import shutil
+import threading
+import time
 from pathlib import Path
 
 import h5py
@@ -369,3 +372,35 @@ def test_default_jobs_are_all_cores_for_numpy_and_two_for_opencl(monkeypatch):
     assert batch.default_jobs(dataclasses.replace(SETTINGS, backend="opencl")) == 2
     monkeypatch.setattr(batch.os, "sched_getaffinity", lambda pid: {0}, raising=False)
     assert batch.default_jobs(dataclasses.replace(SETTINGS, backend="opencl")) == 1
+
+
+def test_the_worker_pool_keeps_a_bounded_queue_and_finishes_every_pass_once(monkeypatch, tmp_path):
+    # A month of history is ~20,000 passes: the pool must not hold a future (and its result) for each.
+    outstanding, peak = [0], [0]
+    lock = threading.Lock()
+
+    class CountingPool(cf.ThreadPoolExecutor):
+        def submit(self, fn, *args):
+            with lock:
+                outstanding[0] += 1
+                peak[0] = max(peak[0], outstanding[0])
+            return super().submit(fn, *args)
+
+    def fake_detect(path: str, settings):
+        time.sleep(0.001)
+        return {"path": path}
+
+    finished = []
+
+    def finish(path, rel, sha, entry):
+        with lock:
+            outstanding[0] -= 1
+        finished.append(entry["path"])
+
+    monkeypatch.setattr(batch, "_pool", lambda jobs: CountingPool(jobs))
+    monkeypatch.setattr(batch, "DETECT", fake_detect)
+    todo = [(tmp_path / f"p{k:04d}.h5", f"p{k:04d}.h5", f"{k:064x}") for k in range(300)]
+    left = batch._run_pool(todo, SETTINGS, 3, finish)
+    assert left == []
+    assert sorted(finished) == sorted(str(p) for p, _, _ in todo)
+    assert peak[0] <= 3 * batch.POOL_QUEUE_PER_WORKER

@@ -136,6 +136,7 @@ def detect_file(path: str, settings: ProcessingSettings) -> dict:
 
 
 DETECT = detect_file  # the per-pass worker (tests substitute one that crashes)
+POOL_QUEUE_PER_WORKER = 4  # passes submitted ahead per worker process (_run_pool)
 # The entry of a pass whose worker process died every time it was focused (a crash, the out-of-memory killer).
 WORKER_DIED = {"error": "the worker process died while focusing it (crash or out of memory)",
                "kind": "processing_failed"}
@@ -489,18 +490,40 @@ def _stop_pool(pool: cf.ProcessPoolExecutor) -> None:
 
 
 def _run_pool(todo: list[tuple[Path, str, str]], settings: ProcessingSettings, jobs: int, finish) -> list:
-    """Focus `todo` in a pool of `jobs` workers; returns the items left unfinished if the pool broke."""
+    """Focus `todo` in a pool of `jobs` workers; returns the items left unfinished if the pool broke.
+
+    At most POOL_QUEUE_PER_WORKER passes per worker are submitted ahead, and a finished pass's future is
+    dropped: memory does not grow with the number of passes (a month of history is ~20,000)."""
     pool = _pool(jobs)
     done: set[int] = set()
+    pending: dict[cf.Future, int] = {}
+    upcoming = iter(range(len(todo)))
+
+    def refill() -> bool:
+        """Submit up to the queue's length; False when the pool broke."""
+        try:
+            for k in upcoming:
+                pending[pool.submit(DETECT, str(todo[k][0]), settings)] = k
+                if len(pending) >= jobs * POOL_QUEUE_PER_WORKER:
+                    break
+        except cf.process.BrokenProcessPool:
+            return False
+        return True
+
     try:
-        futures = {pool.submit(DETECT, str(item[0]), settings): k for k, item in enumerate(todo)}
-        for fut in cf.as_completed(futures):
-            try:
-                entry = fut.result()
-            except cf.process.BrokenProcessPool:
-                break
-            done.add(futures[fut])
-            finish(*todo[futures[fut]], entry)
+        broken = not refill()
+        while pending and not broken:
+            finished, _ = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
+            for fut in sorted(finished, key=pending.__getitem__):
+                k = pending.pop(fut)
+                try:
+                    entry = fut.result()
+                except cf.process.BrokenProcessPool:
+                    broken = True
+                    break
+                done.add(k)
+                finish(*todo[k], entry)
+            broken = broken or not refill()
     except BaseException:
         _stop_pool(pool)
         raise
