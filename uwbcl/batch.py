@@ -178,7 +178,9 @@ def _record(file: str, sha: str, entry) -> PassRecord:
                 or not all(_number(v) for v in d.values())):
             raise ValueError(f"detections: {d!r:.80}")
     detections = tuple(Detection(**{k: float(d[k]) for k in _DETECTION_FIELDS}) for d in dets)
-    return PassRecord(file=file, sha256=sha, rig_id=h["rig_id"], cycle=h["cycle"],
+    # Only the compared keys, under the shared key strings: a month's batch holds ~20,000 records.
+    params = {k: tuple(params[k]) if isinstance(params[k], list) else params[k] for k in PARAMETER_KEYS}
+    return PassRecord(file=file, sha256=sha, rig_id=sys.intern(h["rig_id"]), cycle=h["cycle"],
                       height_m=float(h["height_m"]), pass_id=h["pass_id"],
                       pass_start_time=h["pass_start_time"], parameters=params, detections=detections)
 
