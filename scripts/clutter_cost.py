@@ -37,8 +37,7 @@ def import_pass(root: Path, clutter: bool):
         scene = dataclasses.replace(scene, coupling_amplitude=0.0, clutter_amplitude=0.0)
     scan_file, positions = synthetic.write_recording(root, scene)
     site = root / "site.toml"
-    site.write_text('[import]\nheight_m = 0.15\nrotation_table_angle_deg = 30.0\n'
-                    'reference_point_m = [1.386, -2.4, 0.3]\nrig_id = "syn"\n')
+    site.write_text(synthetic.IMPORT_SITE_TOML)
     rc = cli.main(["import", "p440", str(scan_file), "--out", str(root / "out"),
                    "--positions", str(positions), "--config", str(site),
                    "--pass-start-time", "2026-11-23T06:00:00Z", "--range-delay-s", "2.3e-9", "--overwrite"])

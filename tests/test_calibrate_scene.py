@@ -38,8 +38,7 @@ HEIGHT_M = 0.15
 REFLECTORS_M = np.array([[-0.014, -2.4, 0.3], [2.886, -2.4, 0.3]])
 RC_TRUE_M = math.hypot(2.4, 0.3 - HEIGHT_M)
 DELAY_S = 2.3e-9  # synthetic.P440Scene's internal delay
-SITE = ('[import]\nheight_m = 0.15\nrotation_table_angle_deg = 30.0\nreference_point_m = [1.386, -2.4, 0.3]\n'
-        'rig_id = "syn"\n\n[detection]\nmin_range_m = 2.2\ncfar_db = 10.0\nsearch = "footprint"\n')
+SITE = synthetic.IMPORT_SITE_TOML + '\n[detection]\nmin_range_m = 2.2\ncfar_db = 10.0\nsearch = "footprint"\n'
 REFLECTOR_FLAGS = [f"--reflector={x},{y},{z}" for x, y, z in REFLECTORS_M]
 
 

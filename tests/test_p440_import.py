@@ -270,10 +270,7 @@ def synthetic_recording(tmp_path_factory):
     rows = [f"{BOOT_S + LOGGER_OFFSET_S + tt:.4f},{xx:.6f}" for tt, xx in zip(log_t, np.interp(log_t, t, x))]
     positions.write_text("time_s,x_m\n" + "\n".join(rows) + "\n")
     site = root / "site.toml"
-    site.write_text(
-        "[import]\nheight_m = 0.15\nrotation_table_angle_deg = 30.0\n"
-        'reference_point_m = [1.386, -2.4, 0.3]\nrig_id = "syn"\n'
-    )
+    site.write_text(synthetic.IMPORT_SITE_TOML)
     return scan_file, positions, site
 
 

@@ -50,6 +50,10 @@ class P440Scene:
 
 
 BENT_RAIL = {"rail_bow_y_m": 0.008, "rail_sway_z_m": 0.004}  # a PulsON-like test rail: 8 mm bow, 4 mm sway
+# The [import] table of a site file for write_recording's pass over a default P440Scene (docs/importing.md
+# section 6): the scene's height and table angle, the reference point the tests and scripts use.
+IMPORT_SITE_TOML = ('[import]\nheight_m = 0.15\nrotation_table_angle_deg = 30.0\n'
+                    'reference_point_m = [1.386, -2.4, 0.3]\nrig_id = "syn"\n')
 
 
 def rail_deviation_m(scene: P440Scene, x_m) -> tuple[np.ndarray, np.ndarray]:
