@@ -113,3 +113,43 @@ def test_a_zero_vertical_step_sigma_turns_the_prior_off(tmp_path):
         assert "vertical_step_sigma_m" in str(e)
     else:
         raise AssertionError("a negative vertical_step_sigma_m was accepted")
+
+
+def _steps(rng, n: int, sigma_v_m: float, data_sigma_m: float, mean_m: float = 0.0) -> np.ndarray:
+    """n ok steps of one cycle each as the chain keeps them: (measured vertical, its data variance, 1)."""
+    v = mean_m + rng.normal(0, sigma_v_m, n) + rng.normal(0, data_sigma_m, n)
+    return np.column_stack([v, np.full(n, data_sigma_m**2), np.ones(n)])
+
+
+def test_the_random_vertical_step_is_learned_from_the_steps_on_a_quiet_and_on_a_rough_floor():
+    rng = np.random.default_rng(5)
+    quiet, rough = [], []
+    for _ in range(200):
+        quiet.append(chain.random_vertical_sigma(_steps(rng, 20, 0.003, 0.006), 0.0, 0.02))
+        rough.append(chain.random_vertical_sigma(_steps(rng, 20, 0.04, 0.006), 0.0, 0.02))
+    # A 3 mm floor is told from the configured 2 cm, never below the floor of 0.25 x it; a 4 cm floor is seen
+    # as rougher than configured, up to the ceiling of 2.5 x it.
+    assert 0.005 <= np.median(quiet) < 0.012, np.median(quiet)
+    assert min(quiet) >= 0.005 - 1e-12
+    assert 0.03 < np.median(rough) <= 0.05 + 1e-12, np.median(rough)
+    # Data too noisy to tell (5 cm per step): the configured value stands, give or take the evidence.
+    vague = [chain.random_vertical_sigma(_steps(rng, 20, 0.003, 0.05), 0.0, 0.02) for _ in range(100)]
+    assert 0.012 < np.median(vague) < 0.03, np.median(vague)
+
+
+def test_the_chain_uses_the_configured_random_vertical_step_until_it_has_steps_to_learn_from():
+    a = dataclasses.replace(config.SiteConfig().processing_settings().association, vertical_step_sigma_m=0.02)
+    rig = chain.RigChain(a)
+    assert rig.vertical_sigma() == 0.02
+    rng = np.random.default_rng(8)
+    rig._vertical = [tuple(r) for r in _steps(rng, chain.VERTICAL_SIGMA_MIN_STEPS - 1, 0.003, 0.004)]
+    assert rig.vertical_sigma() == 0.02
+    rig._vertical = [tuple(r) for r in _steps(rng, 20, 0.003, 0.004)]
+    learned = rig.vertical_sigma()
+    assert learned < 0.012
+    hist = np.array(rig._vertical)
+    mu, var_mu = chain.vertical_mean_step(hist, learned, 0.0, a.vertical_trend_sigma_m)
+    # Over two cycles the prior is 2 mu with variance 2 sigma_v^2 + 4 var(mu), sigma_v the learned one.
+    expected = (2 * mu, np.sqrt(2 * learned**2 + 4 * var_mu))
+    np.testing.assert_allclose(rig.vertical_prior(2), expected, rtol=1e-12)
+    assert rig.vertical_prior(2)[1] < np.sqrt(2) * 0.02

@@ -49,6 +49,34 @@ SCALE_HISTORY = 20
 SCALE_MIN_DOF = 15
 SCALE_LIMITS = (0.25, 4.0)
 VERTICAL_HISTORY = 20  # the rig's mean vertical step is learned from the last this many ok steps (eq. M5)
+# The random vertical step sigma_v is learned too (eq. M5b): the configured vertical_step_sigma_m counts as
+# this many steps' worth of evidence, and the learned value stays within these multiples of it (a quiet
+# stretch cannot make the prior overconfident), once there are VERTICAL_SIGMA_MIN_STEPS ok steps.
+VERTICAL_SIGMA_PRIOR_STEPS = 4.0
+VERTICAL_SIGMA_LIMITS = (0.25, 2.5)
+VERTICAL_SIGMA_MIN_STEPS = 3
+
+
+def vertical_mean_step(hist: np.ndarray, sigma_v_m: float, mu0_m: float, sigma_mu_m: float
+                       ) -> tuple[float, float]:
+    """(mean vertical step mu (m per cycle), its variance) from ok steps hist (n, 3) = (v_k per cycle,
+    s_k^2 per cycle^2, g_k cycles), the prior N(mu0, sigma_mu^2) and the random step sigma_v (eq. M5)."""
+    w = 1.0 / (hist[:, 1] + sigma_v_m**2 / hist[:, 2])
+    info = 1.0 / sigma_mu_m**2 + float(np.sum(w))
+    return (mu0_m / sigma_mu_m**2 + float(np.sum(w * hist[:, 0]))) / info, 1.0 / info
+
+
+def random_vertical_sigma(hist: np.ndarray, mu_m: float, sigma0_m: float) -> float:
+    """The rig's random vertical step per cycle (m), the MAP estimate of eq. M5b from ok steps hist (n, 3) =
+    (v_k per cycle, s_k^2 per cycle^2, g_k cycles) around their mean mu:
+    v_k - mu ~ N(0, s_k^2 + sigma^2 / g_k), with a scaled inverse chi-square prior of
+    VERTICAL_SIGMA_PRIOR_STEPS steps at sigma0, searched within VERTICAL_SIGMA_LIMITS x sigma0."""
+    grid = sigma0_m * np.geomspace(*VERTICAL_SIGMA_LIMITS, 241)
+    var = hist[None, :, 1] + grid[:, None] ** 2 / hist[None, :, 2]
+    nu0 = VERTICAL_SIGMA_PRIOR_STEPS
+    log_post = (np.sum(-0.5 * np.log(var) - (hist[None, :, 0] - mu_m) ** 2 / (2.0 * var), axis=1)
+                - (nu0 / 2.0 + 1.0) * np.log(grid**2) - nu0 * sigma0_m**2 / (2.0 * grid**2))
+    return float(grid[int(np.argmax(log_post))])
 
 
 def locate_cycle(rig_id: str, cycle: int, start_time: str,
@@ -160,8 +188,9 @@ class RigChain:
         """(mean, standard deviation) of the vertical component of a displacement spanning `gap` cycles
         (eq. M5, docs/method.md section 6.3), or None with vertical_step_sigma_m = 0.
 
-        Each step's vertical is the rig's mean step mu plus a random part of sigma_v = vertical_step_sigma_m
-        per cycle. mu has the prior N(mu_0, sigma_mu^2), mu_0 the configured prior's vertical (0 without one),
+        Each step's vertical is the rig's mean step mu plus a random part of sigma_v per cycle
+        (`vertical_sigma`: vertical_step_sigma_m, then learned, eq. M5b). mu has the prior
+        N(mu_0, sigma_mu^2), mu_0 the configured prior's vertical (0 without one),
         sigma_mu = vertical_trend_sigma_m, and is learned from the last VERTICAL_HISTORY ok steps v_k over g_k
         cycles, each the plates' own estimate with data variance s_k^2 (per cycle^2): weights
         w_k = 1 / (s_k^2 + sigma_v^2 / g_k), mu = (mu_0 / sigma_mu^2 + sum w_k v_k) / (1 / sigma_mu^2 +
@@ -171,15 +200,29 @@ class RigChain:
         if a.vertical_step_sigma_m <= 0:
             return None
         mu0 = a.prior_advance_m[2] if a.prior_advance_m is not None else 0.0
+        sigma_v = self.vertical_sigma()
         if a.vertical_trend_sigma_m > 0:
             hist = np.array(self._vertical[-VERTICAL_HISTORY:], dtype=float).reshape(-1, 3)
-            w = 1.0 / (hist[:, 1] + a.vertical_step_sigma_m**2 / hist[:, 2])
-            info = 1.0 / a.vertical_trend_sigma_m**2 + float(np.sum(w))
-            mu = (mu0 / a.vertical_trend_sigma_m**2 + float(np.sum(w * hist[:, 0]))) / info
-            var_mu = 1.0 / info
+            mu, var_mu = vertical_mean_step(hist, sigma_v, mu0, a.vertical_trend_sigma_m)
         else:
             mu, var_mu = mu0, 0.0
-        return gap * mu, float(np.sqrt(gap * a.vertical_step_sigma_m**2 + gap**2 * var_mu))
+        return gap * mu, float(np.sqrt(gap * sigma_v**2 + gap**2 * var_mu))
+
+    def vertical_sigma(self) -> float:
+        """The rig's random vertical step per cycle (m): vertical_step_sigma_m until
+        VERTICAL_SIGMA_MIN_STEPS ok steps, then learned from the last VERTICAL_HISTORY of them (M5b) around
+        their mean (M5), the two estimated in turn (three rounds: the weights of one depend on the other)."""
+        a = self.association
+        sigma_v = a.vertical_step_sigma_m
+        hist = np.array(self._vertical[-VERTICAL_HISTORY:], dtype=float).reshape(-1, 3)
+        if len(hist) < VERTICAL_SIGMA_MIN_STEPS:
+            return sigma_v
+        mu0 = a.prior_advance_m[2] if a.prior_advance_m is not None else 0.0
+        for _ in range(3):
+            mu = vertical_mean_step(hist, sigma_v, mu0, a.vertical_trend_sigma_m)[0] \
+                if a.vertical_trend_sigma_m > 0 else mu0
+            sigma_v = random_vertical_sigma(hist, mu, a.vertical_step_sigma_m)
+        return sigma_v
 
     def prior(self, gap: int) -> AssociationSettings:
         """The association settings for a displacement spanning `gap` cycles: the motion model's prediction.
