@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from shift_case import OUTPUTS, SETTINGS, options
 
-from uwbcl import batch, shift
+from uwbcl import batch, shift, threads
 from uwbcl.cli import main
 from uwbcl.records import BatchError, OutputOptions
 
@@ -404,3 +404,36 @@ def test_the_worker_pool_keeps_a_bounded_queue_and_finishes_every_pass_once(monk
     assert left == []
     assert sorted(finished) == sorted(str(p) for p, _, _ in todo)
     assert peak[0] <= 3 * batch.POOL_QUEUE_PER_WORKER
+
+
+def report_blas_threads(path: str, settings) -> dict:
+    """Worker substitute: the BLAS thread variables this worker process was started with."""
+    return {"path": path, "blas": {v: os.environ.get(v) for v in threads.BLAS_THREAD_VARIABLES}}
+
+
+@pytest.mark.parametrize("user_value", [None, "3"])
+def test_the_pool_workers_run_blas_on_one_thread_unless_the_user_says_otherwise(user_value, monkeypatch,
+                                                                               tmp_path):
+    # OpenBLAS's spinning threads in each of two workers made `--jobs 2` 2.5 times slower on 2 cores.
+    for v in threads.BLAS_THREAD_VARIABLES:
+        monkeypatch.delenv(v, raising=False)
+    if user_value:
+        monkeypatch.setenv("OPENBLAS_NUM_THREADS", user_value)
+    monkeypatch.setattr(batch, "DETECT", report_blas_threads)
+    seen = []
+    todo = [(tmp_path / f"p{k}.h5", f"p{k}.h5", f"{k:064x}") for k in range(4)]
+    assert batch._run_pool(todo, SETTINGS, 2, lambda path, rel, sha, entry: seen.append(entry["blas"])) == []
+    assert len(seen) == 4
+    for blas in seen:
+        assert blas["OPENBLAS_NUM_THREADS"] == (user_value or "1")
+        assert all(blas[v] == "1" for v in threads.BLAS_THREAD_VARIABLES if v != "OPENBLAS_NUM_THREADS")
+    # this process's environment is as it was
+    assert os.environ.get("OPENBLAS_NUM_THREADS") == user_value
+    assert all(v not in os.environ for v in threads.BLAS_THREAD_VARIABLES if v != "OPENBLAS_NUM_THREADS")
+
+
+def test_one_blas_thread_keeps_what_the_user_set():
+    env = {"MKL_NUM_THREADS": "4"}
+    added = threads.one_blas_thread(env)
+    assert env["MKL_NUM_THREADS"] == "4" and "MKL_NUM_THREADS" not in added
+    assert all(env[v] == "1" for v in added) and len(added) == len(threads.BLAS_THREAD_VARIABLES) - 1

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__, archive, chain, outputs, pipeline
+from . import __version__, archive, chain, outputs, pipeline, threads
 from .atomic import write_text_atomic
 from .records import (
     BatchError,
@@ -496,7 +496,12 @@ def _run_pool(todo: list[tuple[Path, str, str]], settings: ProcessingSettings, j
 
     At most POOL_QUEUE_PER_WORKER passes per worker are submitted ahead, and a finished pass's future is
     dropped: memory does not grow with the number of passes (a month of history is ~20,000)."""
-    pool = _pool(jobs)
+    with threads.one_blas_thread_in_children():  # the workers are spawned on the first submits
+        return _run_pool_of(_pool(jobs), todo, settings, jobs, finish)
+
+
+def _run_pool_of(pool: cf.Executor, todo: list[tuple[Path, str, str]], settings: ProcessingSettings,
+                 jobs: int, finish) -> list:
     done: set[int] = set()
     pending: dict[cf.Future, int] = {}
     upcoming = iter(range(len(todo)))

@@ -11,11 +11,16 @@ import signal
 import sys
 from pathlib import Path
 
-from . import __version__, archive, batch, config
-from .atomic import write_text_atomic
-from .importers import RecordingError, passes, registry
-from .records import ALGORITHMS, BACKENDS, BatchError, ConfigError, OutputError
-from .scenarios import SCENARIOS
+from .threads import one_blas_thread
+
+# Before numpy loads (the imports below): BLAS on one thread in this process and the workers it starts.
+one_blas_thread()
+
+from . import __version__, archive, batch, config  # noqa: E402
+from .atomic import write_text_atomic  # noqa: E402
+from .importers import RecordingError, passes, registry  # noqa: E402
+from .records import ALGORITHMS, BACKENDS, BatchError, ConfigError, OutputError  # noqa: E402
+from .scenarios import SCENARIOS  # noqa: E402
 
 
 def _simulate_shift(args: argparse.Namespace) -> int:
