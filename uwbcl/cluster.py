@@ -27,7 +27,7 @@ import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from . import batch
+from . import batch, threads
 from .records import BatchError, ProcessingSettings
 
 log = logging.getLogger("uwbcl")
@@ -36,14 +36,14 @@ LOCAL_PREFIX = "local:"
 CONNECT_TIMEOUT_S = 10.0  # to reach the scheduler and, after that, for its first worker to be there
 TASKS_PER_THREAD = 8  # at least this many tasks per worker thread, so that the run ends evenly
 MAX_PASSES_PER_TASK = 8  # a task's scheduling cost (~1 ms) spread over up to this many passes
-# Dask settings of the local:N workers. pre-spawn-environ: they inherit this process's environment, as a local
-# run's workers do (Dask's default pins BLAS to one thread, and OpenBLAS rounds some float64 sums differently
-# with another thread count: the last bits of the detections, so of displacements.h5). The rest: as little
+# Dask settings of the local:N workers. pre-spawn-environ (set per run in `connect`): BLAS on one thread
+# unless the user set its variables, as a local run's workers get it (`threads`; OpenBLAS rounds some float64
+# sums differently with another thread count: the last bits of the detections, so of displacements.h5), and
+# the rest of this process's environment inherited. The rest: as little
 # periodic Python work beside the task as Dask allows, since each wake-up takes the GIL from the task (the
 # statistical profiler samples every 10 ms; the memory monitor, which only spills or pauses, every 100 ms;
 # the tasks hold no data to spill). The nanny's out-of-memory guard (in this process) stays.
 LOCAL_WORKER_CONFIG = {
-    "distributed.nanny.pre-spawn-environ": {},
     "distributed.worker.profile.enabled": False,
     "distributed.worker.memory.target": False,
     "distributed.worker.memory.spill": False,
@@ -275,7 +275,8 @@ def connect(spec: str, settings: ProcessingSettings, timeout_s: float = CONNECT_
             # per user, where Dask's next start removes what a killed run left.
             scratch = os.path.join(tempfile.gettempdir(), f"uwbcl-dask-{os.getuid()}")
             try:
-                with dask_config_set(LOCAL_WORKER_CONFIG):
+                with dask_config_set({**LOCAL_WORKER_CONFIG,
+                                      "distributed.nanny.pre-spawn-environ": threads.blas_defaults()}):
                     local = stack.enter_context(distributed.LocalCluster(
                         n_workers=n_workers, threads_per_worker=1, processes=True, host="127.0.0.1",
                         dashboard_address=None, scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},

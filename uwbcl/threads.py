@@ -11,21 +11,25 @@ from __future__ import annotations
 
 import contextlib
 import os
-from collections.abc import Iterator, MutableMapping
+from collections.abc import Iterator, Mapping, MutableMapping
 
 # The thread-count variables of the BLAS libraries numpy and scipy may be built with, read when they load.
 BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS",
                          "VECLIB_MAXIMUM_THREADS")
 
 
+def blas_defaults(environ: Mapping[str, str] = os.environ) -> dict[str, str]:
+    """{variable: "1"} for each of BLAS_THREAD_VARIABLES that `environ` does not set (what the user set is
+    kept)."""
+    return {v: "1" for v in BLAS_THREAD_VARIABLES if v not in environ}
+
+
 def one_blas_thread(environ: MutableMapping[str, str] = os.environ) -> list[str]:
-    """Set every variable of BLAS_THREAD_VARIABLES that is not set to "1" (a value the user set is kept);
-    returns the ones set. It takes effect in a process that has not loaded BLAS yet (before numpy is
-    imported) and in every process started after it."""
-    added = [v for v in BLAS_THREAD_VARIABLES if v not in environ]
-    for v in added:
-        environ[v] = "1"
-    return added
+    """Set `blas_defaults` in `environ`; returns the variables set. It takes effect in a process that has not
+    loaded BLAS yet (before numpy is imported) and in every process started after it."""
+    added = blas_defaults(environ)
+    environ.update(added)
+    return list(added)
 
 
 @contextlib.contextmanager
