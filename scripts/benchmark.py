@@ -36,10 +36,10 @@ Running it
       PYOPENCL_CTX=0:0 python scripts/benchmark.py --skip-numpy
   With neither, the engine takes the first GPU, else the first OpenCL device.
 
-Threads are whatever the environment says; the script sets nothing and prints them: numpy's FFT and
-elementwise maths run on one thread, BLAS (the H8 polynomial fits of every leg) follows OPENBLAS_NUM_THREADS /
-OMP_NUM_THREADS, scipy.fft uses all cores (workers=-1), PoCL follows POCL_MAX_PTHREAD_COUNT /
-POCL_CPU_MAX_CU_COUNT.
+Threads, printed in the header: BLAS on one thread unless OPENBLAS_NUM_THREADS and its kin are set (as
+`uwbcl` itself runs it, `uwbcl.threads`: set before numpy loads, inherited by the pool's workers); numpy's FFT
+and elementwise maths run on one thread, scipy.fft uses all cores (workers=-1) in this process and one in a
+pool worker, PoCL follows POCL_MAX_PTHREAD_COUNT / POCL_CPU_MAX_CU_COUNT.
 
 Exit status: 0; 1 if a leg failed or an image disagreed with the reference; 2 for bad arguments.
 """
@@ -61,20 +61,24 @@ from collections import Counter, defaultdict
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
-import scipy
-import scipy.fft
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from uwbcl import archive, batch, chain, detect, opencl, outputs, pipeline, simulate
-from uwbcl.focus import nlcs, scipy32
-from uwbcl.focus.protocol import Focuser
-from uwbcl.focus.reference import NUMPY_FOCUSER
-from uwbcl.focus.scipy32 import SCIPY32_FOCUSER
-from uwbcl.model import PassGeometry, RadarParameters, ScanPass
-from uwbcl.records import ProcessingSettings
-from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2
+from uwbcl.threads import one_blas_thread  # noqa: E402
+
+one_blas_thread()  # before numpy loads: BLAS as `uwbcl` runs it
+
+import numpy as np  # noqa: E402
+import scipy  # noqa: E402
+import scipy.fft  # noqa: E402
+
+from uwbcl import archive, batch, chain, detect, opencl, outputs, pipeline, simulate  # noqa: E402
+from uwbcl.focus import nlcs, scipy32  # noqa: E402
+from uwbcl.focus.protocol import Focuser  # noqa: E402
+from uwbcl.focus.reference import NUMPY_FOCUSER  # noqa: E402
+from uwbcl.focus.scipy32 import SCIPY32_FOCUSER  # noqa: E402
+from uwbcl.model import PassGeometry, RadarParameters, ScanPass  # noqa: E402
+from uwbcl.records import ProcessingSettings  # noqa: E402
+from uwbcl.scenarios import PAPER_SIM1, PAPER_SIM2  # noqa: E402
 
 AGREEMENT_TOL = 1e-4  # ||out - ref|| / ||ref|| of complex images (docs/opencl.md, error budget)
 PASSES_PER_RIG = 4  # 2 cycles x 2 heights
