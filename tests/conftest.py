@@ -6,10 +6,16 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import pytest
-from shift_case import CONFIG, SETTINGS, options
+from uwbcl.threads import one_blas_thread
 
-from uwbcl import batch, opencl, shift
+# Before numpy loads: BLAS on one thread in this process as in `uwbcl` and its workers, so that a run in this
+# process and one in the pool agree to the last bit.
+one_blas_thread()
+
+import pytest  # noqa: E402
+from shift_case import CONFIG, SETTINGS, options  # noqa: E402
+
+from uwbcl import batch, opencl, shift  # noqa: E402
 
 
 @pytest.fixture(scope="module")
