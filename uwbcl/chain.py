@@ -173,6 +173,7 @@ class RigChain:
         # the plates alone measured them: the rig's mean vertical step (eq. M5). Kept across chain restarts:
         # a pitched rail stays pitched.
         self._vertical: list[tuple[float, float, int]] = []
+        self._vertical_model: tuple[tuple, tuple[float, float, float]] | None = None  # vertical_motion's
 
     def motion(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(median per-cycle step, its per-cycle standard deviation) of the last MOTION_HISTORY ok steps (m),
@@ -196,33 +197,40 @@ class RigChain:
         w_k = 1 / (s_k^2 + sigma_v^2 / g_k), mu = (mu_0 / sigma_mu^2 + sum w_k v_k) / (1 / sigma_mu^2 +
         sum w_k), var(mu) = 1 / (1 / sigma_mu^2 + sum w_k). The prior: gap mu, gap sigma_v^2 + gap^2 var(mu).
         """
-        a = self.association
-        if a.vertical_step_sigma_m <= 0:
+        if self.association.vertical_step_sigma_m <= 0:
             return None
-        mu0 = a.prior_advance_m[2] if a.prior_advance_m is not None else 0.0
-        sigma_v = self.vertical_sigma()
-        if a.vertical_trend_sigma_m > 0:
-            hist = np.array(self._vertical[-VERTICAL_HISTORY:], dtype=float).reshape(-1, 3)
-            mu, var_mu = vertical_mean_step(hist, sigma_v, mu0, a.vertical_trend_sigma_m)
-        else:
-            mu, var_mu = mu0, 0.0
+        mu, var_mu, sigma_v = self.vertical_motion()
         return gap * mu, float(np.sqrt(gap * sigma_v**2 + gap**2 * var_mu))
 
     def vertical_sigma(self) -> float:
-        """The rig's random vertical step per cycle (m): vertical_step_sigma_m until
-        VERTICAL_SIGMA_MIN_STEPS ok steps, then learned from the last VERTICAL_HISTORY of them (M5b) around
-        their mean (M5), the two estimated in turn (three rounds: the weights of one depend on the other)."""
+        """The rig's random vertical step per cycle (m): `vertical_motion`'s sigma_v."""
+        return self.vertical_motion()[2]
+
+    def vertical_motion(self) -> tuple[float, float, float]:
+        """(mu, var(mu), sigma_v) of the rig's vertical step per cycle (m, m^2, m): the mean step from the
+        last VERTICAL_HISTORY ok steps (M5; mu_0 when vertical_trend_sigma_m = 0) and the random part,
+        vertical_step_sigma_m until VERTICAL_SIGMA_MIN_STEPS ok steps, then learned (M5b); the two estimated
+        in turn (three rounds: the weights of one depend on the other). Recomputed only when the steps
+        change."""
+        hist_steps = tuple(self._vertical[-VERTICAL_HISTORY:])
+        if self._vertical_model is not None and self._vertical_model[0] == hist_steps:
+            return self._vertical_model[1]
         a = self.association
-        sigma_v = a.vertical_step_sigma_m
-        hist = np.array(self._vertical[-VERTICAL_HISTORY:], dtype=float).reshape(-1, 3)
-        if len(hist) < VERTICAL_SIGMA_MIN_STEPS:
-            return sigma_v
+        hist = np.array(hist_steps, dtype=float).reshape(-1, 3)
         mu0 = a.prior_advance_m[2] if a.prior_advance_m is not None else 0.0
-        for _ in range(3):
-            mu = vertical_mean_step(hist, sigma_v, mu0, a.vertical_trend_sigma_m)[0] \
-                if a.vertical_trend_sigma_m > 0 else mu0
-            sigma_v = random_vertical_sigma(hist, mu, a.vertical_step_sigma_m)
-        return sigma_v
+
+        def mean(sigma_v: float) -> tuple[float, float]:
+            if a.vertical_trend_sigma_m > 0:
+                return vertical_mean_step(hist, sigma_v, mu0, a.vertical_trend_sigma_m)
+            return mu0, 0.0
+
+        sigma_v = a.vertical_step_sigma_m
+        if len(hist) >= VERTICAL_SIGMA_MIN_STEPS:
+            for _ in range(3):
+                sigma_v = random_vertical_sigma(hist, mean(sigma_v)[0], a.vertical_step_sigma_m)
+        model = (*mean(sigma_v), sigma_v)
+        self._vertical_model = (hist_steps, model)
+        return model
 
     def prior(self, gap: int) -> AssociationSettings:
         """The association settings for a displacement spanning `gap` cycles: the motion model's prediction.

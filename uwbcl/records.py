@@ -123,8 +123,8 @@ class AssociationSettings:
     motion_model: bool = True  # the previous trusted cycles' steps predict the next (RigChain)
     second_look: bool = True  # a later trusted cycle re-measures the untrusted ones it bridged (revision 1)
     # The vertical step prior (eq. M5, docs/method.md section 6.3): the rig's vertical step per cycle in the
-    # radar frame is the rig's mean step plus a random part of this standard deviation per cycle (floor
-    # undulation); 0 turns the prior off.
+    # radar frame is the rig's mean step plus a random part (floor undulation) of this standard deviation per
+    # cycle, then learned from the chain's ok steps within 0.25-2.5 x it (eq. M5b); 0 turns the prior off.
     vertical_step_sigma_m: float = 0.02
     # and the prior standard deviation of that mean step per cycle (a rail pitched against the roadway by b
     # gives web x sin b per cycle); the chain learns it from its ok steps. 0: the mean is prior_advance_m's.
