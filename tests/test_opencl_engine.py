@@ -264,6 +264,30 @@ def test_model_spectra_equal_the_2d_spectrum_of_the_focused_image(engine, jitter
         engine.nlcs_model_spectra(products, x_rel, echo[None], signed[::2])
 
 
+def test_a_replayed_echo_chain_equals_one_recorded_afresh_even_after_another_tracks_tables(engine, jittery_pass,
+                                                                                              grid):
+    """A pass's neighbour models replay the echo chain's prepared launches: the same spectra as a chain
+    recorded for each echo alone, and a stage run on another track in between does not leak into them."""
+    products = nlcs.nlcs_focus(jittery_pass, grid=grid)
+    echo, x_rel = nlcs.prepare_track(jittery_pass, grid)
+    rows = np.arange(-40, 40)
+    models = [echo, noise(echo.shape, 1), noise(echo.shape, 2)]
+    engine._echo_chain = None
+    replayed = engine.nlcs_model_spectra(products, x_rel, models, rows)  # the first recorded, then replayed
+    chain = engine._echo_chain
+    assert chain is not None
+    for model, out in zip(models, replayed):
+        engine._echo_chain = None
+        np.testing.assert_array_equal(engine.nlcs_model_spectra(products, x_rel, [model], rows)[0], out)
+    engine._echo_chain = chain
+    other = x_rel + 0.01
+    d = engine.to_device("echo", echo, grid, n_pulses=len(x_rel))
+    engine.range_walk_correction(d, other, grid)
+    engine.resample_to_uniform_track(d, other, grid)
+    np.testing.assert_array_equal(engine.nlcs_model_spectra(products, x_rel, [models[1]], rows)[0], replayed[1])
+    assert engine._echo_chain is chain  # replayed, not recorded again
+
+
 def test_the_engine_is_a_focuser(engine):
     assert isinstance(engine, Focuser)
 

@@ -34,7 +34,7 @@ from ..model import ScanPass
 from . import backprojection as bp
 from . import coefficients as coef
 from . import device_fft, nlcs
-from .processing import REAL, BufferSpec, OpenclProcessing
+from .processing import REAL, BufferSpec, OpenclProcessing, PreparedLaunch
 
 PROGRAM_FILES = ("common.cl", "range.cl", "azimuth.cl", "fft.cl", "backprojection.cl")
 # |X_ref| closer than this fraction of its bin's peak to the H8 fit's threshold counts as undecided in
@@ -138,6 +138,10 @@ class FocusEngine(OpenclProcessing):
         self.ffts = device_fft.DeviceFft(self, VkFFTApp)
         self._filters: _PassFilters | None = None  # the last grid's filter tables
         self._h8_tables: dict = {}  # name -> (compression, grid, (first, last row), table)
+        self._track: tuple | None = None  # (x_rel bytes, grid, first taps, weights) of the last track
+        self._echo_chain: _EchoChain | None = None  # the last echo chain's launches, replayed while valid
+        self._recording: list | None = None  # steps of the echo chain being recorded
+        self._spare_launches: dict = {}  # kernel name -> prepared launches of a dropped chain, for reuse
         with self.stage("FFT self-test"):
             failure = self.ffts.self_test_failure()
         if failure:
@@ -152,6 +156,8 @@ class FocusEngine(OpenclProcessing):
     def fft(self, arr, axis: int, inverse: bool = False) -> None:
         """In-place complex FFT along one axis (`device_fft.DeviceFft.fft`); numpy's normalisation."""
         self.ffts.fft(arr, axis, inverse)
+        if self._recording is not None:
+            self._recording.append(functools.partial(self.ffts.fft, arr, axis, inverse))
 
     def reals(self, name: str, values, grid: nlcs.FocusGrid, **extents):
         """Per-bin coefficients (or positions) in the phase precision, into the declared buffer `name`."""
@@ -162,7 +168,13 @@ class FocusEngine(OpenclProcessing):
         four-bin kernels)."""
         if name in FOUR_BIN_KERNELS:
             cols = -(-cols // 4)
-        self.launch(name, (cols, rows), **args)
+        if self._recording is None:
+            self.launch(name, (cols, rows), **args)
+            return
+        spare = self._spare_launches.get(name)
+        launch = self.prepare(name, (cols, rows), reuse=spare.pop() if spare else None, **args)
+        self.enqueue(launch)  # its arguments are set once, for every replay
+        self._recording.append(functools.partial(self.enqueue, launch))
 
     def _nlcs_entries(self, grid: nlcs.FocusGrid, n_pulses: int) -> list:
         """(buffer, extents) of one echo through the chain, with its filter tables and H8 (the footprint)."""
@@ -201,15 +213,25 @@ class FocusEngine(OpenclProcessing):
     def resample_to_uniform_track(self, s, x_rel_m: np.ndarray, grid: nlcs.FocusGrid, p2_m_s2: float = 0.0):
         """Lagrange resampling onto the uniform track, ENLCS H2 (eq. 6), padding: -> (n_azimuth, n_range),
         FFT order."""
-        idx, w = nlcs.lagrange_weights(x_rel_m, grid.t_track_s * grid.speed_m_s, LAGRANGE_TAPS)
+        first, w = self._lagrange_weights(x_rel_m, grid)
         out = self.buffer("azimuth", grid)
         self._launch("resample_to_uniform_track", grid.n_azimuth, grid.n_range, s=s, out=out,
-                     first=self.to_device("first", idx[:, 0], grid),
+                     first=self.to_device("first", first, grid),
                      weights=self.reals("weights", w, grid, taps=LAGRANGE_TAPS), order=LAGRANGE_TAPS,
                      n_track=grid.n_track, n_azimuth=grid.n_azimuth, n_range=grid.n_range,
                      sample_rate_hz=grid.sample_rate_hz, carrier_hz=grid.carrier_frequency_hz,
                      track_dt_s=grid.dt_s, p2_m_s2=float(p2_m_s2))
         return out
+
+    def _lagrange_weights(self, x_rel_m: np.ndarray, grid: nlcs.FocusGrid) -> tuple[np.ndarray, np.ndarray]:
+        """(first tap pulse (n_track,), weights (n_track, taps)) of `nlcs.lagrange_weights` onto the grid's
+        uniform track, kept for the last track (every neighbour
+        model of a pass is resampled from the pass's own rail positions)."""
+        key = np.asarray(x_rel_m, dtype=float).tobytes()
+        if self._track is None or self._track[0] != key or self._track[1] != grid:
+            idx, w = nlcs.lagrange_weights(x_rel_m, grid.t_track_s * grid.speed_m_s, LAGRANGE_TAPS)
+            self._track = (key, grid, idx[:, 0].copy(), w)
+        return self._track[2], self._track[3]
 
     @staticmethod
     def _row_origin(grid: nlcs.FocusGrid, first_row: int | None) -> int:
@@ -473,27 +495,57 @@ class FocusEngine(OpenclProcessing):
 
     def _nlcs_spectrum(self, echo: np.ndarray, x_rel: np.ndarray, grid: nlcs.FocusGrid,
                        k: coef.NlcsCoefficients, p2: float):
-        """echo -> the range-Doppler array before H8 (device, whole spectrum in FFT order)."""
+        """echo -> the range-Doppler array before H8 (device, whole spectrum in FFT order).
+
+        The chain's launches are recorded with their arguments set (prepared launches) and replayed for the
+        next echo on the same track, grid and buffers: a pass's neighbour models differ from its image only in
+        the echo, and setting every kernel's arguments again cost more host time than the launches."""
         f = self._pass_filters(grid, k)
         with self.stage("echo chain"):
             s = self.to_device("echo", echo, grid, n_pulses=echo.shape[0])
-            self.fft(s, 1)
-            self.range_walk_correction(s, x_rel, grid)
-            s = self.resample_to_uniform_track(s, x_rel, grid, p2)
-            self.fft(s, 0)
-            origin = self._row_origin(grid, f.first_row)
-            band = self.buffer("doppler_rows", grid)
-            n_band = band.shape[0]
-            self._launch("gather_rows", n_band, grid.n_range, full=s, out=band, filter=f.src,
-                         row_origin=origin, n_azimuth=grid.n_azimuth, n_range=grid.n_range)
-            self.fft(band, 1, inverse=True)
-            self._launch("apply_filter", n_band, grid.n_range, s=band, filter=f.h5h6, n_range=grid.n_range)
-            self._launch("scatter_rows", grid.n_azimuth, grid.n_range, band=band, full=s, row_origin=origin,
-                         n_rows=n_band, n_azimuth=grid.n_azimuth, n_range=grid.n_range)
-            self.fft(s, 0, inverse=True)
-            self._launch("apply_filter", grid.n_azimuth, grid.n_range, s=s, filter=f.h7, n_range=grid.n_range)
-            self.fft(s, 0)
-        return s
+            first, w = self._lagrange_weights(x_rel, grid)
+            # the track's constant tables: uploaded only when their bytes change, so a replay sees them
+            tables = (self.reals("x_rel", x_rel, grid, n_pulses=len(x_rel)),
+                      self.to_device("first", first, grid),
+                      self.reals("weights", w, grid, taps=LAGRANGE_TAPS))
+            out, band = self.buffer("azimuth", grid), self.buffer("doppler_rows", grid)
+            arrays = (s, *tables, out, band, f.src, f.h5h6, f.h7)
+            chain = self._echo_chain
+            if chain is not None and chain.matches(grid, p2, arrays):
+                for step in chain.steps:
+                    step()
+                return out
+            self._echo_chain = None
+            self._spare_launches = {}
+            for launch in chain.launches if chain is not None else ():
+                self._spare_launches.setdefault(launch.name, []).append(launch)
+            self._recording = []
+            try:
+                self._echo_chain_steps(s, x_rel, grid, f, p2)
+                self._echo_chain = _EchoChain(grid, p2, arrays, tuple(self._recording))
+            finally:
+                self._recording, self._spare_launches = None, {}
+        return out
+
+    def _echo_chain_steps(self, s, x_rel: np.ndarray, grid: nlcs.FocusGrid, f: _PassFilters,
+                          p2: float) -> None:
+        """The echo chain's stages on the echo's range spectrum `s` (uploaded), into the "azimuth" buffer."""
+        self.fft(s, 1)
+        self.range_walk_correction(s, x_rel, grid)
+        s = self.resample_to_uniform_track(s, x_rel, grid, p2)
+        self.fft(s, 0)
+        origin = self._row_origin(grid, f.first_row)
+        band = self.buffer("doppler_rows", grid)
+        n_band = band.shape[0]
+        self._launch("gather_rows", n_band, grid.n_range, full=s, out=band, filter=f.src,
+                     row_origin=origin, n_azimuth=grid.n_azimuth, n_range=grid.n_range)
+        self.fft(band, 1, inverse=True)
+        self._launch("apply_filter", n_band, grid.n_range, s=band, filter=f.h5h6, n_range=grid.n_range)
+        self._launch("scatter_rows", grid.n_azimuth, grid.n_range, band=band, full=s, row_origin=origin,
+                     n_rows=n_band, n_azimuth=grid.n_azimuth, n_range=grid.n_range)
+        self.fft(s, 0, inverse=True)
+        self._launch("apply_filter", grid.n_azimuth, grid.n_range, s=s, filter=f.h7, n_range=grid.n_range)
+        self.fft(s, 0)
 
     def nlcs_model_spectra(self, products: nlcs.NlcsProducts, x_rel_m: np.ndarray, echoes,
                            rows: np.ndarray) -> np.ndarray:
@@ -597,6 +649,26 @@ class FocusEngine(OpenclProcessing):
             data = self.host(image)
         return bp.BackprojectionProducts(image=data, u_axis_m=u_axis, r_axis_m=r_axis, grid=grid,
                                          compressed=rc)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _EchoChain:
+    """The recorded launches and FFTs of one echo chain, valid while its grid, p2 and device arrays are the
+    same objects (a buffer dropped and made again is a new array: the chain is recorded again). Holding the
+    arrays keeps them allocated while their launches may run."""
+
+    grid: nlcs.FocusGrid
+    p2: float
+    arrays: tuple
+    steps: tuple
+
+    @property
+    def launches(self) -> list:
+        return [step.args[0] for step in self.steps if isinstance(step.args[0], PreparedLaunch)]
+
+    def matches(self, grid: nlcs.FocusGrid, p2: float, arrays: tuple) -> bool:
+        return (p2 == self.p2 and (grid is self.grid or grid == self.grid) and len(arrays) == len(self.arrays)
+                and all(a is b for a, b in zip(arrays, self.arrays)))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
