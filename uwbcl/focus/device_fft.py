@@ -37,7 +37,7 @@ def radix_plan(n: int) -> list[int]:
 class DeviceFft:
     """In-place complex FFTs along one axis of the device arrays of `proc` (whose program holds fft.cl)."""
 
-    LAUNCH_SETS_KEPT = 64  # Stockham launch sets kept (per buffer and direction); older ones are dropped
+    LAUNCH_SETS_KEPT = 64  # Stockham launch sets kept (per buffer and direction); the least recently used go
 
     def __init__(self, proc: OpenclProcessing, vkfft_app):
         self.proc = proc
@@ -79,11 +79,12 @@ class DeviceFft:
             table = np.exp(-2j * np.pi * np.arange(n) / n)
             twiddle = self._twiddles[n] = self.proc.to_device("fft_twiddle", table, None, n=n)
         key = (arr.data.int_ptr, scratch.data.int_ptr, twiddle.data.int_ptr, arr.shape, bool(inverse))
-        launches = self._launches.get(key)
+        launches = self._launches.pop(key, None)
         if launches is None:
-            if len(self._launches) >= self.LAUNCH_SETS_KEPT:  # buffers of passes long gone: bound the cache
-                self._launches.clear()
-            launches = self._launches[key] = self._azimuth_fft_launches(arr, scratch, twiddle, inverse)
+            while len(self._launches) >= self.LAUNCH_SETS_KEPT:  # the least recently used set goes
+                self.proc.retire(self._launches.pop(next(iter(self._launches))))
+            launches = self._azimuth_fft_launches(arr, scratch, twiddle, inverse)
+        self._launches[key] = launches  # most recently used last
         for launch in launches:
             self.proc.enqueue(launch)
         if len(launches) % 2:  # an odd number of passes (n = 2 or 4)

@@ -141,7 +141,6 @@ class FocusEngine(OpenclProcessing):
         self._track: tuple | None = None  # (x_rel bytes, grid, first taps, weights) of the last track
         self._echo_chain: _EchoChain | None = None  # the last echo chain's launches, replayed while valid
         self._recording: list | None = None  # steps of the echo chain being recorded
-        self._spare_launches: dict = {}  # kernel name -> prepared launches of a dropped chain, for reuse
         with self.stage("FFT self-test"):
             failure = self.ffts.self_test_failure()
         if failure:
@@ -171,8 +170,7 @@ class FocusEngine(OpenclProcessing):
         if self._recording is None:
             self.launch(name, (cols, rows), **args)
             return
-        spare = self._spare_launches.get(name)
-        launch = self.prepare(name, (cols, rows), reuse=spare.pop() if spare else None, **args)
+        launch = self.prepare(name, (cols, rows), **args)
         self.enqueue(launch)  # its arguments are set once, for every replay
         self._recording.append(functools.partial(self.enqueue, launch))
 
@@ -515,16 +513,15 @@ class FocusEngine(OpenclProcessing):
                 for step in chain.steps:
                     step()
                 return out
+            if chain is not None:
+                self.retire(chain.launches)
             self._echo_chain = None
-            self._spare_launches = {}
-            for launch in chain.launches if chain is not None else ():
-                self._spare_launches.setdefault(launch.name, []).append(launch)
             self._recording = []
             try:
                 self._echo_chain_steps(s, x_rel, grid, f, p2)
                 self._echo_chain = _EchoChain(grid, p2, arrays, tuple(self._recording))
             finally:
-                self._recording, self._spare_launches = None, {}
+                self._recording = None
         return out
 
     def _echo_chain_steps(self, s, x_rel: np.ndarray, grid: nlcs.FocusGrid, f: _PassFilters,

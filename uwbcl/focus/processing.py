@@ -261,6 +261,7 @@ class OpenclProcessing:
     `buffers`, the memory check and (with `profile`) profiling. `real_t` is double with `fp64`, else float."""
 
     SHAPES_PER_BUFFER = 3  # shapes kept per buffer name: a batch alternates between a few pass shapes
+    SPARE_KERNELS_KEPT = 16  # retired kernel objects kept per kernel name for reuse
 
     def __init__(self, device, kernel_files: tuple[str, ...], buffers: tuple[BufferSpec, ...], *,
                  defines: dict[str, str] | None = None, fp64: bool = True, profile: bool = False):
@@ -281,6 +282,7 @@ class OpenclProcessing:
         self.signatures = parse_kernel_signatures(source, self.defines)
         self._launchers = {k.function_name: _Launcher(k, self.signatures[k.function_name])
                            for k in self.program.all_kernels()}
+        self._spare_kernels: dict[str, list] = {}  # kernel name -> retired kernel objects (`retire`)
         self.buffer_table = {b.name: b for b in buffers}
         self._buffers: dict = {}  # (name, shape, dtype) -> device array, most recently used last
         self._uploaded: dict = {}  # (name, shape, dtype) -> bytes of the last upload of a constant buffer
@@ -305,20 +307,24 @@ class OpenclProcessing:
             self._record(name, event)
         return event
 
-    def prepare(self, name: str, global_size: tuple[int, ...], *, reuse: PreparedLaunch | None = None,
-                **args) -> PreparedLaunch:
+    def prepare(self, name: str, global_size: tuple[int, ...], **args) -> PreparedLaunch:
         """A launch of `name` with its arguments checked and set now, on a kernel object of its own, to be
-        enqueued any number of times (`enqueue`). `reuse`: a prepared launch of the same kernel that will not
-        be enqueued again, whose kernel object takes the new arguments (making one costs ~0.4 ms of host time
-        on PoCL, pyopencl generating its invoker)."""
+        enqueued any number of times (`enqueue`). The kernel object is a retired one (`retire`) where there
+        is one: making a new one costs ~0.4 ms of host time (pyopencl generates its invoker)."""
         launcher = self._launcher(name)
-        if reuse is not None and reuse.name == name:
-            kernel = reuse.kernel
-        else:
-            kernel = self._cl.Kernel(self.program, name)
+        spare = self._spare_kernels.get(name)
+        kernel = spare.pop() if spare else self._cl.Kernel(self.program, name)
         for i, value in enumerate(launcher.values(args)):
             kernel.set_arg(i, value)
         return PreparedLaunch(name, kernel, tuple(global_size))
+
+    def retire(self, launches) -> None:
+        """Prepared launches that will not be enqueued again: their kernel objects serve later `prepare`s (a
+        command already queued keeps the arguments it was enqueued with)."""
+        for launch in launches:
+            spare = self._spare_kernels.setdefault(launch.name, [])
+            if len(spare) < self.SPARE_KERNELS_KEPT:
+                spare.append(launch.kernel)
 
     def _launcher(self, name: str) -> _Launcher:
         launcher = self._launchers.get(name)
