@@ -475,6 +475,21 @@ def test_every_kernel_of_the_program_is_launched_by_name_in_a_run_of_every_entry
     assert set(named) == set(eng.signatures) == profiled
 
 
+def test_a_retired_kernel_object_serves_the_next_prepare_with_its_new_arguments(engine):
+    import pyopencl.array as cla
+
+    a, b = (cla.to_device(engine.queue, np.full((2, 4), v, np.complex64)) for v in (2.0, 3.0))
+    gain = cla.to_device(engine.queue, np.full((2, 4), 1j, np.complex64))
+    first = engine.prepare("apply_filter", (4, 2), s=a, filter=gain, n_range=4)
+    engine.enqueue(first)
+    engine.retire([first])
+    second = engine.prepare("apply_filter", (4, 2), s=b, filter=gain, n_range=4)
+    assert second.kernel is first.kernel
+    engine.enqueue(second)
+    np.testing.assert_array_equal(a.get(), np.full((2, 4), 2j))
+    np.testing.assert_array_equal(b.get(), np.full((2, 4), 3j))
+
+
 def test_a_launch_with_two_argument_names_swapped_is_refused_naming_the_kernel(engine, grid):
     x_rel = np.linspace(-1.0, 1.0, grid.n_track)
     idx, w = nlcs.lagrange_weights(x_rel, grid.t_track_s * grid.speed_m_s, 6)
