@@ -167,6 +167,28 @@ def _echo_at(rc, grid, target, height_m):
     return bp.point_target_echo(grid, rc.x_rel_m, rc.t_s, u, r0 + grid.sin_squint * u)
 
 
+@pytest.mark.parametrize("matched", [True, False])
+def test_a_point_target_model_is_the_whole_axis_evaluation_to_within_its_support_floor(matched):
+    """Models are evaluated only near each pulse's delay (`model.pulse_support_s`): what is left out is below
+    GAUSSIAN_SUPPORT_FLOOR of the peak, and a non-uniform delay axis is evaluated whole."""
+    from uwbcl.model import GAUSSIAN_SUPPORT_FLOOR
+
+    scan = _stacked_pass(STACKED[1:])
+    grid = nlcs.focus_grid(scan)
+    rc = bp.range_compress(scan, grid)
+    u, r = 0.05, grid.reference_range_m + 0.1
+    x_rel, r_c = bp.pixel_track_coordinates(u, r, grid)
+    dx = x_rel - rc.x_rel_m
+    rng = np.sqrt(dx * dx + r_c**2)  # as the model computes it: the carrier phase is k R, R ~ 500 wavelengths
+    uniform = rc.t_s
+    for t in (uniform, uniform + 1e-12 * np.arange(uniform.size) ** 2):
+        whole = (np.exp(-4j * math.pi * grid.carrier_frequency_hz / bp.C * rng)[:, None]
+                 * grid.pulse_waveform(t[None, :] - 2.0 * rng[:, None] / bp.C, matched))
+        model, _ = bp.point_target_echo(grid, rc.x_rel_m, t, u, r, matched=matched)
+        assert np.abs(model - whole).max() <= GAUSSIAN_SUPPORT_FLOOR * np.abs(whole).max()
+        assert np.count_nonzero(model) < 0.3 * model.size if t is uniform else np.array_equal(model, whole)
+
+
 def test_a_lone_targets_range_compressed_echo_is_its_modelled_echo_times_the_beam_pattern():
     scan = _stacked_pass(STACKED[1:])
     grid = nlcs.focus_grid(scan)

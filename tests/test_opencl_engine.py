@@ -264,8 +264,8 @@ def test_model_spectra_equal_the_2d_spectrum_of_the_focused_image(engine, jitter
         engine.nlcs_model_spectra(products, x_rel, echo[None], signed[::2])
 
 
-def test_a_replayed_echo_chain_equals_one_recorded_afresh_even_after_another_tracks_tables(engine, jittery_pass,
-                                                                                              grid):
+def test_a_replayed_echo_chain_equals_one_recorded_afresh_even_after_another_tracks_tables(
+        engine, jittery_pass, grid):
     """A pass's neighbour models replay the echo chain's prepared launches: the same spectra as a chain
     recorded for each echo alone, and a stage run on another track in between does not leak into them."""
     products = nlcs.nlcs_focus(jittery_pass, grid=grid)
@@ -284,7 +284,8 @@ def test_a_replayed_echo_chain_equals_one_recorded_afresh_even_after_another_tra
     d = engine.to_device("echo", echo, grid, n_pulses=len(x_rel))
     engine.range_walk_correction(d, other, grid)
     engine.resample_to_uniform_track(d, other, grid)
-    np.testing.assert_array_equal(engine.nlcs_model_spectra(products, x_rel, [models[1]], rows)[0], replayed[1])
+    again = engine.nlcs_model_spectra(products, x_rel, [models[1]], rows)[0]
+    np.testing.assert_array_equal(again, replayed[1])
     assert engine._echo_chain is chain  # replayed, not recorded again
 
 

@@ -96,10 +96,34 @@ def point_target_echo(grid: nlcs.FocusGrid, x_rel_m: np.ndarray, t_s: np.ndarray
     rng = np.sqrt(dx * dx + rc_range**2)
     lo, hi = grid.doppler_band
     in_band = (dx >= lo * rng) & (dx <= hi * rng)
-    delay = np.asarray(t_s)[None, :] - 2.0 * rng[:, None] / C
     k = 4.0 * math.pi * grid.carrier_frequency_hz / C
-    envelope = grid.pulse_waveform(delay, matched)
-    return np.exp(-1j * k * rng)[:, None] * envelope, in_band
+    phase = np.exp(-1j * k * rng)
+    t = np.asarray(t_s, dtype=float)
+    window = _support_columns(t, 2.0 * rng / C, grid.pulse_support_s(matched))
+    if window is None:
+        return phase[:, None] * grid.pulse_waveform(t[None, :] - 2.0 * rng[:, None] / C, matched), in_band
+    rows, cols = window  # the same samples, evaluated only where the pulse is not negligible
+    out = np.zeros((rng.size, t.size), dtype=np.complex128)
+    out[rows, cols] = phase[rows] * grid.pulse_waveform(t[cols] - 2.0 * rng[rows] / C, matched)
+    return out, in_band
+
+
+def _support_columns(t_s: np.ndarray, delay_s: np.ndarray, half_s: float
+                     ) -> tuple[np.ndarray, np.ndarray] | None:
+    """(pulse, sample) indices of the samples of a uniform delay axis t_s within half_s of each pulse's delay
+    (None where that does not save work: a measured pulse, a short or non-uniform axis)."""
+    n = t_s.size
+    if not math.isfinite(half_s) or n < 2:
+        return None
+    dt = (t_s[-1] - t_s[0]) / (n - 1)
+    width = int(math.ceil(2.0 * half_s / dt)) + 2
+    if dt <= 0 or 2 * width > n or np.abs(np.diff(t_s) - dt).max() > 1e-9 * dt:
+        return None
+    first = np.ceil((delay_s - half_s - t_s[0]) / dt).astype(np.int64)
+    cols = first[:, None] + np.arange(width)
+    rows = np.broadcast_to(np.arange(delay_s.size)[:, None], cols.shape)
+    inside = (cols >= 0) & (cols < n)
+    return rows[inside], cols[inside]
 
 
 @dataclasses.dataclass

@@ -22,6 +22,7 @@ import numpy as np
 from .. import geometry as geo
 from ..model import SPEED_OF_LIGHT_M_S, MeasuredPulse, ScanPass, gaussian_pulse_spectrum
 from ..model import pulse_filter as _pulse_filter
+from ..model import pulse_support_s as _pulse_support_s
 from ..model import pulse_waveform as _pulse_waveform
 from . import coefficients as coef
 
@@ -82,6 +83,10 @@ class FocusGrid:
     def pulse_waveform(self, t_s, matched: bool = False) -> np.ndarray:
         """The pulse p(t), or after H4 with `matched`: every point-response model's envelope."""
         return _pulse_waveform(t_s, self.pulse_sigma_s, self.measured_pulse, matched)
+
+    def pulse_support_s(self, matched: bool = False) -> float:
+        """Half-width (s) outside which `pulse_waveform` is negligible (`model.pulse_support_s`)."""
+        return _pulse_support_s(self.pulse_sigma_s, self.measured_pulse, matched)
 
     @property
     def cos_squint(self) -> float:
