@@ -66,11 +66,14 @@ RIB = np.array([(0.1 + 1.23 * k + 0.2 * np.sin(k), -2.4, 0.5) for k in range(40)
                + [(0.5 + 1.31 * k + 0.15 * np.cos(2 * k), -2.4, 1.1) for k in range(40)])
 
 
-def noisy_cycles(n_cycles: int, seed: int, sigma: float = 0.002, window=(0.0, 3.0)):
-    """A rig retreating ~0.9 m per cycle with creep, plates located with range noise; its positions."""
+def noisy_cycles(n_cycles: int, seed: int, sigma: float = 0.002, window=(0.0, 3.0), webs_m=None):
+    """A rig retreating ~0.9 m per cycle (or `webs_m` per cycle) with creep, plates located with range noise;
+    its positions."""
     rng = np.random.default_rng(seed)
     steps = np.column_stack([0.9 + rng.normal(0, 0.03, n_cycles), rng.normal(0.003, 0.004, n_cycles),
                              rng.normal(0, 0.003, n_cycles)])
+    if webs_m is not None:
+        steps[:, 0] = webs_m
     steps[0] = (0.0, 2.4, 0.0)
     rigs = np.cumsum(steps, axis=0)
     cycles = []
@@ -161,3 +164,32 @@ def test_a_tighter_acceptance_limit_flags_rows_but_never_changes_their_values():
     assert all(r.displacement.status != "ok" for r in tight)
     assert sum(r.displacement.status == "ok" for r in loose) >= 5
     np.testing.assert_allclose(loose[0].displacement.advance_m, tight[0].displacement.advance_m)
+
+
+HEIGHTS_3 = (0.2, 0.45, 0.7)
+
+
+def _located_3h(p, range_error_m=(0.0, 0.0, 0.0)) -> Located:
+    rc = np.hypot(p[1], p[2] - np.asarray(HEIGHTS_3)) + np.asarray(range_error_m)
+    return locate_target(HEIGHTS_3, np.full(3, p[0]), rc)
+
+
+def test_a_plate_whose_passes_do_not_meet_at_one_point_is_as_uncertain_as_its_misfit_says():
+    """Eq. M6: one height's peak on a neighbour (3 cm off in range) moves a high plate by centimetres in Y and
+    Z; its own misfit says so, and the single-plate row's bound covers the creep error it causes (the location
+    covariance alone claimed millimetres)."""
+    plate_m = np.array([1.0, -2.5, 1.3])
+    advance = np.array([0.9, 0.004, 0.002])
+    before, after = _located_3h(plate_m), _located_3h(plate_m - advance, (0.0, 0.0, 0.03))
+    assert chain.misfit_scale(before, 0.003) == 1.0 and chain.misfit_scale(after, 0.003) > 4.0
+    assert chain.misfit_scale(plate([1.0, -2.5, 1.3]), 0.003) == 1.0  # two heights, no misfit
+    rc = chain.RigChain(PRIOR)
+    rc.add(CycleResult("r", 0, "2026-11-24T00:00:00Z", HEIGHTS_3, [before]))
+    row = rc.add(CycleResult("r", 1, "2026-11-24T01:00:00Z", HEIGHTS_3, [after]))
+    d = row.displacement
+    error = np.abs(d.advance_m[:2] - advance[:2])
+    assert error[1] > 0.005  # the creep error is real
+    assert d.status != "ok" or np.all(error <= 3.0 * d.bound_m[:2]), (d.status, error, d.bound_m)
+    cov = chain.plate_covariances(CycleResult("r", 1, "", HEIGHTS_3, [after]), 0.003)[0]
+    plain = location_covariance_m2(after.position_m, HEIGHTS_3, 0.003)
+    np.testing.assert_allclose(cov, plain * chain.misfit_scale(after, 0.003))

@@ -64,6 +64,21 @@ def test_a_step_is_learned_only_when_the_pairs_agree_on_it_by_the_margin():
     assert empty.learned_step() is None  # single plates: every step fits every pair equally
 
 
+def test_steps_that_differ_by_the_webs_variation_are_one_learned_step_not_rivals():
+    """Webs of 0.90, 0.80 and 0.87 m: each pair proposes its own step, centimetres apart; they are the same
+    hypothesis (within 3 sigma of M4's per-cycle sigma), so they support it together instead of standing as
+    one another's rivals (which left a short blind run without a learned step, and its rows ambiguous)."""
+    webs = [0.0, 0.90, 0.80, 0.87, 0.90, 0.85]
+    cycles, rigs = noisy_cycles(6, seed=5, webs_m=webs)
+    rc = chain.RigChain(dataclasses.replace(BLIND, motion_model=False))
+    for c in cycles[:4]:
+        rc.add(c)
+    steps = [t for a, b in zip(cycles[:4], cycles[1:4]) for t, _ in rc._scores(a, b)]
+    assert max(abs(t[0] - 0.80) for t in steps) > chain.MOTION_SIGMA_FLOOR_M[0]  # candidates 5-10 cm apart
+    step, _ = rc.learned_step()
+    assert 0.78 <= step[0] <= 0.92
+
+
 def test_a_cycle_whose_anchor_saw_one_plate_is_measured_from_the_chains_earlier_cycle():
     cycles, rigs = noisy_cycles(10, seed=0)
     cycles[4] = CycleResult("rig-1", 4, cycles[4].start_time, HEIGHTS, cycles[4].plates[:1])

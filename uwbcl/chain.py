@@ -25,6 +25,7 @@ from .records import (
     Detection,
     DetectionSettings,
     Displacement,
+    Located,
     SeriesRow,
 )
 
@@ -115,11 +116,24 @@ def plate_covariances(cycle: CycleResult, range_sigma_m: float) -> np.ndarray:
     out = []
     for p in cycle.plates:
         if p.n_passes >= heights.size:
-            out.append(location_covariance_m2(p.position_m, heights, range_sigma_m))
+            cov = location_covariance_m2(p.position_m, heights, range_sigma_m)
         else:
-            out.append(location_covariance_m2(p.position_m, heights[[0, -1]],
-                                              range_sigma_m * MISSED_HEIGHT_SIGMA_FACTOR))
+            cov = location_covariance_m2(p.position_m, heights[[0, -1]],
+                                         range_sigma_m * MISSED_HEIGHT_SIGMA_FACTOR)
+        out.append(cov * misfit_scale(p, range_sigma_m))
     return np.array(out).reshape(-1, 3, 3)
+
+
+def misfit_scale(plate: Located, range_sigma_m: float) -> float:
+    """Eq. M6: max(1, chi^2 / dof) of a plate's own fit. Its 2n misfits (n per-height ranges to the located
+    point, n per-height along-track x to their mean; RMS `Located.residual_m`) have sigma_R each and
+    dof = (n - 2) + (n - 1): chi^2 = 2n rho^2 / sigma_R^2. Passes that do not meet at one point (two plates
+    grouped across heights, one height's peak on noise or a neighbour) are not the point the plate's
+    covariance describes: it is as uncertain as its own misfit says."""
+    dof = 2 * plate.n_passes - 3
+    if dof <= 0 or range_sigma_m <= 0:
+        return 1.0
+    return max(1.0, 2 * plate.n_passes * plate.residual_m**2 / (range_sigma_m**2 * dof))
 
 
 def trusted(d: Displacement) -> bool:
@@ -303,8 +317,9 @@ class RigChain:
 
         scored = sorted(((support(st), k) for k, st in enumerate(steps)), key=lambda v: (-v[0], v[1]))
         best_score, k = scored[0]
-        tol = np.asarray(self.association.tolerance_m, dtype=float)
-        rival = max([0.0, *(sc for sc, j in scored[1:] if np.any(np.abs(steps[j] - steps[k]) > tol))])
+        # A rival is another step, not the same step seen by another pair: the web and the creep vary from
+        # cycle to cycle by the sigma the support allows, so candidates within 3 sigma are one hypothesis.
+        rival = max([0.0, *(sc for sc, j in scored[1:] if np.any(np.abs(steps[j] - steps[k]) > 3.0 * sigma))])
         if best_score - rival < self.association.min_margin:
             return None
         return steps[k], sigma
