@@ -79,6 +79,26 @@ def test_steps_that_differ_by_the_webs_variation_are_one_learned_step_not_rivals
     assert 0.78 <= step[0] <= 0.92
 
 
+def test_a_chain_started_again_after_an_ambiguous_first_row_joins_it_once_later_cycles_give_the_step():
+    """No prior, two plates in common: the first row is ambiguous, the chain starts again at cycle 1; once the
+    later pairs (not 0 -> 1) give a step, 0 -> 1 is measured with it, re-issued, and the later rows join
+    chain 0 with cumulative values from cycle 0 (re-issued too)."""
+    cycles, rigs = noisy_cycles(6, seed=3, window=(0.0, 3.0))
+    rc = chain.RigChain(BLIND)
+    first_issue, reissued = {}, []
+    for c in cycles:
+        row = rc.add(c)
+        if row is not None:
+            first_issue.setdefault(row.cycle.cycle, row.displacement.status)
+        reissued += [r.cycle.cycle for r in rc.revised]
+    assert first_issue[1] == "ambiguous" and 1 in reissued
+    assert [r.displacement.status for r in rc.rows] == ["ok"] * 5
+    assert [r.chain for r in rc.rows] == [0] * 5 and rc.rows[0].revision == 1
+    for r in rc.rows:
+        error = np.abs(r.cumulative_m[:2] - (rigs[r.cycle.cycle] - rigs[0])[:2])
+        assert np.all(error <= 3.0 * r.cumulative_bound_m[:2]), (r.cycle.cycle, error)
+
+
 def test_a_cycle_whose_anchor_saw_one_plate_is_measured_from_the_chains_earlier_cycle():
     cycles, rigs = noisy_cycles(10, seed=0)
     cycles[4] = CycleResult("rig-1", 4, cycles[4].start_time, HEIGHTS, cycles[4].plates[:1])

@@ -183,6 +183,9 @@ class RigChain:
         self._members: list[tuple[CycleResult, np.ndarray, np.ndarray]] = []
         self._pair_scores: dict[tuple[int, int], list[tuple[np.ndarray, float]]] = {}
         self._learned: tuple[np.ndarray, np.ndarray] | None = None
+        # (anchor, its cumulative, its variance, its chain, the cycle the chain started again at) of the last
+        # restart, until the second look joins the two chains or gives up (`_rejoin_chains`)
+        self._rejoin: tuple[CycleResult, np.ndarray, np.ndarray, int, CycleResult] | None = None
         # (vertical step per cycle, its data variance per cycle^2, cycles spanned) of the rig's ok rows as
         # the plates alone measured them: the rig's mean vertical step (eq. M5). Kept across chain restarts:
         # a pitched rail stays pitched.
@@ -254,13 +257,16 @@ class RigChain:
         window is three standard deviations, never wider than the configured one. Otherwise the configured
         prior (web depth) scaled by the gap, or none.
         """
-        base = self.association.for_gap(gap)
         motion = self.motion()
-        if motion is None:
-            motion = self._learned
-            if motion is not None and base.prior_advance_m is not None and \
-                    np.any(np.abs(gap * motion[0] - base.prior_advance_m) > base.prior_window_m):
-                motion = None  # the data disagree with the configured prior: that stays a prior_conflict
+        return self._motion_prior(gap, motion if motion is not None else self._learned)
+
+    def _motion_prior(self, gap: int, motion: tuple[np.ndarray, np.ndarray] | None) -> AssociationSettings:
+        """`prior` from a per-cycle (step, sigma): the motion model's or a learned step (None: the configured
+        prior alone). A learned step that disagrees with the configured prior is not used."""
+        base = self.association.for_gap(gap)
+        if motion is not None and self.motion() is None and base.prior_advance_m is not None and \
+                np.any(np.abs(gap * motion[0] - base.prior_advance_m) > base.prior_window_m):
+            motion = None  # the data disagree with the configured prior: that stays a prior_conflict
         base = dataclasses.replace(base, vertical_prior_m=self.vertical_prior(gap))
         if motion is None:
             return base
@@ -284,7 +290,7 @@ class RigChain:
         """The step `_learn` found after the last added cycle (see there), or None."""
         return self._learned
 
-    def _learn(self) -> tuple[np.ndarray, np.ndarray] | None:
+    def _learn(self, exclude: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray] | None:
         """The per-cycle step that the recent consecutive cycle pairs support together, before the motion
         model has its ok steps: (step, MOTION_SIGMA_FLOOR_M) or None. `prior` uses it in place of the
         web-depth prior when that is not configured, or inside the configured window (it is narrower).
@@ -296,13 +302,15 @@ class RigChain:
         missing plates and the field of view's ends break the grid's period. The step is the candidate t / g
         of highest S; it is used only when it leads the best distinct candidate (and "none", S = 0) by
         min_margin.
-        The cycle being measured is never one of the pairs, so its own plates are not counted twice.
+        The cycle being measured is never one of the pairs, so its own plates are not counted twice; nor is
+        the pair `exclude` (cycle numbers) when that pair is the one to be measured.
         """
         cycles = self._history[-(LEARN_PAIRS + 1):]
-        if len(cycles) < LEARN_MIN_PAIRS + 1:
-            return None
         sigma = MOTION_SIGMA_FLOOR_M
-        pairs = [(b.cycle - a.cycle, self._scores(a, b)) for a, b in zip(cycles, cycles[1:])]
+        pairs = [(b.cycle - a.cycle, self._scores(a, b)) for a, b in zip(cycles, cycles[1:])
+                 if (a.cycle, b.cycle) != exclude]
+        if len(pairs) < LEARN_MIN_PAIRS:
+            return None
         steps = [t / g for g, hyps in pairs for t, _ in hyps]
         if not steps:
             return None
@@ -458,7 +466,54 @@ class RigChain:
         # Once per cycle, only while nothing else predicts: every measurement of the next cycle uses it.
         needed = self.association.second_look and self.motion() is None
         self._learned = self._learn() if needed else None
+        if self._rejoin is not None:
+            self._rejoin_chains(row)
         return row
+
+    def _rejoin_chains(self, current: SeriesRow | None) -> None:
+        """The second look across a restart: the chain started again at cycle b because nothing linked it to
+        the anchor a then. Once the later cycles predict the step (the motion model, or a step learned from
+        the consecutive pairs other than (a, b), eq. M4), a -> b is measured again with that prior; if it is
+        ok, b's row is re-issued (revision 1) and the new chain's rows join the old one: their cumulative
+        values and bounds are shifted by a's cumulative plus a -> b, their chain is a's again (re-issued too,
+        except the current cycle's own row). Tried after every cycle until the chain starts again once more
+        or b is LEARN_PAIRS cycles back."""
+        a, cum_a, var_a, chain_a, b = self._rejoin
+        if (not self.association.second_look or self._chain != chain_a + 1 or not a.plates or not b.plates
+                or self._history[-1].cycle - b.cycle > LEARN_PAIRS):
+            self._rejoin = None
+            return
+        motion = self.motion() or self._learn(exclude=(a.cycle, b.cycle))
+        if motion is None:
+            return
+        d = self._measure(a, b, self._motion_prior(b.cycle - a.cycle, motion))
+        if d.status != "ok":
+            return
+        shift, var_shift = cum_a + d.advance_m, var_a + d.bound_m**2
+        log.info("rig %s: cycle %d joined to cycle %d by the later cycles' step; chain %d continues chain %d "
+                 "(re-issued as revision 1)", b.rig_id, b.cycle, a.cycle, self._chain, chain_a)
+        for i, r in enumerate(self.rows):
+            if r.chain != self._chain:
+                continue
+            if r.cycle is b:
+                self.rows[i] = r = SeriesRow(b, a, d, shift, chain_a, np.sqrt(var_shift), revision=1)
+            else:
+                r.cumulative_m = r.cumulative_m + shift
+                r.cumulative_bound_m = np.sqrt(r.cumulative_bound_m**2 + var_shift)
+                r.chain = chain_a
+                if r is not current:
+                    r.revision = 1
+            if r is not current and all(r is not q for q in self.revised):
+                self.revised.append(r)
+        self.revised.sort(key=lambda r: r.cycle.cycle)
+        self._anchor_cum, self._anchor_var = self._anchor_cum + shift, self._anchor_var + var_shift
+        self._members = [(c, cum + shift, var + var_shift) for c, cum, var in self._members]
+        if self._reserve is not None:
+            index, via, via_cum, via_var = self._reserve
+            self._reserve = (index, via, via_cum + shift, via_var + var_shift)
+        self._chain, self._rejoin = chain_a, None
+        if b.cycle - a.cycle > 1:
+            self._second_look(a, b, d, cum_a, var_a)
 
     def _add(self, cur: CycleResult) -> SeriesRow | None:
         self.revised = []
@@ -495,6 +550,8 @@ class RigChain:
                 log.info("rig %s: cycle %d (%s) resolved by cycle %d; re-issued as revision 1", cur.rig_id,
                          last.cycle.cycle, last.displacement.status, cur.cycle)
                 cum_b, var_b = self._anchor_cum + d_ab.advance_m, self._anchor_var + d_ab.bound_m**2
+                if last.cycle.cycle - anchor.cycle > 1:  # the re-issued row bridges cycles of its own
+                    self._second_look(anchor, last.cycle, d_ab, self._anchor_cum, self._anchor_var)
                 self.rows[-1] = SeriesRow(last.cycle, anchor, d_ab, cum_b, self._chain, np.sqrt(var_b),
                                           revision=1)
                 self.revised.append(self.rows[-1])
@@ -507,6 +564,7 @@ class RigChain:
                             "values start again from 0 at cycle %d (chain %d)", cur.rig_id, cur.cycle,
                             last.cycle.cycle, anchor.cycle, last.cycle.cycle, self._chain)
                 last.cumulative_m, last.cumulative_bound_m, last.chain = np.zeros(3), np.zeros(3), self._chain
+                self._rejoin = (anchor, self._anchor_cum, self._anchor_var, self._chain - 1, last.cycle)
                 self._restart(last.cycle)
                 return self._extend(cur, last.cycle, d3, np.zeros(3), np.zeros(3))
         row = self._append(SeriesRow(cur, anchor, d, np.full(3, np.nan), self._chain))
@@ -520,6 +578,7 @@ class RigChain:
                         cur.cycle, cur.cycle, self._chain + 1)
             self._chain += 1
             row.cumulative_m, row.cumulative_bound_m, row.chain = np.zeros(3), np.zeros(3), self._chain
+            self._rejoin = (anchor, self._anchor_cum, self._anchor_var, self._chain - 1, cur)
             self._restart(cur)
         return row
 
