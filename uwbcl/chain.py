@@ -472,48 +472,62 @@ class RigChain:
 
     def _rejoin_chains(self, current: SeriesRow | None) -> None:
         """The second look across a restart: the chain started again at cycle b because nothing linked it to
-        the anchor a then. Once the later cycles predict the step (the motion model, or a step learned from
-        the consecutive pairs other than (a, b), eq. M4), a -> b is measured again with that prior; if it is
-        ok, b's row is re-issued (revision 1) and the new chain's rows join the old one: their cumulative
-        values and bounds are shifted by a's cumulative plus a -> b, their chain is a's again (re-issued too,
-        except the current cycle's own row). Tried after every cycle until the chain starts again once more
-        or b is LEARN_PAIRS cycles back."""
+        the anchor a then (its rows after a untrusted). Once the later cycles predict the step (the motion
+        model, or a step learned from the consecutive pairs other than the one measured, eq. M4), the path
+        a -> (the untrusted cycles) -> b is measured again link by link with that prior, from each cycle to
+        the first later one it links to (a cycle no link reaches stays untrusted). If ok links reach b, their
+        rows are re-issued (revision 1) and the new chain's rows join the old one: their cumulative values and
+        bounds are shifted by b's, their chain is a's again (re-issued too, except the current cycle's own
+        row). Tried after every cycle until the chain starts again once more or b is LEARN_PAIRS cycles
+        back."""
         a, cum_a, var_a, chain_a, b = self._rejoin
         if (not self.association.second_look or self._chain != chain_a + 1 or not a.plates or not b.plates
                 or self._history[-1].cycle - b.cycle > LEARN_PAIRS):
             self._rejoin = None
             return
-        motion = self.motion() or self._learn(exclude=(a.cycle, b.cycle))
-        if motion is None:
-            return
-        d = self._measure(a, b, self._motion_prior(b.cycle - a.cycle, motion))
-        if d.status != "ok":
-            return
-        shift, var_shift = cum_a + d.advance_m, var_a + d.bound_m**2
-        log.info("rig %s: cycle %d joined to cycle %d by the later cycles' step; chain %d continues chain %d "
-                 "(re-issued as revision 1)", b.rig_id, b.cycle, a.cycle, self._chain, chain_a)
-        for i, r in enumerate(self.rows):
-            if r.chain != self._chain:
-                continue
-            if r.cycle is b:
-                self.rows[i] = r = SeriesRow(b, a, d, shift, chain_a, np.sqrt(var_shift), revision=1)
+        between = [r.cycle for r in self.rows if r.chain == chain_a and a.cycle < r.cycle.cycle < b.cycle
+                   and r.cycle.plates and not np.all(np.isfinite(r.cumulative_m))]
+        links, x, rest = [], a, [*between, b]
+        while rest:  # from x to the first later cycle it links to (an untrusted cycle may be skipped)
+            for k, y in enumerate(rest):
+                motion = self.motion() or self._learn(exclude=(x.cycle, y.cycle))
+                d = None if motion is None else self._measure(x, y, self._motion_prior(y.cycle - x.cycle,
+                                                                                       motion))
+                if d is not None and d.status == "ok":
+                    links.append((x, y, d))
+                    x, rest = y, rest[k + 1:]
+                    break
             else:
+                return
+        log.info("rig %s: cycles %s joined to cycle %d by the later cycles' step; chain %d continues "
+                 "chain %d (re-issued as revision 1)", b.rig_id, ", ".join(str(y.cycle) for _, y, _ in links),
+                 a.cycle, self._chain, chain_a)
+        cum, var = cum_a, var_a
+        fresh = {}
+        for x, y, d in links:
+            cum, var = cum + d.advance_m, var + d.bound_m**2
+            fresh[y.cycle] = SeriesRow(y, x, d, cum, chain_a, np.sqrt(var), revision=1)
+        shift, var_shift = cum, var  # b's cumulative and its variance
+        for i, r in enumerate(self.rows):
+            if r.cycle.cycle in fresh and r.chain in (chain_a, self._chain):
+                self.rows[i] = r = fresh[r.cycle.cycle]
+            elif r.chain == self._chain:
                 r.cumulative_m = r.cumulative_m + shift
                 r.cumulative_bound_m = np.sqrt(r.cumulative_bound_m**2 + var_shift)
                 r.chain = chain_a
                 if r is not current:
                     r.revision = 1
+            else:
+                continue
             if r is not current and all(r is not q for q in self.revised):
                 self.revised.append(r)
         self.revised.sort(key=lambda r: r.cycle.cycle)
         self._anchor_cum, self._anchor_var = self._anchor_cum + shift, self._anchor_var + var_shift
-        self._members = [(c, cum + shift, var + var_shift) for c, cum, var in self._members]
+        self._members = [(c, c_cum + shift, c_var + var_shift) for c, c_cum, c_var in self._members]
         if self._reserve is not None:
             index, via, via_cum, via_var = self._reserve
             self._reserve = (index, via, via_cum + shift, via_var + var_shift)
         self._chain, self._rejoin = chain_a, None
-        if b.cycle - a.cycle > 1:
-            self._second_look(a, b, d, cum_a, var_a)
 
     def _add(self, cur: CycleResult) -> SeriesRow | None:
         self.revised = []
