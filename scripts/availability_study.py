@@ -17,6 +17,11 @@ and, against the truth, per scenario:
     python scripts/availability_study.py --work /tmp/avail --jobs 2            # full: 41 cycles per scenario
     python scripts/availability_study.py --work /tmp/avail-quick --quick       # CI size: 6 cycles
     python scripts/availability_study.py --work /tmp/avail --reuse-detections  # association only (see below)
+    python scripts/availability_study.py --work /tmp/avail-random --random 30  # 30 drawn scenarios, 6 cycles
+
+`--random N` draws N scenarios from the issue's ranges instead (`random_scenario`: squint, rib, heights, SNR,
+wobble, grid, rows, missing plates, rib side, radar, int16, a missed cycle), each run with and without a
+web-depth prior over a short history (6 cycles: a user's first night), and prints the pooled rows per SNR class.
 
 Archives are cached under WORK/<scenario>/archive (regenerated only when the scenario's parameters change).
 `--reuse-detections` copies the per-pass detection cache of the earlier run whose cache was written last
@@ -38,6 +43,7 @@ import datetime as dt
 import json
 import math
 import os
+import random
 import shutil
 import subprocess
 import sys
@@ -98,6 +104,24 @@ VARIANTS = {  # name: (parent, heights to keep or None, web-depth prior?)
     "four-heights-2h": ("four-heights-snr10", (0.15, 0.75), True),
 }
 QUICK = ["base", "dense-3h", "dense-2h", "dense-3h-noprior"]
+RADARS = ((4.3e9, 1.7e9), (4.0e9, 1.4e9), (3.95e9, 1.2e9))  # (carrier, -10 dB bandwidth) of random scenarios
+
+
+def random_scenario(seed: int, cycles: int) -> Scenario:
+    """A scenario drawn from issue 14's ranges (`--random`): squint 15-45 deg, rib 1.5-4.5 m, 2-4 heights,
+    SNR 5/10/15/20 dB, wobble up to 15 %, a 1.0-1.5 m grid in 2 or 3 rows with 10-25 % of the plates missing,
+    either rib side, one of three radars, int16 archives in 30 %, one missed cycle in half of them."""
+    r = random.Random(seed)
+    heights = np.linspace(r.uniform(0.1, 0.25), r.uniform(0.55, 0.8), r.choice([2, 2, 3, 3, 4]))
+    rows = (0.6, 1.3) if r.choice([2, 3]) == 2 else (0.5, 1.1, 1.7)
+    carrier, bandwidth = r.choice(RADARS)
+    missed = tuple(sorted(r.sample(range(2, cycles), 1))) if r.random() < 0.5 else ()
+    return Scenario(f"r{seed}", squint_deg=r.uniform(15, 45), rib_m=r.uniform(1.5, 4.5),
+                    heights_m=tuple(round(float(h), 3) for h in heights),
+                    snr_db=r.choice([5.0, 10.0, 15.0, 20.0]), wobble=r.uniform(0.0, 0.15),
+                    grid_m=r.uniform(1.0, 1.5), rows_z_m=rows, missing=r.uniform(0.1, 0.25),
+                    side=r.choice([-1, 1]), carrier_hz=carrier, bandwidth_hz=bandwidth,
+                    int16=r.random() < 0.3, missed=missed, seed=seed)
 
 
 # ----------------------------------------------------------------------------------------------- the scene
@@ -337,7 +361,8 @@ def score(out: Path, rig_m: np.ndarray) -> dict:
         "max_mm": (1e3 * np.max(np.abs(err), axis=0)).tolist() if len(err) else [math.nan] * 2,
         "cover": (100.0 * np.mean(cover)) if cover else math.nan,
         "cum_cover": (100.0 * np.mean(cum_cover)) if cum_cover else math.nan,
-        "gross": gross, "drift_mm": (1e3 * drift).tolist(), "chains": len(chain_start), "statuses": statuses,
+        "gross": gross, "beyond": len(cover) - int(sum(cover)),
+        "drift_mm": (1e3 * drift).tolist(), "chains": len(chain_start), "statuses": statuses,
         "statuses_in_order": [r["status"] for r in rows],
     }
 
@@ -358,6 +383,27 @@ def table(results: dict) -> str:
     return "\n".join(lines)
 
 
+def summary(results: dict, snr_db: dict) -> str:
+    """Pooled over scenarios, per SNR class and with / without a prior: rows, % ok, ok rows beyond 3 x their
+    bound, gross errors, RMS of the ok rows (retreat / creep, mm)."""
+    lines = [f"{'class':22s} {'scen':>4s} {'rows':>4s} {'ok%':>6s} {'beyond 3x':>9s} {'gross':>5s} "
+             f"{'RMS x/y mm':>11s}"]
+    for label, keep in (("SNR >= 10 dB", lambda v: v >= 10.0), ("SNR 5 dB", lambda v: v < 10.0)):
+        for prior in (True, False):
+            names = [n for n in results if keep(snr_db[n]) and n.endswith("-noprior") != prior]
+            if not names:
+                continue
+            ok = sum(results[n]["ok"] for n in names)
+            rows = sum(results[n]["rows"] for n in names)
+            sq = sum(results[n]["ok"] * np.array(results[n]["rms_mm"]) ** 2
+                     for n in names if results[n]["ok"])
+            rms = np.sqrt(sq / ok) if ok else np.full(2, math.nan)
+            lines.append(f"{label + (', prior' if prior else ', no prior'):22s} {len(names):4d} {rows:4d} "
+                         f"{100.0 * ok / max(rows, 1):6.1f} {sum(results[n]['beyond'] for n in names):9d} "
+                         f"{sum(results[n]['gross'] for n in names):5d} {rms[0]:5.1f}/{rms[1]:<5.1f}")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--work", type=Path, required=True)
@@ -371,7 +417,13 @@ def main(argv=None) -> int:
     ap.add_argument("--config", type=Path, default=None, help="site configuration passed to uwbcl process")
     ap.add_argument("--tag", default="out", help="output directory name per scenario (default: out)")
     ap.add_argument("--json", type=Path, default=None, help="write the results here")
+    ap.add_argument("--random", type=int, default=0, metavar="N",
+                    help="instead: N scenarios drawn from the issue's ranges (`random_scenario`), each "
+                         "with and without a prior (default 6 cycles each)")
+    ap.add_argument("--random-seed", type=int, default=300, help="seed of the first random scenario")
     args = ap.parse_args(argv)
+    if args.random:
+        return run_random(args)
     cycles = args.cycles or (6 if args.quick else 41)
     names = args.only or (QUICK if args.quick else [s.name for s in SCENARIOS] + list(VARIANTS))
     by_name = {s.name: s for s in SCENARIOS}
@@ -392,6 +444,35 @@ def main(argv=None) -> int:
         results[name] = score(out, rig_m)
         print(f"  {name}: processed in {secs:.0f} s", flush=True)
     print(table(results))
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1) + "\n")
+    return 0
+
+
+def run_random(args) -> int:
+    """`--random N`: short runs of independently drawn scenarios, as a user's first cycles would be."""
+    cycles = args.cycles or 6
+    results, snr_db = {}, {}
+    for seed in range(args.random_seed, args.random_seed + args.random):
+        s = random_scenario(seed, cycles)
+        root = args.work / s.name
+        arch = generate(s, cycles, root)
+        rig_m = np.array(json.loads((root / "truth.json").read_text())["rig_m"])
+        for prior in (True, False):
+            name = s.name if prior else f"{s.name}-noprior"
+            out = root / (args.tag if prior else f"{args.tag}-noprior")
+            reuse = newest_run(root) if args.reuse_detections else None
+            if not prior:
+                share_cache(root / args.tag, out)
+            run_process(arch, out, s, None, prior, args.jobs, reuse, args.config)
+            results[name], snr_db[name] = score(out, rig_m), s.snr_db
+        print(f"  {s.name}: squint {s.squint_deg:.0f} deg, rib {s.rib_m:.1f} m, {len(s.heights_m)} heights, "
+              f"{s.snr_db:.0f} dB, wobble {100 * s.wobble:.0f} %, "
+              f"grid {s.grid_m:.2f} m x {len(s.rows_z_m)} rows, side {s.side:+d}, "
+              f"{s.carrier_hz / 1e9:.2f}/{s.bandwidth_hz / 1e9:.1f} GHz"
+              f"{', int16' if s.int16 else ''}{f', missed {list(s.missed)}' if s.missed else ''}", flush=True)
+    print(table(results))
+    print(summary(results, snr_db))
     if args.json:
         args.json.write_text(json.dumps(results, indent=1) + "\n")
     return 0
