@@ -21,7 +21,8 @@ and, against the truth, per scenario:
 
 `--random N` draws N scenarios from the issue's ranges instead (`random_scenario`: squint, rib, heights, SNR,
 wobble, grid, rows, missing plates, rib side, radar, int16, a missed cycle), each run with and without a
-web-depth prior over a short history (6 cycles: a user's first night), and prints the pooled rows per SNR class.
+web-depth prior over a short history (6 cycles: a user's first night), and prints the pooled rows per SNR
+class.
 
 Archives are cached under WORK/<scenario>/archive (regenerated only when the scenario's parameters change).
 `--reuse-detections` copies the per-pass detection cache of the earlier run whose cache was written last
