@@ -157,7 +157,9 @@ class RigChain:
     plate spacing. The second look: when a trusted match bridges untrusted cycles, each is measured again
     from both ends with the bridge's prior (`bridge_prior`); if both halves are ok and close on the bridge,
     its row is re-issued with `revision` 1 and a cumulative value (the anchor's plus its own step: the
-    bridge's cumulative is not changed by it).
+    bridge's cumulative is not changed by it). A chain that had to start again is joined to the one before
+    once the later cycles predict the step (`_rejoin_chains`): its rows are re-issued with the old chain's
+    number and cumulative values.
 
     State is real here: a row depends only on the cycles before it, so `uwbcl acquire --process` feeding the
     cycles one at a time gets exactly the rows that `uwbcl process` gets from the whole series.
