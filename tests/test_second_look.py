@@ -8,7 +8,7 @@ import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
-from test_association_honesty import HEIGHTS, PRIOR, noisy_cycles
+from test_association_honesty import HEIGHTS, PRIOR, noisy_cycles, plate
 
 from uwbcl import chain, outputs
 from uwbcl.acquisition import live
@@ -150,3 +150,21 @@ def test_the_live_processor_appends_the_reissued_rows_after_the_cycle_that_resol
         first = next(i for i, x in enumerate(results) if x["cycle"] == r["cycle"])
         assert results.index(r) > first and results[first]["revision"] == 0
     assert "revision" in live.RESULT_COLUMNS and "revision" in outputs.DISPLACEMENT_COLUMNS
+
+
+def test_a_row_resolved_with_the_next_cycles_plates_names_only_its_own_plates():
+    """`_resolve_through` matches a against b's plates plus c's moved into b's frame; the re-issued row is
+    b's, so its pairs name b's plates only (a moved plate's index beyond b's once broke targets.csv)."""
+
+    rib = np.array([[1.0, -2.5, 0.6], [2.1, -2.5, 1.3], [3.4, -2.5, 0.6]])
+    step = np.array([0.9, 0.002, 0.0])
+    a = CycleResult("r", 0, "2026-11-24T00:00:00Z", HEIGHTS, [plate(p) for p in rib])
+    b = CycleResult("r", 1, "2026-11-24T01:00:00Z", HEIGHTS, [plate(rib[1] - step)])
+    c = CycleResult("r", 2, "2026-11-24T02:00:00Z", HEIGHTS, [plate(p - 2 * step) for p in rib])
+    rc = chain.RigChain(PRIOR)
+    for cycle in (a, b, c):
+        rc.add(cycle)
+    d_ab = rc._resolve_through(a, b, c, rc._measure(b, c))
+    assert d_ab is not None and d_ab.n_targets == 3  # the moved plates were matched too
+    assert d_ab.pairs and all(j < len(b.plates) for _, j in d_ab.pairs)
+    np.testing.assert_allclose(d_ab.advance_m[:2], step[:2], atol=1e-3)

@@ -398,7 +398,10 @@ class RigChain:
         cov_b = np.concatenate([self._covs[b.cycle], self._covs[c.cycle][extra] + np.diag(d_bc.bound_m**2)])
         d_ab = estimate_advance(a.plates, list(b.plates) + moved, self.prior(b.cycle - a.cycle),
                                 before_cov_m2=scale * self._covs[a.cycle], after_cov_m2=scale * cov_b)
-        return d_ab if d_ab.status == "ok" else None
+        if d_ab.status != "ok":
+            return None
+        # the row is b's: its pairs name b's own plates (the moved plates are c's, counted in n_targets)
+        return dataclasses.replace(d_ab, pairs=[(i, j) for i, j in d_ab.pairs if j < len(b.plates)])
 
     def _second_look(self, a: CycleResult, c: CycleResult, d_ac: Displacement, cum_a: np.ndarray,
                      var_a: np.ndarray) -> None:
