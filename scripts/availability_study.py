@@ -284,8 +284,8 @@ def run_process(arch: Path, out: Path, s: Scenario, heights, prior: bool, jobs: 
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
     t = time.perf_counter()
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
-    if r.returncode not in (0, 1):
-        raise SystemExit(f"uwbcl process failed ({r.returncode}):\n{r.stderr[-3000:]}")
+    if r.returncode not in (0, 1) or not (out / "displacements.csv").exists():  # 1: some inputs had problems
+        raise SystemExit(f"uwbcl process failed ({r.returncode}) on {arch}:\n{r.stderr[-3000:]}")
     return time.perf_counter() - t
 
 
