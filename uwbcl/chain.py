@@ -260,13 +260,16 @@ class RigChain:
         prior (web depth) scaled by the gap, or none.
         """
         motion = self.motion()
-        return self._motion_prior(gap, motion if motion is not None else self._learned)
+        if motion is None:
+            return self._motion_prior(gap, self._learned, learned=True)
+        return self._motion_prior(gap, motion, learned=False)
 
-    def _motion_prior(self, gap: int, motion: tuple[np.ndarray, np.ndarray] | None) -> AssociationSettings:
-        """`prior` from a per-cycle (step, sigma): the motion model's or a learned step (None: the configured
-        prior alone). A learned step that disagrees with the configured prior is not used."""
+    def _motion_prior(self, gap: int, motion: tuple[np.ndarray, np.ndarray] | None, learned: bool
+                      ) -> AssociationSettings:
+        """`prior` from a per-cycle (step, sigma): the motion model's, or a `learned` step (M4), or None (the
+        configured prior alone). A learned step that disagrees with the configured prior is not used."""
         base = self.association.for_gap(gap)
-        if motion is not None and self.motion() is None and base.prior_advance_m is not None and \
+        if motion is not None and learned and base.prior_advance_m is not None and \
                 np.any(np.abs(gap * motion[0] - base.prior_advance_m) > base.prior_window_m):
             motion = None  # the data disagree with the configured prior: that stays a prior_conflict
         base = dataclasses.replace(base, vertical_prior_m=self.vertical_prior(gap))
@@ -492,12 +495,13 @@ class RigChain:
             return
         between = [r.cycle for r in self.rows if r.chain == chain_a and a.cycle < r.cycle.cycle < b.cycle
                    and r.cycle.plates and not np.all(np.isfinite(r.cumulative_m))]
+        model = self.motion()
         links, x, rest = [], a, [*between, b]
         while rest:  # from x to the first later cycle it links to (an untrusted cycle may be skipped)
             for k, y in enumerate(rest):
-                motion = self.motion() or self._learn(exclude=(x.cycle, y.cycle))
-                d = None if motion is None else self._measure(x, y, self._motion_prior(y.cycle - x.cycle,
-                                                                                       motion))
+                motion = model or self._learn(exclude=(x.cycle, y.cycle))
+                d = None if motion is None else self._measure(
+                    x, y, self._motion_prior(y.cycle - x.cycle, motion, learned=model is None))
                 if d is not None and d.status == "ok":
                     links.append((x, y, d))
                     x, rest = y, rest[k + 1:]

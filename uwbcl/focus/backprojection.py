@@ -99,12 +99,13 @@ def point_target_echo(grid: nlcs.FocusGrid, x_rel_m: np.ndarray, t_s: np.ndarray
     k = 4.0 * math.pi * grid.carrier_frequency_hz / C
     phase = np.exp(-1j * k * rng)
     t = np.asarray(t_s, dtype=float)
-    window = _support_columns(t, 2.0 * rng / C, grid.pulse_support_s(matched))
+    delay = 2.0 * rng / C
+    window = _support_columns(t, delay, grid.pulse_support_s(matched))
     if window is None:
-        return phase[:, None] * grid.pulse_waveform(t[None, :] - 2.0 * rng[:, None] / C, matched), in_band
+        return phase[:, None] * grid.pulse_waveform(t[None, :] - delay[:, None], matched), in_band
     rows, cols = window  # the same samples, evaluated only where the pulse is not negligible
     out = np.zeros((rng.size, t.size), dtype=np.complex128)
-    out[rows, cols] = phase[rows] * grid.pulse_waveform(t[cols] - 2.0 * rng[rows] / C, matched)
+    out[rows, cols] = phase[rows] * grid.pulse_waveform(t[cols] - delay[rows], matched)
     return out, in_band
 
 
@@ -116,8 +117,10 @@ def _support_columns(t_s: np.ndarray, delay_s: np.ndarray, half_s: float
     if not math.isfinite(half_s) or n < 2:
         return None
     dt = (t_s[-1] - t_s[0]) / (n - 1)
+    if not dt > 0:
+        return None
     width = int(math.ceil(2.0 * half_s / dt)) + 2
-    if dt <= 0 or 2 * width > n or np.abs(np.diff(t_s) - dt).max() > 1e-9 * dt:
+    if 2 * width > n or np.abs(np.diff(t_s) - dt).max() > 1e-9 * dt:
         return None
     first = np.ceil((delay_s - half_s - t_s[0]) / dt).astype(np.int64)
     cols = first[:, None] + np.arange(width)

@@ -223,8 +223,8 @@ class FocusEngine(OpenclProcessing):
 
     def _lagrange_weights(self, x_rel_m: np.ndarray, grid: nlcs.FocusGrid) -> tuple[np.ndarray, np.ndarray]:
         """(first tap pulse (n_track,), weights (n_track, taps)) of `nlcs.lagrange_weights` onto the grid's
-        uniform track, kept for the last track (every neighbour
-        model of a pass is resampled from the pass's own rail positions)."""
+        uniform track, kept for the last track (every neighbour model of a pass is resampled from the pass's
+        own rail positions)."""
         key = np.asarray(x_rel_m, dtype=float).tobytes()
         if self._track is None or self._track[0] != key or self._track[1] != grid:
             idx, w = nlcs.lagrange_weights(x_rel_m, grid.t_track_s * grid.speed_m_s, LAGRANGE_TAPS)
