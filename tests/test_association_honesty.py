@@ -193,3 +193,22 @@ def test_a_plate_whose_passes_do_not_meet_at_one_point_is_as_uncertain_as_its_mi
     cov = chain.plate_covariances(CycleResult("r", 1, "", HEIGHTS_3, [after]), 0.003)[0]
     plain = location_covariance_m2(after.position_m, HEIGHTS_3, 0.003)
     np.testing.assert_allclose(cov, plain * chain.misfit_scale(after, 0.003))
+
+
+def test_a_row_of_plates_a_metre_above_is_told_apart_by_the_rigs_vertical_step_prior():
+    """Eq. M2v: three plates seen again 0.9 m back, and a second row 0.7 m above that lines up just as well.
+    The data alone cannot choose; the rig's vertical step prior (a few centimetres) can, and the margin
+    against "no plate in common" is the data's alone."""
+    before = np.array([[1.0, -2.4, 0.6], [2.3, -2.4, 0.6], [3.5, -2.4, 0.6]])
+    after = np.concatenate([before - (0.9, 0.0, 0.0), before - (0.9, 0.0, -0.7)])
+    args = ([plate(p) for p in before], [plate(q) for q in after])
+    kw = {"before_cov_m2": covs(before), "after_cov_m2": covs(after)}
+    blind = estimate_advance(*args, AssociationSettings(), **kw)
+    assert blind.status == "ambiguous" and blind.margin < 1.0
+    d = estimate_advance(*args, AssociationSettings(vertical_prior_m=(0.0, 0.02)), **kw)
+    assert d.status == "ok", d
+    np.testing.assert_allclose(d.advance_m, (0.9, 0.0, 0.0), atol=1e-3)
+    seen = after[:3]  # the right row alone
+    data_only = estimate_advance([plate(p) for p in before], [plate(q) for q in seen], AssociationSettings(),
+                                 before_cov_m2=covs(before), after_cov_m2=covs(seen))
+    assert d.margin <= data_only.margin + 1e-9

@@ -99,6 +99,29 @@ def test_a_chain_started_again_after_an_ambiguous_first_row_joins_it_once_later_
         assert np.all(error <= 3.0 * r.cumulative_bound_m[:2]), (r.cycle.cycle, error)
 
 
+def test_untrusted_rows_the_later_step_links_to_the_old_chain_are_reissued_even_when_the_restart_is_not():
+    """No prior: rows 1 and 2 are ambiguous and the chain starts again at cycle 3. The later cycles' step
+    links 0 -> 1 -> 2 but not 2 -> 3: rows 1 and 2 are re-issued in chain 0 with cumulative values from cycle
+    0; chain 1 stays as it was (measured 2026-11-24: seed 4, a 3 m view)."""
+    cycles, rigs = noisy_cycles(8, seed=4, window=(0.0, 3.0), sigma=0.004)
+    rc = chain.RigChain(BLIND)
+    first_issue, reissued = {}, []
+    for c in cycles:
+        row = rc.add(c)
+        if row is not None:
+            first_issue.setdefault(row.cycle.cycle, row.displacement.status)
+        reissued += [r.cycle.cycle for r in rc.revised]
+    assert first_issue[1] != "ok" and first_issue[2] != "ok" and {1, 2} <= set(reissued)
+    by_cycle = {r.cycle.cycle: r for r in rc.rows}
+    for c in (1, 2):
+        r = by_cycle[c]
+        assert (r.displacement.status, r.chain, r.revision, r.reference.cycle) == ("ok", 0, 1, c - 1)
+        error = np.abs(r.cumulative_m[:2] - (rigs[c] - rigs[0])[:2])
+        assert np.all(error <= 3.0 * r.cumulative_bound_m[:2]), (c, error)
+    assert by_cycle[3].chain == 1 and by_cycle[3].displacement.status != "ok"
+    assert all(by_cycle[c].chain == 1 for c in range(4, 8))
+
+
 def test_a_cycle_whose_anchor_saw_one_plate_is_measured_from_the_chains_earlier_cycle():
     cycles, rigs = noisy_cycles(10, seed=0)
     cycles[4] = CycleResult("rig-1", 4, cycles[4].start_time, HEIGHTS, cycles[4].plates[:1])

@@ -499,7 +499,7 @@ class RigChain:
         links, x, rest = [], a, [*between, b]
         while rest:  # from x to the first later cycle it links to (an untrusted cycle may be skipped)
             for k, y in enumerate(rest):
-                motion = model or self._learn(exclude=(x.cycle, y.cycle))
+                motion = model or self._confirmed(self._learn(exclude=(x.cycle, y.cycle)))
                 d = None if motion is None else self._measure(
                     x, y, self._motion_prior(y.cycle - x.cycle, motion, learned=model is None))
                 if d is not None and d.status == "ok":
@@ -507,6 +507,7 @@ class RigChain:
                     x, rest = y, rest[k + 1:]
                     break
             else:
+                self._extend_old_chain(links, [*between, b])
                 return
         log.info("rig %s: cycles %s joined to cycle %d by the later cycles' step; chain %d continues "
                  "chain %d (re-issued as revision 1)", b.rig_id, ", ".join(str(y.cycle) for _, y, _ in links),
@@ -537,6 +538,45 @@ class RigChain:
             index, via, via_cum, via_var = self._reserve
             self._reserve = (index, via, via_cum + shift, via_var + var_shift)
         self._chain, self._rejoin = chain_a, None
+
+    def _confirmed(self, learned: tuple[np.ndarray, np.ndarray] | None
+                   ) -> tuple[np.ndarray, np.ndarray] | None:
+        """A learned step (M4) that the rejoin may use: one that an ok row of the new chain measured too
+        (its per-cycle advance within 3 sigma on every axis). The rejoin re-issues rows as ok on it, and a
+        sum of pairs each too ambiguous to trust can agree on a wrong step once the pair being measured is
+        left out (a 2 m view with two plates a cycle: 1 wrong row in 1,600 runs without this)."""
+        if learned is None:
+            return None
+        step, sigma = learned
+        for r in self.rows:
+            if r.chain == self._chain and r.displacement.status == "ok":
+                gap = r.cycle.cycle - r.reference.cycle
+                if bool(np.all(np.abs(r.displacement.advance_m / gap - step) <= 3.0 * sigma)):
+                    return learned
+        return None
+
+    def _extend_old_chain(self, links: list[tuple[CycleResult, CycleResult, Displacement]],
+                          path: list[CycleResult]) -> None:
+        """`_rejoin_chains` linked a to some of the untrusted cycles on `path` but not (yet) to b: the links
+        up to the first cycle skipped (a later try may still reach it) are re-issued in a's chain
+        (revision 1), and the next try starts from the last of them."""
+        n = 0
+        while n < len(links) and links[n][1] is path[n]:
+            n += 1
+        links = links[:n]
+        if not links:
+            return
+        a, cum, var, chain_a, b = self._rejoin
+        for x, y, d in links:
+            cum, var = cum + d.advance_m, var + d.bound_m**2
+            for i, r in enumerate(self.rows):
+                if r.cycle.cycle == y.cycle and r.chain == chain_a:
+                    log.info("rig %s: cycle %d (%s) resolved by the later cycles' step; re-issued as "
+                             "revision 1", y.rig_id, y.cycle, r.displacement.status)
+                    self.rows[i] = SeriesRow(y, x, d, cum, chain_a, np.sqrt(var), revision=1)
+                    self.revised.append(self.rows[i])
+        self.revised.sort(key=lambda r: r.cycle.cycle)
+        self._rejoin = (links[-1][1], cum, var, chain_a, b)
 
     def _add(self, cur: CycleResult) -> SeriesRow | None:
         self.revised = []

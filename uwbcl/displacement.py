@@ -140,24 +140,46 @@ class _Hypothesis:
     cov: np.ndarray  # (3, 3) its GLS covariance, m^2
     pairs: tuple[tuple[int, int], ...]
     inside: bool  # within the prior window (always True without a prior)
+    vertical: float = 0.0  # the vertical step prior's penalty in score (eq. M2v), <= 0
 
 
 def _prior_log(shift: np.ndarray, settings: AssociationSettings) -> tuple[float, bool]:
     """Log prior of a translation against the blind search (eq. M2) and whether it lies inside the window.
 
-    M2: ln[(1 - eps) N(t; mu, Sigma) * A_blind + eps], Sigma = diag(window / 3)^2, normalised in (x, z): the
-    rib's plates share y, so y discriminates nothing and only penalises. Without a prior: 0, inside.
+    M2: ln[(1 - eps) N(t; mu, diag(w / 3)^2) * A_blind + eps], normalised in (x, z): the rib's plates share y,
+    so y discriminates nothing and only penalises. With the chain's vertical step prior the Gaussian's z is
+    left to `_vertical_log` (its normalisation stays). Without a prior: 0, inside.
     """
     if settings.prior_advance_m is None:
         return 0.0, True
     mu = np.asarray(settings.prior_advance_m, dtype=float)
     window = np.asarray(settings.prior_window_m, dtype=float)
     sigma = window / 3.0
-    m2 = float(np.sum(((shift - mu) / sigma) ** 2))
+    axes = slice(0, 2) if _vertical_prior(settings) is not None else slice(0, 3)
+    m2 = float(np.sum(((shift[axes] - mu[axes]) / sigma[axes]) ** 2))
     peak = BLIND_AREA_M2 / (2.0 * np.pi * sigma[0] * sigma[2])
     eps = PRIOR_OUTLIER_PROBABILITY
     inside = bool(np.all(np.abs(shift - mu) <= window))
     return float(np.log((1.0 - eps) * peak * np.exp(-0.5 * m2) + eps)), inside
+
+
+def _vertical_prior(settings: AssociationSettings) -> tuple[float, float] | None:
+    v = settings.vertical_prior_m
+    return None if v is None or not v[1] > 0 else (float(v[0]), float(v[1]))
+
+
+def _vertical_log(shift: np.ndarray, shift_cov: np.ndarray, settings: AssociationSettings) -> float:
+    """Eq. M2v: ln[(1 - eps) exp(-m^2 / 2) + eps], m^2 = (t_z - v)^2 / (s_v^2 + Sigma_t,zz), of a translation
+    t (covariance Sigma_t) against the chain's vertical step prior N(v, s_v^2) (eq. M5); 0 without one.
+    A penalty only, from 0 to ln eps: a plate matched to the row above or below (0.5-0.7 m off in z) pays it,
+    a vertical within its combined sigma pays little, and no translation gains against "no plate in
+    common" (the margin against it leaves this term out)."""
+    prior = _vertical_prior(settings)
+    if prior is None:
+        return 0.0
+    m2 = (float(shift[2]) - prior[0]) ** 2 / (prior[1] ** 2 + float(shift_cov[2, 2]))
+    eps = PRIOR_OUTLIER_PROBABILITY
+    return float(np.log((1.0 - eps) * np.exp(-0.5 * m2) + eps))
 
 
 def _greedy(chi2: np.ndarray, gate: float) -> list[tuple[int, int]]:
@@ -212,7 +234,8 @@ def _hypotheses(diff: np.ndarray, cov: np.ndarray, gain: np.ndarray, settings: A
         idx = tuple(np.array(pairs).T)
         data = float(np.sum(gain[idx] - 0.5 * _chi2(diff[idx], shift, cov[idx])))
         prior, inside = _prior_log(shift, settings)
-        out.append(_Hypothesis(data + prior, shift, s_cov, key, inside))
+        vertical = _vertical_log(shift, s_cov, settings)
+        out.append(_Hypothesis(data + prior + vertical, shift, s_cov, key, inside, vertical))
     out.sort(key=lambda h: (-h.score, -len(h.pairs), h.pairs))
     tol = np.asarray(settings.tolerance_m, dtype=float)
     distinct: list[_Hypothesis] = []
@@ -270,7 +293,7 @@ def translation_scores(before: list[Located], after: list[Located], settings: As
         return []
     tol = np.asarray(settings.tolerance_m, dtype=float)
     _, _, diff, cov, gain, _ = _pair_terms(before, after, tol, before_cov_m2, after_cov_m2)
-    blind = dataclasses.replace(settings, prior_advance_m=None)
+    blind = dataclasses.replace(settings, prior_advance_m=None, vertical_prior_m=None)
     return [(h.shift, h.score) for h in _hypotheses(diff, cov, gain, blind)]
 
 
@@ -315,11 +338,13 @@ def estimate_advance(before: list[Located], after: list[Located],
         return none
     best = hyps[0]
     runner_up = hyps[1] if len(hyps) > 1 else None
-    # The competitor: the best distinct translation, or "no plate in common" (score 0), whichever is higher.
-    if runner_up is not None and runner_up.score > 0.0:
+    # The competitor: the best distinct translation, or "no plate in common" (score 0; the vertical penalty
+    # M2v is not counted against it), whichever is closer.
+    null_margin = best.score - best.vertical
+    if runner_up is not None and best.score - runner_up.score < null_margin:
         margin, offset = best.score - runner_up.score, np.abs(runner_up.shift - best.shift)
     else:
-        margin, offset = best.score, NULL_OFFSET_M
+        margin, offset = null_margin, NULL_OFFSET_M
 
     # The reported estimate: every plate within the tolerance box of the best translation, leave-one-out
     # rejection beyond outlier_chi2, GLS (so two plates that disagree are seen, not silently dropped).
