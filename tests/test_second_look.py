@@ -135,6 +135,29 @@ def test_a_rejoin_never_rests_on_a_step_that_only_ambiguous_pairs_agree_on():
             assert e.max() < 0.05, (r.cycle.cycle, r.reference.cycle, e)
 
 
+def test_an_untrusted_row_after_the_anchor_is_reissued_once_the_next_cycles_give_the_step():
+    """No prior, a 2 m view: cycle 7 is ambiguous from the anchor 6, and cycle 8 is ambiguous too. Once the
+    step learned without the pair 6 -> 7 (and confirmed by the chain's ok rows) exists, 6 -> 7 is measured
+    again with it as cycle 8 arrives, re-issued ok (revision 1), and the anchor moves to 7; no later cycle
+    had to bridge it (measured 2026-11-24: seed 300)."""
+    cycles, rigs = noisy_cycles(10, seed=300, window=(0.0, 2.0), sigma=0.004)
+    rc = chain.RigChain(BLIND)
+    for c in cycles[:8]:
+        rc.add(c)
+    assert [r.cycle.cycle for r in rc.revised] == [] and rc.rows[-1].displacement.status == "ambiguous"
+    first_seven = rc.rows[-1]
+    row = rc.add(cycles[8])
+    assert row.displacement.status != "ok"
+    assert [(r.cycle.cycle, r.reference.cycle, r.displacement.status, r.revision) for r in rc.revised] == \
+        [(7, 6, "ok", 1)]
+    seven = rc.revised[0]
+    assert first_seven.cycle.cycle == 7 and first_seven.displacement.status == "ambiguous"
+    e = np.abs(seven.displacement.advance_m[:2] - (rigs[7] - rigs[6])[:2])
+    assert np.all(e <= 3.0 * seven.displacement.bound_m[:2]), e
+    previous = next(r for r in rc.rows if r.cycle.cycle == 6)
+    np.testing.assert_allclose(seven.cumulative_m, previous.cumulative_m + seven.displacement.advance_m, atol=1e-12)
+
+
 def test_a_cycle_whose_anchor_saw_one_plate_is_measured_from_the_chains_earlier_cycle():
     cycles, rigs = noisy_cycles(10, seed=0)
     cycles[4] = CycleResult("rig-1", 4, cycles[4].start_time, HEIGHTS, cycles[4].plates[:1])

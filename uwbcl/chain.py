@@ -159,7 +159,8 @@ class RigChain:
     its row is re-issued with `revision` 1 and a cumulative value (the anchor's plus its own step: the
     bridge's cumulative is not changed by it). A chain that had to start again is joined to the one before
     once the later cycles predict the step (`_rejoin_chains`): its rows are re-issued with the old chain's
-    number and cumulative values.
+    number and cumulative values. Untrusted rows after the anchor are measured again from it once a step is
+    learned without them (`_catch_up`).
 
     State is real here: a row depends only on the cycles before it, so `uwbcl acquire --process` feeding the
     cycles one at a time gets exactly the rows that `uwbcl process` gets from the whole series.
@@ -450,6 +451,13 @@ class RigChain:
         if self.association.second_look and cur.cycle - via.cycle > 1:
             self._second_look(via, cur, d, cum_via, var_via)
         row = self._append(SeriesRow(cur, via, d, cum, self._chain, np.sqrt(var)))
+        self._move_anchor(cur, via, d, cum, var)
+        return row
+
+    def _move_anchor(self, cur: CycleResult, via: CycleResult, d: Displacement, cum: np.ndarray,
+                     var: np.ndarray) -> None:
+        """The chain now ends at `cur` (cumulative cum, variance var), reached from `via` by the trusted d; an
+        ok d is one more step for the motion model, the vertical model and the covariance scale."""
         self._anchor, self._anchor_cum, self._anchor_var, self._reserve = cur, cum, var, None
         self._members = [*self._members[-self.max_bridge_cycles:], (cur, cum, var)]
         if d.status == "ok":
@@ -462,7 +470,6 @@ class RigChain:
                                  self._covs[cur.cycle])
             if dof:
                 self._fits.append((chi2, dof))
-        return row
 
     def add(self, cur: CycleResult) -> SeriesRow | None:
         """Measure the next cycle (higher cycle number than every cycle before); None for the rig's first.
@@ -476,7 +483,42 @@ class RigChain:
         self._learned = self._learn() if needed else None
         if self._rejoin is not None:
             self._rejoin_chains(row)
+        if needed and self._anchor is not None:
+            self._catch_up(row)
         return row
+
+    def _catch_up(self, current: SeriesRow | None) -> None:
+        """The second look at the untrusted rows after the anchor (before the current cycle, which no later
+        cycle has seen yet): once a step is learned without the pair being measured (M4, `_confirmed`),
+        anchor -> the next untrusted cycle is measured again with it; an ok link re-issues that row (revision
+        1) and moves the anchor there, until a link fails. A run whose first cycles were each too ambiguous
+        alone gets its rows back as soon as the cycles after them give the step, not only when a later
+        cycle bridges them."""
+        x = self._anchor
+        pending = sorted((r for r in self.rows if r.chain == self._chain and r.cycle.cycle > x.cycle
+                          and r is not current and not np.all(np.isfinite(r.cumulative_m))),
+                         key=lambda r: r.cycle.cycle)
+        for r in pending:
+            y = r.cycle
+            learned = self._confirmed(self._learn(exclude=(x.cycle, y.cycle))) if x.plates and y.plates \
+                else None
+            if learned is None:
+                return
+            d = self._measure(x, y, self._motion_prior(y.cycle - x.cycle, learned, learned=True))
+            if d.status != "ok":
+                return
+            cum, var = self._anchor_cum + d.advance_m, self._anchor_var + d.bound_m**2
+            log.info("rig %s: cycle %d (%s) resolved by the later cycles' step; re-issued as revision 1",
+                     y.rig_id, y.cycle, r.displacement.status)
+            i = next(k for k, q in enumerate(self.rows) if q is r)
+            self.rows[i] = SeriesRow(y, x, d, cum, self._chain, np.sqrt(var), revision=1)
+            self.revised.append(self.rows[i])
+            self.revised.sort(key=lambda q: q.cycle.cycle)
+            reserve = self._reserve  # a later inconsistent cycle held in reserve stays there
+            self._move_anchor(y, x, d, cum, var)
+            if reserve is not None and reserve[1].cycle > y.cycle:
+                self._reserve = reserve
+            x = y
 
     def _rejoin_chains(self, current: SeriesRow | None) -> None:
         """The second look across a restart: the chain started again at cycle b because nothing linked it to
