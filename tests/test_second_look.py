@@ -155,7 +155,8 @@ def test_an_untrusted_row_after_the_anchor_is_reissued_once_the_next_cycles_give
     e = np.abs(seven.displacement.advance_m[:2] - (rigs[7] - rigs[6])[:2])
     assert np.all(e <= 3.0 * seven.displacement.bound_m[:2]), e
     previous = next(r for r in rc.rows if r.cycle.cycle == 6)
-    np.testing.assert_allclose(seven.cumulative_m, previous.cumulative_m + seven.displacement.advance_m, atol=1e-12)
+    expected = previous.cumulative_m + seven.displacement.advance_m
+    np.testing.assert_allclose(seven.cumulative_m, expected, atol=1e-12)
 
 
 def test_a_cycle_whose_anchor_saw_one_plate_is_measured_from_the_chains_earlier_cycle():
