@@ -30,6 +30,18 @@ def ok_rows(rows, rigs):
     return len(errors), max(errors), float(np.mean(covered)), revised
 
 
+def fed(cycles, settings=BLIND):
+    """A RigChain fed the cycles one at a time, each row's status as first issued, and the cycles re-issued."""
+    rc = chain.RigChain(settings)
+    first_issue, reissued = {}, []
+    for c in cycles:
+        row = rc.add(c)
+        if row is not None:
+            first_issue.setdefault(row.cycle.cycle, row.displacement.status)
+        reissued += [r.cycle.cycle for r in rc.revised]
+    return rc, first_issue, reissued
+
+
 def test_without_a_web_depth_the_step_learned_from_the_cycles_makes_more_rows_ok_and_none_wrong():
     # 8 rigs x 15 rows, no prior: 86 ok rows without the second look, 102 with it (measured 2026-11-24),
     # largest ok error 11 mm, every ok row within 3 x its bound.
@@ -84,13 +96,7 @@ def test_a_chain_started_again_after_an_ambiguous_first_row_joins_it_once_later_
     later pairs (not 0 -> 1) give a step, 0 -> 1 is measured with it, re-issued, and the later rows join
     chain 0 with cumulative values from cycle 0 (re-issued too)."""
     cycles, rigs = noisy_cycles(6, seed=3, window=(0.0, 3.0))
-    rc = chain.RigChain(BLIND)
-    first_issue, reissued = {}, []
-    for c in cycles:
-        row = rc.add(c)
-        if row is not None:
-            first_issue.setdefault(row.cycle.cycle, row.displacement.status)
-        reissued += [r.cycle.cycle for r in rc.revised]
+    rc, first_issue, reissued = fed(cycles)
     assert first_issue[1] == "ambiguous" and 1 in reissued
     assert [r.displacement.status for r in rc.rows] == ["ok"] * 5
     assert [r.chain for r in rc.rows] == [0] * 5 and rc.rows[0].revision == 1
@@ -104,13 +110,7 @@ def test_untrusted_rows_the_later_step_links_to_the_old_chain_are_reissued_even_
     links 0 -> 1 -> 2 but not 2 -> 3: rows 1 and 2 are re-issued in chain 0 with cumulative values from cycle
     0; chain 1 stays as it was (measured 2026-11-24: seed 4, a 3 m view)."""
     cycles, rigs = noisy_cycles(8, seed=4, window=(0.0, 3.0), sigma=0.004)
-    rc = chain.RigChain(BLIND)
-    first_issue, reissued = {}, []
-    for c in cycles:
-        row = rc.add(c)
-        if row is not None:
-            first_issue.setdefault(row.cycle.cycle, row.displacement.status)
-        reissued += [r.cycle.cycle for r in rc.revised]
+    rc, first_issue, reissued = fed(cycles)
     assert first_issue[1] != "ok" and first_issue[2] != "ok" and {1, 2} <= set(reissued)
     by_cycle = {r.cycle.cycle: r for r in rc.rows}
     for c in (1, 2):
