@@ -31,7 +31,7 @@ def ok_rows(rows, rigs):
 
 
 def fed(cycles, settings=BLIND):
-    """A RigChain fed the cycles one at a time, each row's status as first issued, and the cycles re-issued."""
+    """A RigChain fed the cycles one at a time, each row's first-issued status, and the cycles re-issued."""
     rc = chain.RigChain(settings)
     first_issue, reissued = {}, []
     for c in cycles:
