@@ -125,8 +125,9 @@ def test_untrusted_rows_the_later_step_links_to_the_old_chain_are_reissued_even_
 def test_a_rejoin_never_rests_on_a_step_that_only_ambiguous_pairs_agree_on():
     """A 2 m view with two or three plates a cycle, no prior: every row is ambiguous and nothing is learned,
     but with the pair 3 -> 4 left out the other pairs agree on a wrong step. The rejoin may use a learned
-    step only when an ok row of the new chain measured it too; here none did, so no row is re-issued ok
-    (without that rule, 3 -> 4 was re-issued ok 1,066 mm off; measured 2026-11-24)."""
+    step only when the step learned from all the pairs, or an ok row of the new chain, agrees with it; here
+    neither exists, so no row is re-issued ok (without that rule, 3 -> 4 was re-issued ok 1,066 mm off;
+    measured 2026-11-24)."""
     cycles, rigs = noisy_cycles(10, seed=65, window=(0.0, 2.0), sigma=0.004)
     rows = chain.rig_series(cycles, BLIND)
     for r in rows:

@@ -583,13 +583,16 @@ class RigChain:
 
     def _confirmed(self, learned: tuple[np.ndarray, np.ndarray] | None
                    ) -> tuple[np.ndarray, np.ndarray] | None:
-        """A learned step (M4) that the rejoin may use: one that an ok row of the new chain measured too
-        (its per-cycle advance within 3 sigma on every axis). The rejoin re-issues rows as ok on it, and a
-        sum of pairs each too ambiguous to trust can agree on a wrong step once the pair being measured is
-        left out (a 2 m view with two plates a cycle: 1 wrong row in 1,600 runs without this)."""
+        """A learned step (M4) that the rejoin may use: one that the step learned from all the recent pairs
+        (the measured one too) or an ok row of the new chain agrees with (per cycle, within 3 sigma on every
+        axis). The rejoin re-issues rows as ok on it, and a sum of pairs each too ambiguous to trust can
+        agree on a wrong step once the pair being measured, which says otherwise, is left out (a 2 m view
+        with two plates a cycle: 1 wrong row in 1,600 runs without this)."""
         if learned is None:
             return None
         step, sigma = learned
+        if self._learned is not None and bool(np.all(np.abs(self._learned[0] - step) <= 3.0 * sigma)):
+            return learned
         for r in self.rows:
             if r.chain == self._chain and r.displacement.status == "ok":
                 gap = r.cycle.cycle - r.reference.cycle
