@@ -56,6 +56,7 @@ VERTICAL_HISTORY = 20  # the rig's mean vertical step is learned from the last t
 VERTICAL_SIGMA_PRIOR_STEPS = 4.0
 VERTICAL_SIGMA_LIMITS = (0.25, 2.5)
 VERTICAL_SIGMA_MIN_STEPS = 3
+LATER_STEP = "the later cycles' step"  # what re-issues a row in `_catch_up` and `_extend_old_chain` (log)
 
 
 def vertical_mean_step(hist: np.ndarray, sigma_v_m: float, mu0_m: float, sigma_mu_m: float
@@ -420,11 +421,16 @@ class RigChain:
             d_ab = self._resolve(a, row.cycle, c, d_ac)
             if d_ab is None:
                 continue
-            log.info("rig %s: cycle %d (%s) resolved by cycle %d; re-issued as revision 1", c.rig_id,
-                     row.cycle.cycle, row.displacement.status, c.cycle)
-            self.rows[i] = SeriesRow(row.cycle, a, d_ab, cum_a + d_ab.advance_m, self._chain,
-                                     np.sqrt(var_a + d_ab.bound_m**2), revision=1)
-            self.revised.insert(0, self.rows[i])
+            self._reissue(i, SeriesRow(row.cycle, a, d_ab, cum_a + d_ab.advance_m, self._chain,
+                                       np.sqrt(var_a + d_ab.bound_m**2), revision=1), f"cycle {c.cycle}")
+
+    def _reissue(self, i: int, row: SeriesRow, by: str) -> None:
+        """rows[i] replaced by its re-issue `row` (revision 1), which `revised` lists in cycle order."""
+        log.info("rig %s: cycle %d (%s) resolved by %s; re-issued as revision 1", row.cycle.rig_id,
+                 row.cycle.cycle, self.rows[i].displacement.status, by)
+        self.rows[i] = row
+        self.revised.append(row)
+        self.revised.sort(key=lambda q: q.cycle.cycle)
 
     def _restart(self, cur: CycleResult) -> None:
         self._anchor, self._anchor_cum, self._reserve = cur, np.zeros(3), None
@@ -458,7 +464,9 @@ class RigChain:
                      var: np.ndarray) -> None:
         """The chain now ends at `cur` (cumulative cum, variance var), reached from `via` by the trusted d; an
         ok d is one more step for the motion model, the vertical model and the covariance scale."""
-        self._anchor, self._anchor_cum, self._anchor_var, self._reserve = cur, cum, var, None
+        self._anchor, self._anchor_cum, self._anchor_var = cur, cum, var
+        if self._reserve is not None and self._reserve[1].cycle <= cur.cycle:
+            self._reserve = None  # an inconsistent cycle held in reserve beyond the new anchor stays there
         self._members = [*self._members[-self.max_bridge_cycles:], (cur, cum, var)]
         if d.status == "ok":
             gap = cur.cycle - via.cycle
@@ -508,16 +516,9 @@ class RigChain:
             if d.status != "ok":
                 return
             cum, var = self._anchor_cum + d.advance_m, self._anchor_var + d.bound_m**2
-            log.info("rig %s: cycle %d (%s) resolved by the later cycles' step; re-issued as revision 1",
-                     y.rig_id, y.cycle, r.displacement.status)
-            i = next(k for k, q in enumerate(self.rows) if q is r)
-            self.rows[i] = SeriesRow(y, x, d, cum, self._chain, np.sqrt(var), revision=1)
-            self.revised.append(self.rows[i])
-            self.revised.sort(key=lambda q: q.cycle.cycle)
-            reserve = self._reserve  # a later inconsistent cycle held in reserve stays there
+            self._reissue(next(k for k, q in enumerate(self.rows) if q is r),
+                          SeriesRow(y, x, d, cum, self._chain, np.sqrt(var), revision=1), LATER_STEP)
             self._move_anchor(y, x, d, cum, var)
-            if reserve is not None and reserve[1].cycle > y.cycle:
-                self._reserve = reserve
             x = y
 
     def _rejoin_chains(self, current: SeriesRow | None) -> None:
@@ -591,14 +592,10 @@ class RigChain:
         if learned is None:
             return None
         step, sigma = learned
-        if self._learned is not None and bool(np.all(np.abs(self._learned[0] - step) <= 3.0 * sigma)):
-            return learned
-        for r in self.rows:
-            if r.chain == self._chain and r.displacement.status == "ok":
-                gap = r.cycle.cycle - r.reference.cycle
-                if bool(np.all(np.abs(r.displacement.advance_m / gap - step) <= 3.0 * sigma)):
-                    return learned
-        return None
+        witnesses = [] if self._learned is None else [self._learned[0]]
+        witnesses += [r.displacement.advance_m / (r.cycle.cycle - r.reference.cycle) for r in self.rows
+                      if r.chain == self._chain and r.displacement.status == "ok"]
+        return learned if any(np.all(np.abs(w - step) <= 3.0 * sigma) for w in witnesses) else None
 
     def _extend_old_chain(self, links: list[tuple[CycleResult, CycleResult, Displacement]],
                           path: list[CycleResult]) -> None:
@@ -614,13 +611,8 @@ class RigChain:
         a, cum, var, chain_a, b = self._rejoin
         for x, y, d in links:
             cum, var = cum + d.advance_m, var + d.bound_m**2
-            for i, r in enumerate(self.rows):
-                if r.cycle.cycle == y.cycle and r.chain == chain_a:
-                    log.info("rig %s: cycle %d (%s) resolved by the later cycles' step; re-issued as "
-                             "revision 1", y.rig_id, y.cycle, r.displacement.status)
-                    self.rows[i] = SeriesRow(y, x, d, cum, chain_a, np.sqrt(var), revision=1)
-                    self.revised.append(self.rows[i])
-        self.revised.sort(key=lambda r: r.cycle.cycle)
+            i = next(k for k, r in enumerate(self.rows) if r.cycle.cycle == y.cycle and r.chain == chain_a)
+            self._reissue(i, SeriesRow(y, x, d, cum, chain_a, np.sqrt(var), revision=1), LATER_STEP)
         self._rejoin = (links[-1][1], cum, var, chain_a, b)
 
     def _add(self, cur: CycleResult) -> SeriesRow | None:
@@ -655,14 +647,11 @@ class RigChain:
                     if trusted(d3) and self.association.second_look else None)
             if d_ab is not None:
                 # The second look joins the chain through the untrusted cycle: re-issued, no restart.
-                log.info("rig %s: cycle %d (%s) resolved by cycle %d; re-issued as revision 1", cur.rig_id,
-                         last.cycle.cycle, last.displacement.status, cur.cycle)
                 cum_b, var_b = self._anchor_cum + d_ab.advance_m, self._anchor_var + d_ab.bound_m**2
                 if last.cycle.cycle - anchor.cycle > 1:  # the re-issued row bridges cycles of its own
                     self._second_look(anchor, last.cycle, d_ab, self._anchor_cum, self._anchor_var)
-                self.rows[-1] = SeriesRow(last.cycle, anchor, d_ab, cum_b, self._chain, np.sqrt(var_b),
-                                          revision=1)
-                self.revised.append(self.rows[-1])
+                reissued = SeriesRow(last.cycle, anchor, d_ab, cum_b, self._chain, np.sqrt(var_b), revision=1)
+                self._reissue(len(self.rows) - 1, reissued, f"cycle {cur.cycle}")
                 return self._extend(cur, last.cycle, d3, cum_b, var_b)
             if trusted(d3):
                 # The cycle matches the untrusted one before it, not the chain: the chain starts again there

@@ -164,6 +164,7 @@ def _prior_log(shift: np.ndarray, settings: AssociationSettings) -> tuple[float,
 
 
 def _vertical_prior(settings: AssociationSettings) -> tuple[float, float] | None:
+    """The chain's vertical step prior (mean, sigma) (m), or None when it is absent or off (sigma 0)."""
     v = settings.vertical_prior_m
     return None if v is None or not v[1] > 0 else (float(v[0]), float(v[1]))
 
@@ -364,9 +365,9 @@ def estimate_advance(before: list[Located], after: list[Located],
         scale2 = chi2_fit / dof if dof > 0 else 1.0
     cov_adv = scale2 * gls_cov
     vertical_data = np.array([advance[2], np.sqrt(cov_adv[2, 2])])
-    if settings.vertical_prior_m is not None and settings.weighted and have_cov and \
-            settings.vertical_prior_m[1] > 0:
-        conditioned = vertical_conditioned(advance, cov_adv, *settings.vertical_prior_m)
+    vertical_prior = _vertical_prior(settings)
+    if vertical_prior is not None and settings.weighted and have_cov:
+        conditioned = vertical_conditioned(advance, cov_adv, *vertical_prior)
         if conditioned is not None:
             advance, cov_adv = conditioned
         elif len(pairs) == 1:
