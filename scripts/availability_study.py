@@ -22,7 +22,10 @@ and, against the truth, per scenario:
 `--random N` draws N scenarios from the issue's ranges instead (`random_scenario`: squint, rib, heights, SNR,
 wobble, grid, rows, missing plates, rib side, radar, int16, a missed cycle), each run with and without a
 web-depth prior over a short history (6 cycles: a user's first night), and prints the pooled rows per SNR
-class.
+class. `--random-web LO HI` draws each scenario's web (advance per cycle) in [LO, HI] m instead of 0.9 m.
+The pooled table also counts the withheld (not ok) rows and, in brackets, those whose cycle shares a located
+plate with the cycle before it at the true step (within SHARED_PLATE_TOL_M): the rest had nothing in common
+with their neighbour, so no association could have linked them (a data limit, not the method's).
 
 Archives are cached under WORK/<scenario>/archive (regenerated only when the scenario's parameters change).
 `--reuse-detections` copies the per-pass detection cache of the earlier run whose cache was written last
@@ -108,10 +111,12 @@ QUICK = ["base", "dense-3h", "dense-2h", "dense-3h-noprior"]
 RADARS = ((4.3e9, 1.7e9), (4.0e9, 1.4e9), (3.95e9, 1.2e9))  # (carrier, -10 dB bandwidth) of random scenarios
 
 
-def random_scenario(seed: int, cycles: int) -> Scenario:
+def random_scenario(seed: int, cycles: int, web_range_m: tuple[float, float] | None = None) -> Scenario:
     """A scenario drawn from issue 14's ranges (`--random`): squint 15-45 deg, rib 1.5-4.5 m, 2-4 heights,
     SNR 5/10/15/20 dB, wobble up to 15 %, a 1.0-1.5 m grid in 2 or 3 rows with 10-25 % of the plates missing,
-    either rib side, one of three radars, int16 archives in 30 %, one missed cycle in half of them."""
+    either rib side, one of three radars, int16 archives in 30 %, one missed cycle in half of them; the web
+    (advance per cycle) 0.9 m, or uniform in `web_range_m` (`--random-web`: drawn last, so the other draws
+    of a seed stay those of the fixed-web study)."""
     r = random.Random(seed)
     heights = np.linspace(r.uniform(0.1, 0.25), r.uniform(0.55, 0.8), r.choice([2, 2, 3, 3, 4]))
     rows = (0.6, 1.3) if r.choice([2, 3]) == 2 else (0.5, 1.1, 1.7)
@@ -122,7 +127,8 @@ def random_scenario(seed: int, cycles: int) -> Scenario:
                     snr_db=r.choice([5.0, 10.0, 15.0, 20.0]), wobble=r.uniform(0.0, 0.15),
                     grid_m=r.uniform(1.0, 1.5), rows_z_m=rows, missing=r.uniform(0.1, 0.25),
                     side=r.choice([-1, 1]), carrier_hz=carrier, bandwidth_hz=bandwidth,
-                    int16=r.random() < 0.3, missed=missed, seed=seed)
+                    int16=r.random() < 0.3, missed=missed, seed=seed,
+                    web_m=round(r.uniform(*web_range_m), 3) if web_range_m else 0.9)
 
 
 # ----------------------------------------------------------------------------------------------- the scene
@@ -321,6 +327,32 @@ def copy_detections(src_out: Path, out: Path) -> None:
 
 
 # ----------------------------------------------------------------------------------------------- scoring
+# A located plate of one cycle "is" a plate of another when, moved by the true step, it lies within this (m):
+# under half the closest plate spacing the study draws (rows 0.6 m apart), over the worst location errors.
+SHARED_PLATE_TOL_M = 0.25
+
+
+def located_plates(out: Path) -> dict[int, np.ndarray]:
+    """Each cycle's located plates (n, 3) in the rig frame, from targets.csv."""
+    plates: dict[int, list] = {}
+    path = out / "targets.csv"
+    if path.exists():
+        with path.open() as f:
+            for r in csv.DictReader(f):
+                plates.setdefault(int(r["cycle"]), []).append([float(r[k]) for k in ("x_m", "y_m", "z_m")])
+    return {c: np.array(p) for c, p in plates.items()}
+
+
+def shared_plates(plates: dict[int, np.ndarray], c0: int, c: int, rig_m: np.ndarray) -> int:
+    """How many of cycle c0's located plates cycle c located too, at the true step (P' = P - step)."""
+    a, b = plates.get(c0), plates.get(c)
+    if a is None or b is None or not len(a) or not len(b):
+        return 0
+    moved = a - (rig_m[c] - rig_m[c0])
+    return int((np.linalg.norm(moved[:, None, :] - b[None, :, :], axis=2).min(axis=1)
+                < SHARED_PLATE_TOL_M).sum())
+
+
 def score(out: Path, rig_m: np.ndarray) -> dict:
     with (out / "displacements.csv").open() as f:
         rows = list(csv.DictReader(f))
@@ -352,6 +384,14 @@ def score(out: Path, rig_m: np.ndarray) -> dict:
             if "cumulative_retreat_bound_m" in r:
                 b = np.array([float(r["cumulative_retreat_bound_m"]), float(r["cumulative_creep_bound_m"])])
                 cum_cover.append(bool(np.all(np.abs(e) <= 3 * b)))
+    # Withheld rows whose cycle shares a located plate with the cycle before it (at the true step): the data
+    # could have linked them. The others had nothing in common with their neighbour: no association can.
+    plates, before = located_plates(out), first_cycle
+    withheld_shared = 0
+    for r in rows:
+        c = int(r["cycle"])
+        withheld_shared += r["status"] != "ok" and shared_plates(plates, before, c, rig_m) > 0
+        before = c
     err = np.array(err).reshape(-1, 2)
     statuses: dict[str, int] = {}
     for r in rows:
@@ -362,7 +402,7 @@ def score(out: Path, rig_m: np.ndarray) -> dict:
         "max_mm": (1e3 * np.max(np.abs(err), axis=0)).tolist() if len(err) else [math.nan] * 2,
         "cover": (100.0 * np.mean(cover)) if cover else math.nan,
         "cum_cover": (100.0 * np.mean(cum_cover)) if cum_cover else math.nan,
-        "gross": gross, "beyond": len(cover) - int(sum(cover)),
+        "gross": gross, "beyond": len(cover) - int(sum(cover)), "withheld_shared": withheld_shared,
         "drift_mm": (1e3 * drift).tolist(), "chains": len(chain_start), "statuses": statuses,
         "statuses_in_order": [r["status"] for r in rows],
     }
@@ -386,9 +426,10 @@ def table(results: dict) -> str:
 
 def summary(results: dict, snr_db: dict) -> str:
     """Pooled over scenarios, per SNR class and with / without a prior: rows, % ok, ok rows beyond 3 x their
-    bound, gross errors, RMS of the ok rows (retreat / creep, mm)."""
+    bound, gross errors, RMS of the ok rows (retreat / creep, mm), and the withheld rows whose cycle shares
+    a located plate with the one before it ("shared": the others no association could have linked)."""
     lines = [f"{'class':22s} {'scen':>4s} {'rows':>4s} {'ok%':>6s} {'beyond 3x':>9s} {'gross':>5s} "
-             f"{'RMS x/y mm':>11s}"]
+             f"{'RMS x/y mm':>11s} {'withheld (shared)':>17s}"]
     for label, keep in (("SNR >= 10 dB", lambda v: v >= 10.0), ("SNR 5 dB", lambda v: v < 10.0)):
         for prior in (True, False):
             names = [n for n in results if keep(snr_db[n]) and n.endswith("-noprior") != prior]
@@ -401,7 +442,8 @@ def summary(results: dict, snr_db: dict) -> str:
             rms = np.sqrt(sq / ok) if ok else np.full(2, math.nan)
             lines.append(f"{label + (', prior' if prior else ', no prior'):22s} {len(names):4d} {rows:4d} "
                          f"{100.0 * ok / max(rows, 1):6.1f} {sum(results[n]['beyond'] for n in names):9d} "
-                         f"{sum(results[n]['gross'] for n in names):5d} {rms[0]:5.1f}/{rms[1]:<5.1f}")
+                         f"{sum(results[n]['gross'] for n in names):5d} {rms[0]:5.1f}/{rms[1]:<5.1f} "
+                         f"{rows - ok:8d} ({sum(results[n].get('withheld_shared', 0) for n in names)})")
     return "\n".join(lines)
 
 
@@ -422,6 +464,9 @@ def main(argv=None) -> int:
                     help="instead: N scenarios drawn from the issue's ranges (`random_scenario`), each "
                          "with and without a prior (default 6 cycles each)")
     ap.add_argument("--random-seed", type=int, default=300, help="seed of the first random scenario")
+    ap.add_argument("--random-web", type=float, nargs=2, default=None, metavar=("LO_M", "HI_M"),
+                    help="draw each random scenario's web (advance per cycle, m) uniformly in [LO, HI] "
+                         "instead of 0.9 m; the prior runs are told each scenario's web")
     args = ap.parse_args(argv)
     if args.random:
         return run_random(args)
@@ -455,7 +500,7 @@ def run_random(args) -> int:
     cycles = args.cycles or 6
     results, snr_db = {}, {}
     for seed in range(args.random_seed, args.random_seed + args.random):
-        s = random_scenario(seed, cycles)
+        s = random_scenario(seed, cycles, tuple(args.random_web) if args.random_web else None)
         root = args.work / s.name
         arch = generate(s, cycles, root)
         rig_m = np.array(json.loads((root / "truth.json").read_text())["rig_m"])
@@ -470,7 +515,7 @@ def run_random(args) -> int:
         print(f"  {s.name}: squint {s.squint_deg:.0f} deg, rib {s.rib_m:.1f} m, {len(s.heights_m)} heights, "
               f"{s.snr_db:.0f} dB, wobble {100 * s.wobble:.0f} %, "
               f"grid {s.grid_m:.2f} m x {len(s.rows_z_m)} rows, side {s.side:+d}, "
-              f"{s.carrier_hz / 1e9:.2f}/{s.bandwidth_hz / 1e9:.1f} GHz"
+              f"{s.carrier_hz / 1e9:.2f}/{s.bandwidth_hz / 1e9:.1f} GHz, web {s.web_m:.2f} m"
               f"{', int16' if s.int16 else ''}{f', missed {list(s.missed)}' if s.missed else ''}", flush=True)
     print(table(results))
     print(summary(results, snr_db))

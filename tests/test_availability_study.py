@@ -1,0 +1,63 @@
+"""The availability study's own arithmetic (scripts/availability_study.py): a withheld row is counted as
+"shared" only when its cycle located a plate of the cycle before it at the true step, and the random draws
+keep their scenarios when the web is drawn too."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "availability_study.py"
+
+
+def load():
+    spec = importlib.util.spec_from_file_location("availability_study", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def write_run(out: Path, rows: list[dict], plates: list[tuple]) -> None:
+    out.mkdir(parents=True)
+    cols = ["rig_id", "cycle", "from_cycle", "retreat_m", "creep_m", "cumulative_retreat_m", "cumulative_creep_m",
+            "chain", "status", "retreat_bound_m", "creep_bound_m"]
+    with (out / "displacements.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, cols)
+        w.writeheader()
+        for r in rows:
+            w.writerow({"rig_id": "rig", "chain": 0, "retreat_bound_m": 0.002, "creep_bound_m": 0.002, **r})
+    with (out / "targets.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["rig_id", "cycle", "plate", "x_m", "y_m", "z_m"])
+        for i, (c, x, y, z) in enumerate(plates):
+            w.writerow(["rig", c, i, x, y, z])
+
+
+def test_a_withheld_row_counts_as_shared_only_when_its_cycle_saw_a_plate_of_the_one_before(tmp_path):
+    study = load()
+    rig_m = np.array([[0.0, 0, 0], [0.9, 0, 0], [1.8, 0, 0]])
+    rows = [dict(cycle=1, from_cycle=0, retreat_m=0.9, creep_m=0.0, cumulative_retreat_m=0.9,
+                 cumulative_creep_m=0.0, status="ambiguous"),
+            dict(cycle=2, from_cycle=1, retreat_m=0.9, creep_m=0.0, cumulative_retreat_m=1.8,
+                 cumulative_creep_m=0.0, status="prior_conflict")]
+    # cycle 0's plate at x = 2.0 is at x = 1.1 in cycle 1 (P' = P - step); cycle 2 sees only a plate that cycle 1
+    # did not (a plate spacing away from where cycle 1's plate would be)
+    plates = [(0, 2.0, 2.5, 1.0), (1, 1.12, 2.5, 1.0), (2, 1.4, 2.5, 1.0)]
+    write_run(tmp_path / "out", rows, plates)
+    result = study.score(tmp_path / "out", rig_m)
+    assert result["ok"] == 0 and result["withheld_shared"] == 1
+    assert study.shared_plates(study.located_plates(tmp_path / "out"), 0, 1, rig_m) == 1
+    assert study.shared_plates(study.located_plates(tmp_path / "out"), 1, 2, rig_m) == 0
+
+
+def test_drawing_the_web_leaves_every_other_parameter_of_a_random_scenario_as_it_was():
+    study = load()
+    for seed in (400, 607, 711):
+        fixed, drawn = study.random_scenario(seed, 6), study.random_scenario(seed, 6, (0.5, 1.2))
+        assert fixed.web_m == 0.9 and 0.5 <= drawn.web_m <= 1.2
+        assert {**vars(fixed), "web_m": None} == {**vars(drawn), "web_m": None}
