@@ -24,8 +24,8 @@ def load():
 
 def write_run(out: Path, rows: list[dict], plates: list[tuple]) -> None:
     out.mkdir(parents=True)
-    cols = ["rig_id", "cycle", "from_cycle", "retreat_m", "creep_m", "cumulative_retreat_m", "cumulative_creep_m",
-            "chain", "status", "retreat_bound_m", "creep_bound_m"]
+    cols = ["rig_id", "cycle", "from_cycle", "retreat_m", "creep_m", "cumulative_retreat_m",
+            "cumulative_creep_m", "chain", "status", "retreat_bound_m", "creep_bound_m"]
     with (out / "displacements.csv").open("w", newline="") as f:
         w = csv.DictWriter(f, cols)
         w.writeheader()
@@ -45,8 +45,8 @@ def test_a_withheld_row_counts_as_shared_only_when_its_cycle_saw_a_plate_of_the_
                  cumulative_creep_m=0.0, status="ambiguous"),
             dict(cycle=2, from_cycle=1, retreat_m=0.9, creep_m=0.0, cumulative_retreat_m=1.8,
                  cumulative_creep_m=0.0, status="prior_conflict")]
-    # cycle 0's plate at x = 2.0 is at x = 1.1 in cycle 1 (P' = P - step); cycle 2 sees only a plate that cycle 1
-    # did not (a plate spacing away from where cycle 1's plate would be)
+    # cycle 0's plate at x = 2.0 is at x = 1.1 in cycle 1 (P' = P - step); cycle 2 sees only a plate that
+    # cycle 1 did not (a plate spacing away from where cycle 1's plate would be)
     plates = [(0, 2.0, 2.5, 1.0), (1, 1.12, 2.5, 1.0), (2, 1.4, 2.5, 1.0)]
     write_run(tmp_path / "out", rows, plates)
     result = study.score(tmp_path / "out", rig_m)
