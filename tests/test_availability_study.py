@@ -5,21 +5,14 @@ keep their scenarios when the web is drawn too."""
 from __future__ import annotations
 
 import csv
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
-
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "availability_study.py"
+from script_module import load_script
 
 
 def load():
-    spec = importlib.util.spec_from_file_location("availability_study", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
+    return load_script("availability_study")
 
 
 def write_run(out: Path, rows: list[dict], plates: list[tuple]) -> None:

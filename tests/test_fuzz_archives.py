@@ -5,22 +5,14 @@ skips."""
 
 from __future__ import annotations
 
-import importlib.util
 import shutil
-import sys
-from pathlib import Path
 
 import numpy as np
-
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "fuzz_archives.py"
+from script_module import load_script
 
 
 def load():
-    spec = importlib.util.spec_from_file_location("fuzz_archives", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
+    return load_script("fuzz_archives")
 
 
 def test_strace_is_there_to_see_every_file_the_batch_opens():
