@@ -1,6 +1,7 @@
-"""The availability study's own arithmetic (scripts/availability_study.py): a withheld row is counted as
-"shared" only when its cycle located a plate of the cycle before it at the true step, and the random draws
-keep their scenarios when the web is drawn too."""
+"""The availability and registration studies' own arithmetic (scripts/availability_study.py,
+scripts/registration_study.py): a withheld row is counted as "shared" only when its cycle located a plate of
+the cycle before it at the true step, the random draws keep their scenarios when the web is drawn too, and
+the coherence of two images is that of their complex values."""
 
 from __future__ import annotations
 
@@ -54,3 +55,15 @@ def test_drawing_the_web_leaves_every_other_parameter_of_a_random_scenario_as_it
         fixed, drawn = study.random_scenario(seed, 6), study.random_scenario(seed, 6, (0.5, 1.2))
         assert fixed.web_m == 0.9 and 0.5 <= drawn.web_m <= 1.2
         assert {**vars(fixed), "web_m": None} == {**vars(drawn), "web_m": None}
+
+
+def test_the_registration_studys_coherence_is_one_for_the_same_image_at_any_phase_and_small_for_noise():
+    reg = load_script("registration_study")
+    rng = np.random.default_rng(7)
+    image = rng.standard_normal(4000) + 1j * rng.standard_normal(4000)
+    other = rng.standard_normal(4000) + 1j * rng.standard_normal(4000)
+    assert abs(reg.coherence(image, image * np.exp(0.7j) * 3.0) - 1.0) < 1e-12
+    assert reg.coherence(image, other) < 0.05  # ~ 1 / sqrt(4000) for independent images
+    assert reg.coherence(image, np.zeros_like(image)) == 0.0
+    names = set(reg.candidates(np.array([0.9, 0.0, 0.0]), 1.2))
+    assert {"true", "alias -1 grid", "alias +1 grid"} <= names
