@@ -24,12 +24,12 @@ exceeds every alias's, and the ratio of the two.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 from pathlib import Path
 
 import numpy as np
+from availability_study import located_plates
 
 from uwbcl import archive
 from uwbcl.focus import backprojection as bp
@@ -47,14 +47,6 @@ def passes_by_cycle(root: Path) -> dict[int, Path]:
         scan = archive.read_pass(path)
         by_height.setdefault(round(1000 * scan.geometry.height_m), {})[scan.cycle] = path
     return by_height[min(by_height)]
-
-
-def located(root: Path, tag: str) -> dict[int, np.ndarray]:
-    plates: dict[int, list] = {}
-    with (root / tag / "targets.csv").open() as f:
-        for r in csv.DictReader(f):
-            plates.setdefault(int(r["cycle"]), []).append([float(r[k]) for k in ("x_m", "y_m", "z_m")])
-    return {c: np.array(p) for c, p in plates.items()}
 
 
 class Pass:
@@ -89,7 +81,7 @@ def candidates(step_m: np.ndarray, grid_m: float) -> dict[str, np.ndarray]:
 def study(root: Path, tag: str) -> list[dict]:
     scenario = json.loads((root / "scenario.json").read_text())
     truth = np.array(json.loads((root / "truth.json").read_text())["rig_m"])
-    files, plates = passes_by_cycle(root), located(root, tag)
+    files, plates = passes_by_cycle(root), located_plates(root / tag)
     cycles = sorted(files)
     loaded: dict[int, Pass] = {}
     rows = []
