@@ -443,7 +443,7 @@ def summary(results: dict, snr_db: dict) -> str:
             lines.append(f"{label + (', prior' if prior else ', no prior'):22s} {len(names):4d} {rows:4d} "
                          f"{100.0 * ok / max(rows, 1):6.1f} {sum(results[n]['beyond'] for n in names):9d} "
                          f"{sum(results[n]['gross'] for n in names):5d} {rms[0]:5.1f}/{rms[1]:<5.1f} "
-                         f"{rows - ok:8d} ({sum(results[n].get('withheld_shared', 0) for n in names)})")
+                         f"{rows - ok:8d} ({sum(results[n]['withheld_shared'] for n in names)})")
     return "\n".join(lines)
 
 

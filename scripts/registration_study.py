@@ -41,11 +41,11 @@ RIB_TOP_M = 2.2  # the rib band: from the rib's horizontal distance up to R_c of
 
 
 def passes_by_cycle(root: Path) -> dict[int, Path]:
-    """The lowest height's archive of every cycle."""
+    """The lowest height's archive of every cycle (from the headers: each echo is read once, by `Pass`)."""
     by_height: dict[int, dict[int, Path]] = {}
     for path in sorted((root / "archive").rglob("*.h5")):
-        scan = archive.read_pass(path)
-        by_height.setdefault(round(1000 * scan.geometry.height_m), {})[scan.cycle] = path
+        header = archive.read_pass_header(path)
+        by_height.setdefault(archive.height_mm(header["height_m"]), {})[header["cycle"]] = path
     return by_height[min(by_height)]
 
 
@@ -56,7 +56,8 @@ class Pass:
         self.rc = bp.range_compress(self.scan, self.grid)
 
     def image_at(self, x_m: np.ndarray, rc_m: np.ndarray) -> np.ndarray:
-        """BP at rig-frame (x, R_c): r0 = R_c / cos, u = x - x_c - r0 sin, r_LRCM = r0 + u sin."""
+        """BP at rig-frame (x, R_c), mapped to (u, r_LRCM) by the inverse of `bp.pixel_track_coordinates`:
+        r0 = R_c / cos, u = x - x_c - r0 sin, r_LRCM = r0 + u sin."""
         g = self.grid
         r0 = rc_m / g.cos_squint
         u = x_m - g.aperture_centre_m - r0 * g.sin_squint
