@@ -32,8 +32,7 @@ import numpy as np
 from availability_study import located_plates
 
 from uwbcl import archive
-from uwbcl.focus import backprojection as bp
-from uwbcl.focus import nlcs
+from uwbcl.registration import RibEcho, coherence
 
 LATTICE_M = 0.01
 PLATE_MASK_M = (0.25, 0.15)  # half-widths in x and R_c around a located plate, left out of "clutter"
@@ -41,32 +40,12 @@ RIB_TOP_M = 2.2  # the rib band: from the rib's horizontal distance up to R_c of
 
 
 def passes_by_cycle(root: Path) -> dict[int, Path]:
-    """The lowest height's archive of every cycle (from the headers: each echo is read once, by `Pass`)."""
+    """The lowest height's archive of every cycle (from the headers: each echo is read once, into a `RibEcho`)."""
     by_height: dict[int, dict[int, Path]] = {}
     for path in sorted((root / "archive").rglob("*.h5")):
         header = archive.read_pass_header(path)
         by_height.setdefault(archive.height_mm(header["height_m"]), {})[header["cycle"]] = path
     return by_height[min(by_height)]
-
-
-class Pass:
-    def __init__(self, path: Path):
-        self.scan = archive.read_pass(path)
-        self.grid = nlcs.focus_grid(self.scan)
-        self.rc = bp.range_compress(self.scan, self.grid)
-
-    def image_at(self, x_m: np.ndarray, rc_m: np.ndarray) -> np.ndarray:
-        """BP at rig-frame (x, R_c), mapped to (u, r_LRCM) by the inverse of `bp.pixel_track_coordinates`:
-        r0 = R_c / cos, u = x - x_c - r0 sin, r_LRCM = r0 + u sin."""
-        g = self.grid
-        r0 = rc_m / g.cos_squint
-        u = x_m - g.aperture_centre_m - r0 * g.sin_squint
-        return bp.backproject_points(self.rc, g, u, r0 + g.sin_squint * u)
-
-
-def coherence(ib: np.ndarray, ia: np.ndarray) -> float:
-    den = math.sqrt(float(np.sum(np.abs(ib) ** 2) * np.sum(np.abs(ia) ** 2)))
-    return float(np.abs(np.sum(ib * np.conj(ia)))) / den if den > 0 else 0.0
 
 
 def candidates(step_m: np.ndarray, grid_m: float) -> dict[str, np.ndarray]:
@@ -84,19 +63,19 @@ def study(root: Path, tag: str) -> list[dict]:
     truth = np.array(json.loads((root / "truth.json").read_text())["rig_m"])
     files, plates = passes_by_cycle(root), located_plates(root / tag)
     cycles = sorted(files)
-    loaded: dict[int, Pass] = {}
+    loaded: dict[int, RibEcho] = {}
     rows = []
     for a, b in zip(cycles, cycles[1:]):
         for c in (a, b):
-            loaded.setdefault(c, Pass(files[c]))
+            loaded.setdefault(c, RibEcho(archive.read_pass(files[c])))
         pa, pb = loaded[a], loaded[b]
-        h = pb.scan.geometry.height_m
+        h = pb.height_m
         ps = plates.get(b, np.zeros((0, 3)))
         y_rib = float(np.median(ps[:, 1])) if len(ps) else -scenario["side"] * scenario["rib_m"]
         x = np.arange(pb.grid.aperture_centre_m - 1.0, pb.grid.aperture_centre_m + 3.5, LATTICE_M)
         r = np.arange(abs(y_rib) - 0.05, math.hypot(y_rib, RIB_TOP_M - h) + 0.05, LATTICE_M)
         X, R = np.meshgrid(x, r, indexing="ij")
-        ib = pb.image_at(X, R)
+        ib = pb.image(X, R)
         clutter = np.ones(X.shape, bool)
         for px, py, pz in ps:
             near = (np.abs(X - px) < PLATE_MASK_M[0]) & (np.abs(R - math.hypot(py, pz - h)) < PLATE_MASK_M[1])
@@ -104,7 +83,7 @@ def study(root: Path, tag: str) -> list[dict]:
         z_above = np.sqrt(np.maximum(R**2 - y_rib**2, 0.0))
         gamma = {}
         for name, t in candidates(truth[b] - truth[a], scenario["grid_m"]).items():
-            ia = pa.image_at(X + t[0], R + (y_rib * t[1] + z_above * t[2]) / R)
+            ia = pa.image(X + t[0], R + (y_rib * t[1] + z_above * t[2]) / R)
             gamma[name] = (coherence(ib, ia), coherence(ib[clutter], ia[clutter]))
         rows.append({"pair": (a, b), "gamma": gamma})
         print(f"{root.name} {a}->{b}: " + ", ".join(f"{k} {v[0]:.3f}/{v[1]:.3f}" for k, v in gamma.items()),

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__, archive, chain, outputs, pipeline, threads
+from . import __version__, archive, chain, outputs, pipeline, registration, threads
 from .atomic import write_text_atomic
 from .records import (
     BatchError,
@@ -388,6 +388,29 @@ def locate_records(recs: dict[int, PassRecord], detection: DetectionSettings = D
                               int(first.parameters["boresight_y_sign"]), detection)
 
 
+def rib_registration(groups: dict, in_dir: Path, settings: ProcessingSettings
+                     ) -> registration.RibRegistration | None:
+    """The rib registration of the association (eq. M7) over each cycle's lowest pass, read again from its
+    archive when two cycles are close to ambiguous; None when `[association] rib_registration` is off. A pass
+    that cannot be read now gives no evidence (logged): the plates decide alone."""
+    if not settings.association.rib_registration:
+        return None
+    lowest = {key: recs[min(recs)] for key, recs in groups.items()}
+
+    def load(c: CycleResult):
+        rec = lowest.get((c.rig_id, c.cycle))
+        if rec is None:
+            return None
+        try:
+            scan = archive.read_pass(in_dir / rec.file, settings.limits)
+        except (archive.ArchiveError, OSError) as exc:
+            log.warning("%s: not read for the rib registration (%s)", rec.file, exc)
+            return None
+        return pipeline.apply_range_delay(scan, settings.range_delay_s)
+
+    return registration.RibRegistration(load)
+
+
 # ----------------------------------------------------------------------------------------------- the job
 @contextlib.contextmanager
 def _exclusive(out_dir: Path):
@@ -655,7 +678,8 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
             log.info("rig %s cycle %d: %d plates located from %d heights", rig, cycle, len(result.plates),
                      len(result.heights_m))
             cycles.append(result)
-        rows_series = chain.series(cycles, settings.association, options.max_bridge_cycles)
+        rows_series = chain.series(cycles, settings.association, options.max_bridge_cycles,
+                                   rib_registration(groups, in_dir, settings))
         for r in rows_series:
             if r.displacement.status != "ok":
                 log.warning("rig %s cycle %d: %s (%d plates matched, runner-up %d)", r.cycle.rig_id,

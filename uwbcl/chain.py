@@ -12,7 +12,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections import defaultdict
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Protocol
 
 import numpy as np
 
@@ -30,6 +31,14 @@ from .records import (
 )
 
 log = logging.getLogger("uwbcl")
+
+
+class RibScorer(Protocol):
+    """What the chain needs of the rib registration (`registration.RibRegistration`, eq. M7): the evidence
+    E(t, sigma_z) of a translation t (3,) m, its vertical uncertain by sigma_z m, between two cycles."""
+
+    def scorer(self, a: CycleResult, b: CycleResult) -> Callable[[np.ndarray, float], float]: ...
+
 
 DEFAULT_MAX_BRIDGE_CYCLES = 3  # how many cycles a displacement may span after an untrusted one
 MOTION_HISTORY = 8  # the motion model predicts from the last this many ok steps
@@ -167,9 +176,13 @@ class RigChain:
     cycles one at a time gets exactly the rows that `uwbcl process` gets from the whole series.
     """
 
-    def __init__(self, association: AssociationSettings, max_bridge_cycles: int = DEFAULT_MAX_BRIDGE_CYCLES):
+    def __init__(self, association: AssociationSettings, max_bridge_cycles: int = DEFAULT_MAX_BRIDGE_CYCLES,
+                 rib: RibScorer | None = None):
         self.association = association
         self.max_bridge_cycles = max_bridge_cycles
+        # the rib registration's evidence between two cycles (eq. M7, `registration.RibRegistration`); None:
+        # the plates alone
+        self._rib = rib
         self.rows: list[SeriesRow] = []
         self.revised: list[SeriesRow] = []  # the rows the last `add` re-issued (revision 1), in cycle order
         self.first: CycleResult | None = None
@@ -369,7 +382,10 @@ class RigChain:
         scale = self.covariance_scale()
         return estimate_advance(a.plates, b.plates, prior or self.prior(b.cycle - a.cycle),
                                 before_cov_m2=scale * self._covs[a.cycle],
-                                after_cov_m2=scale * self._covs[b.cycle])
+                                after_cov_m2=scale * self._covs[b.cycle], rib=self._rib_scorer(a, b))
+
+    def _rib_scorer(self, a: CycleResult, b: CycleResult):
+        return None if self._rib is None else self._rib.scorer(a, b)
 
     def _resolve(self, a: CycleResult, b: CycleResult, c: CycleResult, d_ac: Displacement
                  ) -> Displacement | None:
@@ -402,7 +418,8 @@ class RigChain:
                  for k in extra]
         cov_b = np.concatenate([self._covs[b.cycle], self._covs[c.cycle][extra] + np.diag(d_bc.bound_m**2)])
         d_ab = estimate_advance(a.plates, list(b.plates) + moved, self.prior(b.cycle - a.cycle),
-                                before_cov_m2=scale * self._covs[a.cycle], after_cov_m2=scale * cov_b)
+                                before_cov_m2=scale * self._covs[a.cycle], after_cov_m2=scale * cov_b,
+                                rib=self._rib_scorer(a, b))
         if d_ab.status != "ok":
             return None
         # the row is b's: its pairs name b's own plates (the moved plates are c's, counted in n_targets)
@@ -687,18 +704,22 @@ class RigChain:
 
 
 def rig_series(cycles: Sequence[CycleResult], association: AssociationSettings,
-               max_bridge_cycles: int = DEFAULT_MAX_BRIDGE_CYCLES) -> list[SeriesRow]:
+               max_bridge_cycles: int = DEFAULT_MAX_BRIDGE_CYCLES, rib: RibScorer | None = None
+               ) -> list[SeriesRow]:
     """Displacements of one rig's cycles (any order; sorted by cycle number) through a RigChain."""
-    chain = RigChain(association, max_bridge_cycles)
+    chain = RigChain(association, max_bridge_cycles, rib)
     for c in sorted(cycles, key=lambda c: c.cycle):
         chain.add(c)
     return chain.rows
 
 
 def series(cycles: Sequence[CycleResult], association: AssociationSettings,
-           max_bridge_cycles: int = DEFAULT_MAX_BRIDGE_CYCLES) -> list[SeriesRow]:
-    """Displacements of every rig's cycles, rigs in sorted order, each rig's rows in cycle order."""
+           max_bridge_cycles: int = DEFAULT_MAX_BRIDGE_CYCLES, rib: RibScorer | None = None
+           ) -> list[SeriesRow]:
+    """Displacements of every rig's cycles, rigs in sorted order, each rig's rows in cycle order. `rib`: the
+    rib registration (eq. M7) shared by the rigs (it keys cycles by rig)."""
     by_rig: dict[str, list[CycleResult]] = defaultdict(list)
     for c in cycles:
         by_rig[c.rig_id].append(c)
-    return [row for rig in sorted(by_rig) for row in rig_series(by_rig[rig], association, max_bridge_cycles)]
+    return [row for rig in sorted(by_rig)
+            for row in rig_series(by_rig[rig], association, max_bridge_cycles, rib)]

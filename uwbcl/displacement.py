@@ -12,6 +12,7 @@ retreat = Delta P.x, creep = Delta P.y, vertical = Delta P.z.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import numpy as np
 
@@ -38,6 +39,10 @@ PRIOR_OUTLIER_PROBABILITY = 1e-4
 DATA_BEATS_PRIOR = 2.0
 # Offset of a wrong match when the competitor is "no plate in common": about a plate spacing (x, y, z), m.
 NULL_OFFSET_M = np.array([1.0, 0.1, 0.6])
+# The rib registration (eq. M7) is asked only when the plates leave the best's lead over the runner-up below
+# RIB_REACH x min_margin, and scores the translations within that of the best, at most RIB_CANDIDATES.
+RIB_REACH = 2.0
+RIB_CANDIDATES = 4
 
 
 def robust_mean(samples: np.ndarray, floor: np.ndarray | float, k: float = 3.0) -> np.ndarray:
@@ -141,6 +146,7 @@ class _Hypothesis:
     pairs: tuple[tuple[int, int], ...]
     inside: bool  # within the prior window (always True without a prior)
     vertical: float = 0.0  # the vertical step prior's penalty in score (eq. M2v), <= 0
+    rib: float = 0.0  # the rib registration's evidence in score (eq. M7), >= 0
 
 
 def _prior_log(shift: np.ndarray, settings: AssociationSettings) -> tuple[float, bool]:
@@ -246,6 +252,22 @@ def _hypotheses(diff: np.ndarray, cov: np.ndarray, gain: np.ndarray, settings: A
     return distinct
 
 
+def _with_rib_evidence(hyps: list[_Hypothesis], rib: Callable[[np.ndarray, float], float],
+                       settings: AssociationSettings) -> list[_Hypothesis]:
+    """Eq. M7: S(t) + max(0, E(t)) for the translations within RIB_REACH x min_margin of the best (at most
+    RIB_CANDIDATES), E the rib registration's evidence (eq. R2, uwbcl.registration), when the plates alone
+    leave the best's lead over the runner-up below that. Only between translations: the margin against "no
+    plate in common" leaves it out (docs/method.md section 6.4). Best first again."""
+    if len(hyps) < 2 or hyps[0].score - hyps[1].score >= RIB_REACH * settings.min_margin:
+        return hyps
+    n = sum(1 for h in hyps[:RIB_CANDIDATES] if hyps[0].score - h.score < RIB_REACH * settings.min_margin)
+    scored = []
+    for h in hyps[:n]:
+        e = max(0.0, float(rib(h.shift, float(np.sqrt(h.cov[2, 2])))))
+        scored.append(dataclasses.replace(h, score=h.score + e, rib=e))
+    return sorted(scored, key=lambda h: (-h.score, -len(h.pairs), h.pairs)) + hyps[n:]
+
+
 def fit_chi2(before: list[Located], after: list[Located], pairs, advance_m: np.ndarray,
              before_cov_m2: np.ndarray, after_cov_m2: np.ndarray) -> tuple[float, int]:
     """Chi-square of the matched plates about a common advance, and its degrees of freedom 3 (n - 1).
@@ -300,8 +322,8 @@ def translation_scores(before: list[Located], after: list[Located], settings: As
 
 def estimate_advance(before: list[Located], after: list[Located],
                      settings: AssociationSettings = AssociationSettings(), *,
-                     before_cov_m2: np.ndarray | None = None, after_cov_m2: np.ndarray | None = None
-                     ) -> Displacement:
+                     before_cov_m2: np.ndarray | None = None, after_cov_m2: np.ndarray | None = None,
+                     rib: Callable[[np.ndarray, float], float] | None = None) -> Displacement:
     """Delta P between two cycles, its error bound, and a status saying how far the match can be trusted.
 
     Parameters
@@ -310,6 +332,10 @@ def estimate_advance(before: list[Located], after: list[Located],
     settings : tolerances, the prior (already scaled to the gap: AssociationSettings.for_gap), the margins.
     before_cov_m2, after_cov_m2 : (n, 3, 3), (m, 3, 3) location covariances (location_covariance_m2), m^2.
         Without them each plate gets diag((tolerance / 3)^2 / 2) and the bound's scale comes from the fit.
+    rib : the rib registration's evidence E(t, sigma_z) of a translation (3,) m whose vertical is uncertain
+        by sigma_z m (eqs. R2-R3, `registration.RibRegistration.scorer`), added to close competitors' scores
+        (eq. M7).
+        None: the plates alone.
 
     Returns
     -------
@@ -335,13 +361,15 @@ def estimate_advance(before: list[Located], after: list[Located],
         return none
     p, q, diff, cov, gain, have_cov = _pair_terms(before, after, tol, before_cov_m2, after_cov_m2)
     hyps = _hypotheses(diff, cov, gain, settings)
+    if rib is not None:
+        hyps = _with_rib_evidence(hyps, rib, settings)
     if not hyps or len(hyps[0].pairs) < settings.min_targets:
         return none
     best = hyps[0]
     runner_up = hyps[1] if len(hyps) > 1 else None
     # The competitor: the best distinct translation, or "no plate in common" (score 0; the vertical penalty
-    # M2v is not counted against it), whichever is closer.
-    null_margin = best.score - best.vertical
+    # M2v and the rib evidence M7 are not counted against it), whichever is closer.
+    null_margin = best.score - best.vertical - best.rib
     if runner_up is not None and best.score - runner_up.score < null_margin:
         margin, offset = best.score - runner_up.score, np.abs(runner_up.shift - best.shift)
     else:

@@ -122,6 +122,10 @@ class AssociationSettings:
     max_bound_m: float = 0.01
     motion_model: bool = True  # the previous trusted cycles' steps predict the next (RigChain)
     second_look: bool = True  # a later trusted cycle re-measures the untrusted ones it bridged (revision 1)
+    # Close competing translations are told apart by the coherence of the two cycles' rib images too (eq. M7,
+    # docs/method.md section 6.4): `uwbcl process` and `uwbcl acquire --process` read each cycle's lowest pass
+    # again for it.
+    rib_registration: bool = True
     # The vertical step prior (eq. M5, docs/method.md section 6.3): the rig's vertical step per cycle in the
     # radar frame is the rig's mean step plus a random part (floor undulation) of this standard deviation per
     # cycle, then learned from the chain's ok steps within 0.25-2.5 x it (eq. M5b); 0 turns the prior off.

@@ -55,10 +55,15 @@ def pixel_track_coordinates(u_m, r_lrcm_m, grid: nlcs.FocusGrid):
 def backproject_points(rc: RangeCompressed, grid: nlcs.FocusGrid, u_m, r_lrcm_m,
                        chunk: int = 4096) -> np.ndarray:
     """Complex BP value at arbitrary (u, r_LRCM) points (any shape)."""
-    u = np.asarray(u_m, dtype=float)
-    r = np.asarray(r_lrcm_m, dtype=float)
-    shape = np.broadcast_shapes(u.shape, r.shape)
-    x_rel, rc_range = (a.ravel() for a in np.broadcast_arrays(*pixel_track_coordinates(u, r, grid)))
+    return backproject_track_points(rc, grid, *pixel_track_coordinates(u_m, r_lrcm_m, grid), chunk=chunk)
+
+
+def backproject_track_points(rc: RangeCompressed, grid: nlcs.FocusGrid, x_rel_m, rc_m,
+                             chunk: int = 4096) -> np.ndarray:
+    """Complex BP value at points given in track coordinates: along the rail relative to the aperture centre
+    (x_M - x_c, m) and closest-approach range R_c (m), any broadcastable shapes."""
+    shape = np.broadcast_shapes(np.shape(x_rel_m), np.shape(rc_m))
+    x_rel, rc_range = (np.asarray(a, dtype=float).ravel() for a in np.broadcast_arrays(x_rel_m, rc_m))
     out = np.zeros(x_rel.size, dtype=np.complex128)
     k = 4.0 * math.pi * grid.carrier_frequency_hz / C
     lo, hi = grid.doppler_band
