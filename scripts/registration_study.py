@@ -40,7 +40,7 @@ RIB_TOP_M = 2.2  # the rib band: from the rib's horizontal distance up to R_c of
 
 
 def passes_by_cycle(root: Path) -> dict[int, Path]:
-    """The lowest height's archive of every cycle (from the headers: each echo is read once, into a `RibEcho`)."""
+    """The lowest height's archive of every cycle (from the headers: each echo is read once, later)."""
     by_height: dict[int, dict[int, Path]] = {}
     for path in sorted((root / "archive").rglob("*.h5")):
         header = archive.read_pass_header(path)

@@ -16,8 +16,8 @@ import math
 import numpy as np
 import pytest
 
-from uwbcl import geometry as geo
 from uwbcl import batch, registration, simulate
+from uwbcl import geometry as geo
 from uwbcl.chain import RigChain
 from uwbcl.displacement import estimate_advance
 from uwbcl.model import PassGeometry, RadarParameters
