@@ -11,6 +11,7 @@ and the best alias at most 4.2; the scene below is cleaner (20 dB), so the true 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -25,6 +26,7 @@ from uwbcl.records import AssociationSettings, CycleResult, Located, PassRecord,
 
 RIB_M = 2.0
 HEIGHT_M = 0.4
+HEIGHTS_M = (HEIGHT_M, 0.9)
 SQUINT_DEG = 30.0
 GRID_M = 1.0
 STEP_M = np.array([0.93, 0.004, 0.002])  # the rig's advance a -> b: P_a = P_b + STEP
@@ -44,9 +46,10 @@ def rib_scene(rng: np.random.Generator, clutter_per_m: float) -> tuple[np.ndarra
     return plates, np.vstack([plates, clutter]), amp
 
 
-def lowest_pass(scatterers_m: np.ndarray, amplitudes: np.ndarray, shift_m: np.ndarray, seed: int):
+def one_pass(scatterers_m: np.ndarray, amplitudes: np.ndarray, shift_m: np.ndarray, height_m: float,
+             seed: int):
     th = math.radians(SQUINT_DEG)
-    geometry = PassGeometry(height_m=HEIGHT_M, rotation_table_angle_deg=SQUINT_DEG,
+    geometry = PassGeometry(height_m=height_m, rotation_table_angle_deg=SQUINT_DEG,
                             reference_point_m=(RIB_M * math.tan(th), -RIB_M, 1.2), boresight_y_sign=-1)
     return simulate.simulate_pass(RadarParameters(), geometry, scatterers_m - shift_m, amplitudes=amplitudes,
                                   aperture_length_m=3.0, speed_m_s=0.25, snr_db=20.0, speed_jitter=0.1,
@@ -65,11 +68,11 @@ def seen(plates_m: np.ndarray) -> np.ndarray:
 def two_cycles(clutter_per_m: float, seed: int = 3):
     rng = np.random.default_rng(seed)
     plates, scatterers, amp = rib_scene(rng, clutter_per_m)
-    passes = {0: lowest_pass(scatterers, amp, np.zeros(3), seed + 1),
-              1: lowest_pass(scatterers, amp, STEP_M, seed + 2)}
-    cycles = [CycleResult("rig", c, "", (HEIGHT_M, 1.0), [Located(p, 0.0, 2, 1.0) for p in seen(plates - s)])
+    passes = {(c, round(h * 1000)): one_pass(scatterers, amp, shift, h, seed + 2 * c + (h > HEIGHT_M))
+              for c, shift in ((0, np.zeros(3)), (1, STEP_M)) for h in HEIGHTS_M}
+    cycles = [CycleResult("rig", c, "", HEIGHTS_M, [Located(p, 0.0, 2, 1.0) for p in seen(plates - s)])
               for c, s in ((0, np.zeros(3)), (1, STEP_M))]
-    return cycles, registration.RibRegistration(lambda c: passes[c.cycle])
+    return cycles, registration.RibRegistration(lambda c, h: passes.get((c.cycle, h)))
 
 
 @pytest.fixture(scope="module")
@@ -84,6 +87,15 @@ def test_the_true_step_scores_above_every_plate_grid_alias(cluttered):
     aliases = [score(STEP_M + np.array([k * GRID_M, 0.0, 0.0])) for k in (-1.0, -0.5, 0.5, 1.0)]
     assert e_true > 5.0
     assert e_true > max(aliases) + 5.0, (e_true, aliases)
+
+
+def test_each_height_is_an_independent_look_and_their_evidence_adds_up(cluttered):
+    (a, b), reg = cluttered
+    one = [dataclasses.replace(c, heights_m=(HEIGHT_M,)) for c in (a, b)]
+    other = [dataclasses.replace(c, heights_m=(HEIGHTS_M[1],)) for c in (a, b)]
+    per_height = [reg.scorer(*cs)(STEP_M) for cs in (one, other)]
+    assert min(per_height) > 3.0
+    assert reg.scorer(a, b)(STEP_M) == pytest.approx(sum(per_height))
 
 
 def test_the_evidence_falls_off_within_centimetres_along_the_rail(cluttered):
@@ -192,17 +204,17 @@ def test_a_chain_without_rib_evidence_gives_the_rows_it_gave_before():
     assert rows[0] == rows[1]
 
 
-def test_a_lowest_pass_that_cannot_be_read_again_gives_no_evidence_and_is_logged(tmp_path, caplog):
+def test_a_pass_that_cannot_be_read_again_gives_no_evidence_and_is_logged(tmp_path, caplog):
     def record(height_m: float, name: str) -> PassRecord:
         return PassRecord(name, "0" * 64, "rig", 3, height_m, name, "2026-11-24T00:00:00Z", {}, ())
 
-    (tmp_path / "high.h5").write_bytes(b"not read")
-    (tmp_path / "low.h5").write_bytes(b"not an archive")
-    groups = {("rig", 3): {900: record(0.9, "high.h5"), 300: record(0.3, "low.h5")}}
+    (tmp_path / "high.h5").write_bytes(b"not an archive")
+    groups = {("rig", 3): {900: record(0.9, "high.h5"), 300: record(0.3, "low.h5")}}  # low.h5: gone
     reg = batch.rib_registration(groups, tmp_path, ProcessingSettings())
     cycle = CycleResult("rig", 3, "", (0.3, 0.9), [Located(np.array([1.0, -2.0, 1.0]), 0.0, 2, 1.0)])
     with caplog.at_level("WARNING"):
         assert reg.scorer(cycle, cycle)(np.zeros(3), 0.01) == 0.0
-    assert "low.h5: not read for the rib registration" in caplog.text  # the lowest pass, by name
+    assert "low.h5: not read for the rib registration" in caplog.text  # each pass, by name
+    assert "high.h5: not read for the rib registration" in caplog.text
     off = ProcessingSettings(association=AssociationSettings(rib_registration=False))
     assert batch.rib_registration(groups, tmp_path, off) is None

@@ -390,15 +390,14 @@ def locate_records(recs: dict[int, PassRecord], detection: DetectionSettings = D
 
 def rib_registration(groups: dict, in_dir: Path, settings: ProcessingSettings
                      ) -> registration.RibRegistration | None:
-    """The rib registration of the association (eq. M7) over each cycle's lowest pass, read again from its
-    archive when two cycles are close to ambiguous; None when `[association] rib_registration` is off. A pass
-    that cannot be read now gives no evidence (logged): the plates decide alone."""
+    """The rib registration of the association (eq. M7) over each cycle's passes, read again from their
+    archives when two cycles are close to ambiguous; None when `[association] rib_registration` is off. A pass
+    that cannot be read now gives no evidence (logged): the other heights, or the plates alone, decide."""
     if not settings.association.rib_registration:
         return None
-    lowest = {key: recs[min(recs)] for key, recs in groups.items()}
 
-    def load(c: CycleResult):
-        rec = lowest.get((c.rig_id, c.cycle))
+    def load(c: CycleResult, height_mm: int):
+        rec = groups.get((c.rig_id, c.cycle), {}).get(height_mm)
         if rec is None:
             return None
         try:

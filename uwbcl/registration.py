@@ -162,18 +162,18 @@ def tile_steps() -> tuple[int, int]:
 
 
 class RibRegistration:
-    """The evidence (eq. R2) of candidate translations between two cycles of a rig.
+    """The evidence (eqs. R2-R4) of candidate translations between two cycles of a rig.
 
-    `load(cycle)` returns the cycle's lowest pass (a ScanPass) or None when it cannot be read. The echoes of
-    the last `capacity` cycles are kept (a few MB each), and b's lattices and the scores of recent pairs, so
-    the chain's repeated measurements of a pair cost nothing twice. Deterministic: the same passes, the same
-    evidence.
+    `load(cycle, height_mm)` returns the cycle's pass at that rail height (mm, as `CycleResult.heights_m`
+    rounded) or None when it cannot be read. The echoes of the last few cycles are kept (a few MB each), and
+    b's lattices and the scores of recent pairs, so the chain's repeated measurements of a pair cost nothing
+    twice. Deterministic: the same passes, the same evidence.
     """
 
-    def __init__(self, load: Callable[[CycleResult], ScanPass | None], capacity: int = 6,
+    def __init__(self, load: Callable[[CycleResult, int], ScanPass | None], capacity: int = 24,
                  max_scores: int = 4096):
         self._load = load
-        self._capacity = capacity
+        self._capacity = capacity  # passes (a few cycles of 2-4 heights)
         self._max_scores = max_scores
         self._echoes: OrderedDict[Hashable, RibEcho | None] = OrderedDict()
         self._lattices: OrderedDict[Hashable, RibLattice | None] = OrderedDict()
@@ -190,38 +190,42 @@ class RibRegistration:
             cache.popitem(last=False)
         return value
 
-    def _echo(self, c: CycleResult) -> RibEcho | None:
-        key = self._key(c)
+    def _echo(self, c: CycleResult, height_mm: int) -> RibEcho | None:
+        key = (*self._key(c), height_mm)
         if key in self._echoes:
             self._echoes.move_to_end(key)
             return self._echoes[key]
-        scan = self._load(c)
+        scan = self._load(c, height_mm)
         return self._remember(self._echoes, key, None if scan is None else RibEcho(scan), self._capacity)
 
-    def _lattice(self, b: CycleResult) -> RibLattice | None:
-        key = self._key(b)
+    def _lattice(self, b: CycleResult, height_mm: int) -> RibLattice | None:
+        key = (*self._key(b), height_mm)
         if key in self._lattices:
             return self._lattices[key]
-        echo = self._echo(b)
+        echo = self._echo(b, height_mm)
         plates = np.array([p.position_m for p in b.plates], dtype=float).reshape(-1, 3)
         return self._remember(self._lattices, key, None if echo is None else rib_lattice(echo, plates),
                               self._capacity)
 
     def scorer(self, a: CycleResult, b: CycleResult) -> Callable[[np.ndarray, float], float]:
-        """The evidence E(t) (eqs. R2-R3) of a translation t (3,) m for a -> b whose vertical is uncertain by
-        sigma_z_m; 0 when a pass cannot be read."""
+        """The evidence E(t) of a translation t (3,) m for a -> b whose vertical is uncertain by sigma_z_m:
+        eq. R4, the sum of eqs. R2-R3 over the rail heights both cycles have (each height's pass is an
+        independent look at the rib); 0 from a height whose pass cannot be read."""
+        heights = sorted({round(h * 1000.0) for h in a.heights_m} & {round(h * 1000.0) for h in b.heights_m})
 
         def score(t_m: np.ndarray, sigma_z_m: float = 0.0) -> float:
             t = np.asarray(t_m, dtype=float)
-            key = (self._key(a), self._key(b), tuple(np.round(t * 1e4).astype(int)), round(sigma_z_m * 1e4))
+            key = (self._key(a), self._key(b), tuple(heights), tuple(np.round(t * 1e4).astype(int)),
+                   round(sigma_z_m * 1e4))
             if key in self._scores:
                 return self._scores[key]
-            lat = self._lattice(b)
-            echo_a = None if lat is None else self._echo(a)
             value = 0.0
-            if echo_a is not None:
-                image, phase_per_m = moved_image(lat, echo_a, t)
-                value = evidence(lat.image, image, tile_steps(), phase_per_m, sigma_z_m)
+            for h in heights:
+                lat = self._lattice(b, h)
+                echo_a = None if lat is None else self._echo(a, h)
+                if echo_a is not None:
+                    image, phase_per_m = moved_image(lat, echo_a, t)
+                    value += evidence(lat.image, image, tile_steps(), phase_per_m, sigma_z_m)  # eq. R4
             return self._remember(self._scores, key, value, self._max_scores)
 
         return score

@@ -29,9 +29,9 @@ log = logging.getLogger("uwbcl.acquire")
 RESULT_COLUMNS = ("rig_id", "cycle", "previous_cycle", "start_time", "retreat_m", "creep_m", "vertical_m",
                   "n_targets", "residual_m", "status", "revision")
 RESULTS_FILE = "acquire-results.csv"
-# The chain measures a cycle from at most this many cycles back (bridges, the second look): their lowest
-# passes are kept for the rib registration (a few MB each).
-KEEP_LOWEST_PASSES = 12
+# The chain measures a cycle from at most this many cycles back (bridges, the second look): their passes are
+# kept for the rib registration (a few MB each).
+KEEP_CYCLES = 12
 
 
 def processing_settings(backend: str = "", web_depth_m: float = 0.0) -> ProcessingSettings:
@@ -72,9 +72,10 @@ class LiveProcessor:
         self.rig_id = rig_id
         self.results: queue.Queue = queue.Queue()
         self._todo: queue.Queue = queue.Queue(maxsize=max_pending)
-        # each recent cycle's lowest pass, for the rib registration (eq. M7) as `uwbcl process` reads it again
-        self._lowest: dict[int, object] = {}
-        rib = (registration.RibRegistration(self._lowest_pass) if settings.association.rib_registration
+        # the recent cycles' passes by height (mm) for the rib registration (eq. M7), which `uwbcl process`
+        # reads again from their archives
+        self._recent: dict[int, dict[int, object]] = {}
+        rib = (registration.RibRegistration(self._recent_pass) if settings.association.rib_registration
                else None)
         self._chain = chain.RigChain(settings.association, rib=rib)
         self._stop = threading.Event()
@@ -117,17 +118,17 @@ class LiveProcessor:
             return [self._row(cycle, start_time, None, R.ResultStatus.INCOMPLETE_CYCLE, "incomplete_cycle")]
         located = pipeline.locate_cycle(passes, self.settings)
         log.info("cycle %d: %d plates located", cycle, len(located.plates))
-        self._lowest[cycle] = pipeline.apply_range_delay(min(passes, key=lambda p: p.geometry.height_m),
-                                                         self.settings.range_delay_s)
-        for old in sorted(self._lowest)[:-KEEP_LOWEST_PASSES]:
-            del self._lowest[old]
+        self._recent[cycle] = {round(p.geometry.height_m * 1000.0):
+                               pipeline.apply_range_delay(p, self.settings.range_delay_s) for p in passes}
+        for old in sorted(self._recent)[:-KEEP_CYCLES]:
+            del self._recent[old]
         row = self._chain.add(located)
         if row is None:
             return [self._row(cycle, start_time, None, None, "reference", located=len(located.plates))]
         return [self._series_row(r) for r in (row, *self._chain.revised)]
 
-    def _lowest_pass(self, c):
-        return self._lowest.get(c.cycle)
+    def _recent_pass(self, c, height_mm: int):
+        return self._recent.get(c.cycle, {}).get(height_mm)
 
     def _series_row(self, row) -> dict:
         d = row.displacement
