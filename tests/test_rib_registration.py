@@ -65,14 +65,14 @@ def seen(plates_m: np.ndarray) -> np.ndarray:
     return plates_m[np.abs(crossing) < 1.4]
 
 
-def two_cycles(clutter_per_m: float, seed: int = 3):
+def two_cycles(clutter_per_m: float, seed: int = 3, **kw):
     rng = np.random.default_rng(seed)
     plates, scatterers, amp = rib_scene(rng, clutter_per_m)
     passes = {(c, round(h * 1000)): one_pass(scatterers, amp, shift, h, seed + 2 * c + (h > HEIGHT_M))
               for c, shift in ((0, np.zeros(3)), (1, STEP_M)) for h in HEIGHTS_M}
     cycles = [CycleResult("rig", c, "", HEIGHTS_M, [Located(p, 0.0, 2, 1.0) for p in seen(plates - s)])
               for c, s in ((0, np.zeros(3)), (1, STEP_M))]
-    return cycles, registration.RibRegistration(lambda c, h: passes.get((c.cycle, h)))
+    return cycles, registration.RibRegistration(lambda c, h: passes.get((c.cycle, h)), **kw)
 
 
 @pytest.fixture(scope="module")
@@ -96,6 +96,13 @@ def test_each_height_is_an_independent_look_and_their_evidence_adds_up(cluttered
     per_height = [reg.scorer(*cs)(STEP_M) for cs in (one, other)]
     assert min(per_height) > 3.0
     assert reg.scorer(a, b)(STEP_M) == pytest.approx(sum(per_height))
+
+
+def test_the_echoes_kept_stay_within_their_memory_budget_and_the_evidence_is_the_same():
+    (a, b), reg = two_cycles(clutter_per_m=8.0, max_echo_bytes=1)
+    (a2, b2), roomy = two_cycles(clutter_per_m=8.0)
+    assert reg.scorer(a, b)(STEP_M) == pytest.approx(roomy.scorer(a2, b2)(STEP_M))
+    assert len(reg._echoes) == 2  # the pair being compared, nothing older
 
 
 def test_the_evidence_falls_off_within_centimetres_along_the_rail(cluttered):

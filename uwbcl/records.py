@@ -123,8 +123,7 @@ class AssociationSettings:
     motion_model: bool = True  # the previous trusted cycles' steps predict the next (RigChain)
     second_look: bool = True  # a later trusted cycle re-measures the untrusted ones it bridged (revision 1)
     # Close competing translations are told apart by the coherence of the two cycles' rib images too (eq. M7,
-    # docs/method.md section 6.4): `uwbcl process` and `uwbcl acquire --process` read each cycle's lowest pass
-    # again for it.
+    # docs/method.md section 6.4): `uwbcl process` reads the cycles' passes again for it.
     rib_registration: bool = True
     # The vertical step prior (eq. M5, docs/method.md section 6.3): the rig's vertical step per cycle in the
     # radar frame is the rig's mean step plus a random part (floor undulation) of this standard deviation per

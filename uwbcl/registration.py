@@ -3,10 +3,11 @@ plates' positions lack (docs/method.md section 6.4).
 
 Plates on a regular grid look alike: a translation one plate spacing off can match as many plates as the
 right one. Their phases do not: each plate's sub-wavelength position, and the rib's own scatterers around it,
-line up in both cycles at the right translation only. So cycle b's lowest pass is backprojected at a lattice
-of points of its rib (x along the rail, R_c across, over the range band of its located plates), cycle a's
-lowest pass at the same points moved by the candidate translation t (P_a = P_b + t, the rig frame), and the
-product I_b conj(I_a(t)) is summed over tiles of about a resolution cell's size (TILE_M), c_k. At a wrong
+line up in both cycles at the right translation only. So, at each rail height both cycles have, cycle b's pass
+is backprojected at a lattice of points of its rib (x along the rail, R_c across, over the range band of its
+located plates), cycle a's pass at the same points moved by the candidate translation t (P_a = P_b + t, the
+rig frame), and the product I_b conj(I_a(t)) is summed over tiles of about a plate response's size (TILE_M),
+c_k. At a wrong
 translation the tiles' phases are unrelated, and
 
     Q = |sum_k c_k|^2 / sum_k |c_k|^2                                                                 (R1)
@@ -15,13 +16,14 @@ is about exponential with mean 1 (the coherence test of n independent looks); at
 agree and Q approaches N = (sum |c_k|)^2 / sum |c_k|^2, the number of tiles that carry the images' energy.
 Against a vague alternative (Q anywhere in [0, N]) the log-likelihood ratio of a translation is
 
-    E(t) = Q - ln N                                                                                  (R2)
+    E_h(t) = Q - ln N                                                                                (R2)
 
-small for one plate alone (N ~ 1: a plate matched to another plate is as coherent as to itself), large when
-several plates and the rib agree. The association adds it to the scores of competing translations (section
-6.4), never against "no plate in common": what a rib that decorrelated between cycles (dust, spalling, mesh
-moving) does to E is unknown until real recordings measure it, so it only chooses between translations the
-plates already support.
+small for one plate alone (N <= 4: a plate matched to another plate is as coherent as to itself), large when
+several plates and the rib agree. The candidate's vertical is searched within its uncertainty (eq. R3,
+`evidence`) and the heights, independent looks, add up (eq. R4, `RibRegistration.scorer`). The association
+adds E to the scores of competing translations (eq. M7), never against "no plate in common": E's tail under a
+wrong translation is known only from simulated ribs, and what dust, spalling or moving mesh between cycles do
+to it only real recordings can tell, so it only chooses between translations the plates already support.
 """
 
 from __future__ import annotations
@@ -171,9 +173,10 @@ class RibRegistration:
     """
 
     def __init__(self, load: Callable[[CycleResult, int], ScanPass | None], capacity: int = 24,
-                 max_scores: int = 4096):
+                 max_echo_bytes: int = 256 << 20, max_scores: int = 4096):
         self._load = load
-        self._capacity = capacity  # passes (a few cycles of 2-4 heights)
+        self._capacity = capacity  # passes (a few cycles of 2-4 heights) kept, their echoes within the bytes
+        self._max_echo_bytes = max_echo_bytes
         self._max_scores = max_scores
         self._echoes: OrderedDict[Hashable, RibEcho | None] = OrderedDict()
         self._lattices: OrderedDict[Hashable, RibLattice | None] = OrderedDict()
@@ -196,7 +199,12 @@ class RibRegistration:
             self._echoes.move_to_end(key)
             return self._echoes[key]
         scan = self._load(c, height_mm)
-        return self._remember(self._echoes, key, None if scan is None else RibEcho(scan), self._capacity)
+        echo = self._remember(self._echoes, key, None if scan is None else RibEcho(scan), self._capacity)
+        # memory bounded whatever the passes' size: the oldest echoes go first, the two being compared stay
+        while len(self._echoes) > 2 and sum(e.rc.data.nbytes for e in self._echoes.values()
+                                            if e is not None) > self._max_echo_bytes:
+            self._echoes.popitem(last=False)
+        return echo
 
     def _lattice(self, b: CycleResult, height_mm: int) -> RibLattice | None:
         key = (*self._key(b), height_mm)
