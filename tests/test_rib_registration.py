@@ -105,6 +105,15 @@ def test_the_echoes_kept_stay_within_their_memory_budget_and_the_evidence_is_the
     assert len(reg._echoes) == 2  # the pair being compared, nothing older
 
 
+def test_a_rib_band_too_large_to_backproject_in_bounded_time_gives_no_evidence(monkeypatch):
+    (a, b), reg = two_cycles(clutter_per_m=8.0)  # a stray plate 60 m up: a band of 60 m
+    far = dataclasses.replace(b, plates=[*b.plates, Located(np.array([1.0, -2.0, 60.0]), 0.0, 2, 1.0)])
+    assert reg.scorer(a, far)(STEP_M) == 0.0
+    monkeypatch.setattr(registration, "MAX_LATTICE_WORK", 1)
+    (a2, b2), small = two_cycles(clutter_per_m=8.0)
+    assert small.scorer(a2, b2)(STEP_M) == 0.0
+
+
 def test_the_evidence_falls_off_within_centimetres_along_the_rail(cluttered):
     (a, b), reg = cluttered
     score = reg.scorer(a, b)

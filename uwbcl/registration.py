@@ -44,6 +44,9 @@ LATTICE_M = (0.01, 0.02)  # rib points along the rail and in R_c (resolution ~2 
 TILE_M = (0.10, 0.10)  # the tiles of eq. R1: about one plate's response, so one scatterer is one look or few
 BAND_MARGIN_M = 0.15  # the rib band: the located plates' R_c range widened by this on both sides
 UPSAMPLE = 4  # range-compressed echo kept at 4x its sample rate (complex64): linear interpolation is enough
+# Points x pulses of one lattice's backprojection beyond which a pair gets no evidence (~1 s in numpy; the
+# study's are ~3e6): a band spread by stray plates or a very long rail must not stall the batch.
+MAX_LATTICE_WORK = 50_000_000
 Z_SEARCH_MAX_M = 0.15  # eq. R3 searches the candidate's vertical over +-3 sigma, never wider than this
 
 
@@ -130,9 +133,9 @@ class RibLattice:
 
 def rib_lattice(echo: RibEcho, plates_m: np.ndarray) -> RibLattice | None:
     """Cycle b's lattice over the R_c band of its located plates (n, 3) and its pass's imaged extent; None
-    without plates."""
+    without plates, or when its backprojection would exceed MAX_LATTICE_WORK (no evidence, bounded time)."""
     plates_m = np.asarray(plates_m, dtype=float).reshape(-1, 3)
-    if len(plates_m) == 0:
+    if len(plates_m) == 0 or not np.all(np.isfinite(plates_m)):
         return None
     h = echo.height_m
     y = float(np.median(plates_m[:, 1]))
@@ -141,6 +144,8 @@ def rib_lattice(echo: RibEcho, plates_m: np.ndarray) -> RibLattice | None:
     r = np.arange(lo, float(rc_plates.max()) + BAND_MARGIN_M + 1e-9, LATTICE_M[1])
     x0, x1 = echo.x_span_m(float(np.median(r)))
     x = np.arange(x0, x1 + 1e-9, LATTICE_M[0])
+    if x.size * r.size * echo.rc.data.shape[0] > MAX_LATTICE_WORK:
+        return None
     side = 1.0 if np.median(plates_m[:, 2] - h) >= 0 else -1.0
     dz = side * np.sqrt(np.maximum(r**2 - y**2, 0.0))
     return RibLattice(x, r, y, dz, h, echo.image(x[:, None], r[None, :]))
