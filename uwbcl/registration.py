@@ -35,9 +35,10 @@ from collections.abc import Callable, Hashable
 
 import numpy as np
 
+from .archive import height_mm
 from .focus import backprojection as bp
 from .focus import nlcs
-from .model import SPEED_OF_LIGHT_M_S, ScanPass
+from .model import ScanPass
 from .records import CycleResult
 
 LATTICE_M = (0.01, 0.02)  # rib points along the rail and in R_c (resolution ~2 cm along, ~9 cm in range)
@@ -158,8 +159,7 @@ def moved_image(lat: RibLattice, echo_a: RibEcho, t_m: np.ndarray) -> tuple[np.n
     t = np.asarray(t_m, dtype=float)
     dz = lat.dz_m + lat.height_m - echo_a.height_m + t[2]
     r_a = np.hypot(lat.y_m + t[1], dz)
-    g = echo_a.grid
-    k = 4.0 * math.pi * g.carrier_frequency_hz / SPEED_OF_LIGHT_M_S * g.cos_squint
+    k = echo_a.grid.two_way_wavenumber_rad_m * echo_a.grid.cos_squint
     return echo_a.image(lat.x_m[:, None] + t[0], r_a[None, :]), k * dz / np.maximum(r_a, 1e-9)
 
 
@@ -171,10 +171,10 @@ def tile_steps() -> tuple[int, int]:
 class RibRegistration:
     """The evidence (eqs. R2-R4) of candidate translations between two cycles of a rig.
 
-    `load(cycle, height_mm)` returns the cycle's pass at that rail height (mm, as `CycleResult.heights_m`
-    rounded) or None when it cannot be read. The echoes of the last few cycles are kept (a few MB each), and
-    b's lattices and the scores of recent pairs, so the chain's repeated measurements of a pair cost nothing
-    twice. Deterministic: the same passes, the same evidence.
+    `load(cycle, height_mm)` returns the cycle's pass at that rail height (mm, `archive.height_mm`) or None
+    when it cannot be read. The echoes of the last few cycles are kept (a few MB each), and b's lattices and
+    the scores of recent pairs, so the chain's repeated measurements of a pair cost nothing twice.
+    Deterministic: the same passes, the same evidence.
     """
 
     def __init__(self, load: Callable[[CycleResult, int], ScanPass | None], capacity: int = 24,
@@ -224,7 +224,7 @@ class RibRegistration:
         """The evidence E(t) of a translation t (3,) m for a -> b whose vertical is uncertain by sigma_z_m:
         eq. R4, the sum of eqs. R2-R3 over the rail heights both cycles have (each height's pass is an
         independent look at the rib); 0 from a height whose pass cannot be read."""
-        heights = sorted({round(h * 1000.0) for h in a.heights_m} & {round(h * 1000.0) for h in b.heights_m})
+        heights = sorted({height_mm(h) for h in a.heights_m} & {height_mm(h) for h in b.heights_m})
 
         def score(t_m: np.ndarray, sigma_z_m: float = 0.0) -> float:
             t = np.asarray(t_m, dtype=float)

@@ -19,6 +19,7 @@ import threading
 from pathlib import Path
 
 from .. import chain, pipeline, registration
+from ..archive import height_mm
 from ..atomic import write_csv_atomic
 from ..records import ProcessingSettings
 from ..utc import utc_seconds
@@ -118,7 +119,7 @@ class LiveProcessor:
             return [self._row(cycle, start_time, None, R.ResultStatus.INCOMPLETE_CYCLE, "incomplete_cycle")]
         located = pipeline.locate_cycle(passes, self.settings)
         log.info("cycle %d: %d plates located", cycle, len(located.plates))
-        self._recent[cycle] = {round(p.geometry.height_m * 1000.0):
+        self._recent[cycle] = {height_mm(p.geometry.height_m):
                                pipeline.apply_range_delay(p, self.settings.range_delay_s) for p in passes}
         for old in sorted(self._recent)[:-KEEP_CYCLES]:
             del self._recent[old]

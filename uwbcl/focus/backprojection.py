@@ -65,7 +65,7 @@ def backproject_track_points(rc: RangeCompressed, grid: nlcs.FocusGrid, x_rel_m,
     shape = np.broadcast_shapes(np.shape(x_rel_m), np.shape(rc_m))
     x_rel, rc_range = (np.asarray(a, dtype=float).ravel() for a in np.broadcast_arrays(x_rel_m, rc_m))
     out = np.zeros(x_rel.size, dtype=np.complex128)
-    k = 4.0 * math.pi * grid.carrier_frequency_hz / C
+    k = grid.two_way_wavenumber_rad_m
     lo, hi = grid.doppler_band
     n_fine = rc.data.shape[1]
     flat = rc.data.ravel()
@@ -101,7 +101,7 @@ def point_target_echo(grid: nlcs.FocusGrid, x_rel_m: np.ndarray, t_s: np.ndarray
     rng = np.sqrt(dx * dx + rc_range**2)
     lo, hi = grid.doppler_band
     in_band = (dx >= lo * rng) & (dx <= hi * rng)
-    k = 4.0 * math.pi * grid.carrier_frequency_hz / C
+    k = grid.two_way_wavenumber_rad_m
     phase = np.exp(-1j * k * rng)
     t = np.asarray(t_s, dtype=float)
     delay = 2.0 * rng / C

@@ -97,6 +97,11 @@ class FocusGrid:
         return C / self.carrier_frequency_hz
 
     @property
+    def two_way_wavenumber_rad_m(self) -> float:
+        """k = 4 pi f_c / c: the carrier phase per metre of one-way range (eq. 2's exp(-j 4 pi f_c R / c))."""
+        return 4.0 * math.pi * self.carrier_frequency_hz / C
+
+    @property
     def dt_s(self) -> float:
         return self.track_spacing_m / self.speed_m_s
 
