@@ -32,7 +32,8 @@ import numpy as np
 from availability_study import located_plates
 
 from uwbcl import archive
-from uwbcl.registration import RibEcho, coherence
+from uwbcl.detect.phase import PointEcho
+from uwbcl.registration import coherence
 
 LATTICE_M = 0.01
 PLATE_MASK_M = (0.25, 0.15)  # half-widths in x and R_c around a located plate, left out of "clutter"
@@ -63,11 +64,11 @@ def study(root: Path, tag: str) -> list[dict]:
     truth = np.array(json.loads((root / "truth.json").read_text())["rig_m"])
     files, plates = passes_by_cycle(root), located_plates(root / tag)
     cycles = sorted(files)
-    loaded: dict[int, RibEcho] = {}
+    loaded: dict[int, PointEcho] = {}
     rows = []
     for a, b in zip(cycles, cycles[1:]):
         for c in (a, b):
-            loaded.setdefault(c, RibEcho(archive.read_pass(files[c])))
+            loaded.setdefault(c, PointEcho(archive.read_pass(files[c])))
         pa, pb = loaded[a], loaded[b]
         h = pb.height_m
         ps = plates.get(b, np.zeros((0, 3)))

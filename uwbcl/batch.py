@@ -54,7 +54,7 @@ from .utc import utc_seconds
 log = logging.getLogger("uwbcl")
 
 CACHE_DIR = ".uwbcl-cache"
-CACHE_VERSION = 1  # bump when the cached record changes meaning
+CACHE_VERSION = 2  # bump when the cached record changes meaning
 LOCK_FILE = ".uwbcl.lock"
 PARAMETER_KEYS = ("carrier_frequency_hz", "bandwidth_hz", "sample_rate_hz", "pulse_repetition_frequency_hz",
                   "antenna_aperture_m", "rotation_table_angle_deg", "reference_point_m", "boresight_y_sign")

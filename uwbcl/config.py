@@ -136,7 +136,7 @@ _SCHEMA = {
                     "weighted": _bool, "range_sigma_m": _number, "outlier_chi2": _number,
                     "max_bridge_cycles": _int, "min_margin": _number, "max_bound_m": _number,
                     "motion_model": _bool, "second_look": _bool, "rib_registration": _bool,
-                    "vertical_step_sigma_m": _number,
+                    "carrier_phase": _bool, "vertical_step_sigma_m": _number,
                     "vertical_trend_sigma_m": _number},
     "output": {f.name: _bool for f in dataclasses.fields(OutputOptions)},
     "limits": {f.name: _int for f in dataclasses.fields(ReadLimits)},

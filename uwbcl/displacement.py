@@ -15,12 +15,14 @@ import dataclasses
 from collections.abc import Callable
 
 import numpy as np
+from scipy.stats import chi2 as chi2_dist
 
 from .records import (  # noqa: F401 - re-exported
     CHAINABLE_STATUSES,
     STATUSES,
     TRUSTED_STATUSES,
     AssociationSettings,
+    Detection,
     Displacement,
     Located,
 )
@@ -43,6 +45,17 @@ NULL_OFFSET_M = np.array([1.0, 0.1, 0.6])
 # RIB_REACH x min_margin, and scores the translations within that of the best, at most RIB_CANDIDATES.
 RIB_REACH = 2.0
 RIB_CANDIDATES = 4
+# The carrier-phase refinement (eq. M8, docs/method.md section 6.5):
+# phase error per look that the pass's noise does not describe (neighbours' arms, clutter, interpolation)
+PHASE_FLOOR_RAD = 0.05
+# a look is used only where the plates' estimate predicts its phase to within this (one sigma): the nearest
+# fringe is then the right one with probability > 1 - 1e-4
+PHASE_PRIOR_MAX_RAD = np.pi / 4
+# and only where the located plate lies within this of the detection whose phase is moved to it (eq. R5 is
+# first order in the distance; a plate grouped across heights with another lies centimetres off)
+PHASE_REACH_M = 0.01
+# the phases and the plates' estimate must agree at this significance, or the plates' estimate stands
+PHASE_TEST_PROBABILITY = 1e-3
 
 
 def robust_mean(samples: np.ndarray, floor: np.ndarray | float, k: float = 3.0) -> np.ndarray:
@@ -109,6 +122,81 @@ def vertical_conditioned(advance_m: np.ndarray, cov_m2: np.ndarray, mean_m: floa
         return None
     gain = cov_m2[:, 2] / s2
     return advance_m + gain * innovation, cov_m2 - np.outer(gain, gain) * s2
+
+
+def phase_looks(before: list[Located], after: list[Located], pairs: list[tuple[int, int]]
+                ) -> list[tuple[float, np.ndarray, Detection, Detection]]:
+    """(rail height m, before-plate position (3,) m, its detection there, the after-plate's detection there)
+    for every matched pair and every rail height both plates were detected at with a measured phase."""
+    looks = []
+    for i, j in pairs:
+        seen_b = dict(after[j].looks)
+        for h, det_a in before[i].looks:
+            det_b = seen_b.get(h)
+            if det_b is not None and np.isfinite(det_a.phase_rad) and np.isfinite(det_b.phase_rad):
+                looks.append((h, np.asarray(before[i].position_m, dtype=float), det_a, det_b))
+    return looks
+
+
+def _moved_phase(det: Detection, x_m: float, rc_m: float) -> float:
+    """Eq. R5 to first order: a detection's phase moved from its (x, R_c) to a nearby point."""
+    return (det.phase_rad + det.phase_slope_x_rad_m * (x_m - det.x_m)
+            + det.phase_slope_rc_rad_m * (rc_m - det.rc_m))
+
+
+def _phase_residuals(t_m: np.ndarray, looks) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Eq. M8: per look, the wrapped phase of b's echo at P_a - t less a's at P_a (rad, (n,)), its derivative
+    in t (n, 3), and the farthest (m) that eq. R5 moves either detection's phase."""
+    r, jac, reach = np.zeros(len(looks)), np.zeros((len(looks), 3)), np.zeros(len(looks))
+    for n, (h, p, da, db) in enumerate(looks):
+        q = p - t_m
+        ra, rb = float(np.hypot(p[1], p[2] - h)), float(np.hypot(q[1], q[2] - h))
+        r[n] = np.angle(np.exp(1j * (_moved_phase(db, q[0], rb) - _moved_phase(da, p[0], ra))))
+        jac[n] = -np.array([db.phase_slope_x_rad_m, db.phase_slope_rc_rad_m * q[1] / rb,
+                            db.phase_slope_rc_rad_m * (q[2] - h) / rb])
+        reach[n] = max(np.hypot(p[0] - da.x_m, ra - da.rc_m), np.hypot(q[0] - db.x_m, rb - db.rc_m))
+    return r, jac, reach
+
+
+def carrier_phase_refinement(advance_m: np.ndarray, cov_m2: np.ndarray, looks
+                             ) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """Eq. M8: the plates' advance t0 (3,) with covariance Sigma0 (3, 3) refined by the carrier phases of
+    their looks (`phase_looks`): Gauss-Newton on sum_n r_n(t)^2 / s_n^2 + (t - t0)^T Sigma0^-1 (t - t0), s_n^2
+    the two detections' phase variances plus PHASE_FLOOR_RAD^2.
+
+    A look is used only where Sigma0 predicts its phase to PHASE_PRIOR_MAX_RAD (its fringe is then known)
+    and eq. R5 moves its phases by at most PHASE_REACH_M. Returns (advance, covariance, looks used), the
+    covariance scaled by max(1, chi2 / looks); None when no look is usable, or when the phases and the plates
+    disagree (chi2 beyond its 1 - PHASE_TEST_PROBABILITY quantile: e.g. a plate whose phase changed between
+    the cycles), and the plates' estimate stands.
+    """
+    if not looks:
+        return None
+    t0 = np.asarray(advance_m, dtype=float)
+    info0 = np.linalg.inv(cov_m2)
+    r, jac, reach = _phase_residuals(t0, looks)
+    s2 = np.array([da.phase_sigma_rad**2 + db.phase_sigma_rad**2 for _, _, da, db in looks])
+    s2 = s2 + PHASE_FLOOR_RAD**2
+    predicted = np.sqrt(np.einsum("ni,ij,nj->n", jac, cov_m2, jac))
+    use = np.isfinite(r) & np.isfinite(s2) & (predicted <= PHASE_PRIOR_MAX_RAD) & (reach <= PHASE_REACH_M)
+    if not use.any():
+        return None
+    used = [look for look, u in zip(looks, use) if u]
+    w = 1.0 / s2[use]
+    t = t0.copy()
+    for _ in range(8):
+        r, jac, _ = _phase_residuals(t, used)
+        step = np.linalg.solve(jac.T @ (w[:, None] * jac) + info0, -(jac.T @ (w * r) + info0 @ (t - t0)))
+        t = t + step
+        if np.max(np.abs(step)) < 1e-7:
+            break
+    r, jac, _ = _phase_residuals(t, used)
+    chi2 = float(np.sum(w * r**2) + (t - t0) @ info0 @ (t - t0))
+    n = len(used)
+    if not chi2 <= chi2_dist.isf(PHASE_TEST_PROBABILITY, n):
+        return None
+    cov = np.linalg.inv(jac.T @ (w[:, None] * jac) + info0)
+    return t, max(1.0, chi2 / n) * cov, n
 
 
 def consistent_pairs(d: np.ndarray, cov: np.ndarray, chi2_max: float) -> tuple[np.ndarray, bool]:
@@ -403,6 +491,11 @@ def estimate_advance(before: list[Located], after: list[Located],
             # grouped across heights with another (off in y and z together) than a floor step: nothing else
             # says which, as with two plates that disagree.
             consistent = False
+    looks_used = 0
+    if settings.carrier_phase and settings.weighted and have_cov:
+        refined = carrier_phase_refinement(advance, cov_adv, phase_looks(before, after, pairs))
+        if refined is not None:
+            advance, cov_adv, looks_used = refined
     bound = np.sqrt(np.diag(cov_adv) + np.exp(-min(margin, 700.0)) * offset**2)  # eq. M3
 
     if not best.inside and margin < DATA_BEATS_PRIOR * settings.min_margin:
@@ -418,4 +511,5 @@ def estimate_advance(before: list[Located], after: list[Located],
     spread = d.std(axis=0) if len(d) > 1 else np.zeros(3)
     residual = float(np.sqrt(np.mean(np.sum((d - advance) ** 2, axis=1))))
     return Displacement(advance, spread, len(pairs), residual, status, pairs,
-                        len(runner_up.pairs) if runner_up else 0, bound, float(margin), vertical_data)
+                        len(runner_up.pairs) if runner_up else 0, bound, float(margin), vertical_data,
+                        looks_used)

@@ -87,5 +87,6 @@ def locate_plates(detections_by_height: dict[float, list[Detection]], boresight_
         loc = locate_target(hs, [d.x_m for d in dets], [d.rc_m for d in dets],
                             boresight_y_sign=boresight_y_sign)
         if loc is not None:
-            out.append(dataclasses.replace(loc, amplitude=float(np.mean([d.amplitude for d in dets]))))
+            out.append(dataclasses.replace(loc, amplitude=float(np.mean([d.amplitude for d in dets])),
+                                           looks=tuple(zip(hs, dets))))
     return sorted(out, key=lambda p: p.position_m[0])

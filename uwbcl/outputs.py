@@ -33,6 +33,8 @@ DISPLACEMENT_COLUMNS = (
     # Added in 1.2: 0 as first issued, 1 when a later cycle resolved the row (the second look); the vertical
     # column's bounds
     "revision", "vertical_bound_m", "cumulative_vertical_bound_m",
+    # Added in 1.3: carrier-phase looks that refined the row (eq. M8; 0: the plates' positions alone)
+    "phase_looks",
 )
 TARGET_COLUMNS = (
     "rig_id", "cycle", "plate", "track", "x_m", "y_m", "z_m", "residual_m", "n_passes", "amplitude",
@@ -42,7 +44,7 @@ ERROR_COLUMNS = ("file", "kind", "reason")
 H5_FORMAT = "uwbcl-displacements"
 H5_FORMAT_VERSION = 1
 UNITS = {"_m": "m", "cycle": "1", "from_cycle": "1", "chain": "1", "n_targets": "1", "n_plates": "1",
-         "runner_up_targets": "1", "revision": "1",
+         "runner_up_targets": "1", "revision": "1", "phase_looks": "1",
          "plate": "1", "track": "1", "n_passes": "1", "matched_plate": "1", "inlier": "1", "amplitude": "arb",
          "start_time": "ISO 8601 UTC", "rig_id": "", "status": "",
          "association_margin": "ln(likelihood ratio)"}
@@ -71,7 +73,7 @@ def displacement_records(rows: list[SeriesRow]) -> list[dict]:
             "cumulative_retreat_bound_m": float(r.cumulative_bound_m[0]),
             "cumulative_creep_bound_m": float(r.cumulative_bound_m[1]), "association_margin": float(d.margin),
             "revision": r.revision, "vertical_bound_m": float(d.bound_m[2]),
-            "cumulative_vertical_bound_m": float(r.cumulative_bound_m[2]),
+            "cumulative_vertical_bound_m": float(r.cumulative_bound_m[2]), "phase_looks": d.phase_looks,
         })
     return out
 

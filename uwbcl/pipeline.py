@@ -12,6 +12,7 @@ import logging
 from collections.abc import Sequence
 
 from . import chain, detect
+from .detect import phase as detect_phase
 from .focus import backprojection, nlcs
 from .focus.engine import shared_engine  # pyopencl and pyvkfft are imported when an engine is built, not here
 from .focus.protocol import Focuser
@@ -117,8 +118,11 @@ def focus_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSettings
     products = _focus(scan, settings, focuser)
     if settings.algorithm == "nlcs":
         # The echo lets detection model the neighbours, focused by the same backend.
-        return products, detect.detect_nlcs(products, settings.detection, scan, focuser, footprint)
-    return products, detect.detect_bp(products, settings.detection, footprint)
+        detections = detect.detect_nlcs(products, settings.detection, scan, focuser, footprint)
+    else:
+        detections = detect.detect_bp(products, settings.detection, footprint)
+    # Every backend's plates get the same carrier phase: measured on the echo itself (eq. R5).
+    return products, detect_phase.with_phases(scan, detections)
 
 
 def prepare_pass(scan: ScanPass, settings: ProcessingSettings) -> ScanPass:

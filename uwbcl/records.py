@@ -125,6 +125,9 @@ class AssociationSettings:
     # Close competing translations are told apart by the coherence of the two cycles' rib images too (eq. M7,
     # docs/method.md section 6.4): `uwbcl process` reads the cycles' passes again for it.
     rib_registration: bool = True
+    # The matched plates' carrier phases refine the translation along each line of sight (eq. M8,
+    # docs/method.md section 6.5) where the plates' estimate fixes the fringe and the phases agree with it.
+    carrier_phase: bool = True
     # The vertical step prior (eq. M5, docs/method.md section 6.3): the rig's vertical step per cycle in the
     # radar frame is the rig's mean step plus a random part (floor undulation) of this standard deviation per
     # cycle, then learned from the chain's ok steps within 0.25-2.5 x it (eq. M5b); 0 turns the prior off.
@@ -208,6 +211,12 @@ class Detection:
     image_range_m: float  # r_LRCM of the peak
     amplitude: float
     snr_db: float
+    # The carrier phase of the echo backprojected at (x_m, rc_m), its slopes there and its standard deviation
+    # (eq. R5, `detect.phase`); NaN when not measured.
+    phase_rad: float = math.nan
+    phase_slope_x_rad_m: float = math.nan
+    phase_slope_rc_rad_m: float = math.nan
+    phase_sigma_rad: float = math.nan
 
 
 @dataclasses.dataclass(frozen=True)
@@ -216,6 +225,9 @@ class Located:
     residual_m: float  # RMS misfit of the per-pass (x, R_c) to the located point
     n_passes: int
     amplitude: float
+    # (rail height m, detection) of every pass it was located from, heights ascending: the carrier phases the
+    # association compares (eq. M8)
+    looks: tuple[tuple[float, Detection], ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -234,6 +246,8 @@ class Displacement:
     # (2,) the matched plates' own vertical estimate and its standard deviation (m), before the vertical step
     # prior (eq. M5); NaN when there is no estimate. The chain learns the rig's mean vertical step from it.
     vertical_data_m: np.ndarray = dataclasses.field(default_factory=lambda: np.full(2, np.nan))
+    # carrier-phase looks (plate x rail height) that refined advance_m (eq. M8); 0: the plates alone
+    phase_looks: int = 0
 
     @property
     def retreat_m(self) -> float:

@@ -36,15 +36,13 @@ from collections.abc import Callable, Hashable
 import numpy as np
 
 from .archive import height_mm
-from .focus import backprojection as bp
-from .focus import nlcs
+from .detect.phase import PointEcho
 from .model import ScanPass
 from .records import CycleResult
 
 LATTICE_M = (0.01, 0.02)  # rib points along the rail and in R_c (resolution ~2 cm along, ~9 cm in range)
 TILE_M = (0.10, 0.10)  # the tiles of eq. R1: about one plate's response, so one scatterer is one look or few
 BAND_MARGIN_M = 0.15  # the rib band: the located plates' R_c range widened by this on both sides
-UPSAMPLE = 4  # range-compressed echo kept at 4x its sample rate (complex64): linear interpolation is enough
 # Points x pulses of one lattice's backprojection beyond which a pair gets no evidence (~1 s in numpy; the
 # study's are ~3e6): a band spread by stray plates or a very long rail must not stall the batch.
 MAX_LATTICE_WORK = 50_000_000
@@ -98,28 +96,6 @@ def evidence(ib: np.ndarray, ia: np.ndarray, tile: tuple[int, int], phase_per_m:
     return best - math.log(k_eff)
 
 
-class RibEcho:
-    """One pass's range-compressed echo: its complex backprojection at any rib point of the rig frame."""
-
-    def __init__(self, scan: ScanPass):
-        self.grid = nlcs.focus_grid(scan)
-        rc = bp.range_compress(scan, self.grid, upsample=UPSAMPLE)
-        self.rc = dataclasses.replace(rc, data=rc.data.astype(np.complex64))
-        self.height_m = float(scan.geometry.height_m)
-
-    def image(self, x_m: np.ndarray, rc_m: np.ndarray) -> np.ndarray:
-        """Complex BP at rig-frame points: along the rail x_m (m), closest-approach range rc_m (m)."""
-        return bp.backproject_track_points(self.rc, self.grid, np.asarray(x_m) - self.grid.aperture_centre_m,
-                                           rc_m)
-
-    def x_span_m(self, rc_m: float) -> tuple[float, float]:
-        """Rig-frame x of the points at range rc_m whose beam centre the pass crossed (its imaged extent)."""
-        g = self.grid
-        along = rc_m / g.cos_squint * g.sin_squint
-        return (g.aperture_centre_m + float(self.rc.x_rel_m.min()) + along,
-                g.aperture_centre_m + float(self.rc.x_rel_m.max()) + along)
-
-
 @dataclasses.dataclass(frozen=True)
 class RibLattice:
     """Cycle b's rib points and its image there."""
@@ -132,7 +108,7 @@ class RibLattice:
     image: np.ndarray  # (nx, nr) complex
 
 
-def rib_lattice(echo: RibEcho, plates_m: np.ndarray) -> RibLattice | None:
+def rib_lattice(echo: PointEcho, plates_m: np.ndarray) -> RibLattice | None:
     """Cycle b's lattice over the R_c band of its located plates (n, 3) and its pass's imaged extent; None
     without plates, or when its backprojection would exceed MAX_LATTICE_WORK (no evidence, bounded time)."""
     plates_m = np.asarray(plates_m, dtype=float).reshape(-1, 3)
@@ -152,7 +128,7 @@ def rib_lattice(echo: RibEcho, plates_m: np.ndarray) -> RibLattice | None:
     return RibLattice(x, r, y, dz, h, echo.image(x[:, None], r[None, :]))
 
 
-def moved_image(lat: RibLattice, echo_a: RibEcho, t_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def moved_image(lat: RibLattice, echo_a: PointEcho, t_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Cycle a's image at b's rib points moved by t (3,) (x + t_x, R_c on the rib plane from a's height), and
     the phase per metre of vertical error at each range (nr,) (eq. R3): the carrier's k cos(squint) times
     dR_c / dt_z."""
@@ -183,7 +159,7 @@ class RibRegistration:
         self._capacity = capacity  # passes (a few cycles of 2-4 heights) kept, their echoes within the bytes
         self._max_echo_bytes = max_echo_bytes
         self._max_scores = max_scores
-        self._echoes: OrderedDict[Hashable, RibEcho | None] = OrderedDict()
+        self._echoes: OrderedDict[Hashable, PointEcho | None] = OrderedDict()
         self._lattices: OrderedDict[Hashable, RibLattice | None] = OrderedDict()
         self._scores: OrderedDict[Hashable, float] = OrderedDict()
 
@@ -198,13 +174,13 @@ class RibRegistration:
             cache.popitem(last=False)
         return value
 
-    def _echo(self, c: CycleResult, height_mm: int) -> RibEcho | None:
+    def _echo(self, c: CycleResult, height_mm: int) -> PointEcho | None:
         key = (*self._key(c), height_mm)
         if key in self._echoes:
             self._echoes.move_to_end(key)
             return self._echoes[key]
         scan = self._load(c, height_mm)
-        echo = self._remember(self._echoes, key, None if scan is None else RibEcho(scan), self._capacity)
+        echo = self._remember(self._echoes, key, None if scan is None else PointEcho(scan), self._capacity)
         # memory bounded whatever the passes' size: the oldest echoes go first, the two being compared stay
         while len(self._echoes) > 2 and sum(e.rc.data.nbytes for e in self._echoes.values()
                                             if e is not None) > self._max_echo_bytes:

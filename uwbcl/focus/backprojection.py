@@ -59,12 +59,14 @@ def backproject_points(rc: RangeCompressed, grid: nlcs.FocusGrid, u_m, r_lrcm_m,
 
 
 def backproject_track_points(rc: RangeCompressed, grid: nlcs.FocusGrid, x_rel_m, rc_m,
-                             chunk: int = 4096) -> np.ndarray:
+                             chunk: int = 4096, counts: bool = False):
     """Complex BP value at points given in track coordinates: along the rail relative to the aperture centre
-    (x_M - x_c, m) and closest-approach range R_c (m), any broadcastable shapes."""
+    (x_M - x_c, m) and closest-approach range R_c (m), any broadcastable shapes. With `counts`, also how many
+    pulses each point sums (same shape; the noise of a value is that many samples' noise)."""
     shape = np.broadcast_shapes(np.shape(x_rel_m), np.shape(rc_m))
     x_rel, rc_range = (np.asarray(a, dtype=float).ravel() for a in np.broadcast_arrays(x_rel_m, rc_m))
     out = np.zeros(x_rel.size, dtype=np.complex128)
+    n_summed = np.zeros(x_rel.size, dtype=np.int64)
     k = grid.two_way_wavenumber_rad_m
     lo, hi = grid.doppler_band
     n_fine = rc.data.shape[1]
@@ -82,7 +84,8 @@ def backproject_track_points(rc: RangeCompressed, grid: nlcs.FocusGrid, x_rel_m,
         base = np.arange(rc.data.shape[0])[:, None] * n_fine + i
         sample = (1.0 - frac) * flat[base] + frac * flat[base + 1]
         out[a:a + chunk] = np.sum(np.where(valid, sample * np.exp(1j * k * rng), 0.0), axis=0)
-    return out.reshape(shape)
+        n_summed[a:a + chunk] = np.count_nonzero(valid, axis=0)
+    return (out.reshape(shape), n_summed.reshape(shape)) if counts else out.reshape(shape)
 
 
 def point_target_echo(grid: nlcs.FocusGrid, x_rel_m: np.ndarray, t_s: np.ndarray, u_m: float, r_lrcm_m: float,

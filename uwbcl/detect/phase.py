@@ -1,0 +1,86 @@
+"""The carrier phase of each detected plate: what the association's carrier-phase refinement (docs/method.md
+section 6.5, eq. M8) compares between two cycles.
+
+A pass's range-compressed echo, backprojected at a point of the rig frame with the carrier restored
+(`PointEcho.image`), has the phase
+
+    phi(p) = phi_s + 2 k (R(p_true) - R(p)) averaged over the pulses that see the plate               (R5)
+
+to first order: the plate's scattering phase phi_s plus the two-way carrier wavenumber 2k times how far the
+point p is from the plate along the line of sight. So each detection carries phi at its located (x, R_c),
+the slopes d phi / dx and d phi / dR_c there (central differences, +-PHASE_STEP_M), which move the phase to
+any nearby point, and its standard deviation under the pass's noise: a value summed over n pulses of noise
+variance s^2 per sample has variance n s^2, and its phase sigma^2 = n s^2 / (2 |I|^2). One plate seen in two
+cycles from the same side has the same phi_s: the difference of its phases at the points a translation maps
+onto each other measures the translation along the line of sight to a small part of a wavelength.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ..focus import backprojection as bp
+from ..focus import nlcs
+from ..model import ScanPass
+from ..records import Detection
+
+UPSAMPLE = 4  # range-compressed echo kept at 4x its sample rate (complex64): linear interpolation is enough
+PHASE_STEP_M = 0.001  # the slopes' central differences: 2k x 1 mm ~ 0.17 rad, far inside one fringe
+
+
+class PointEcho:
+    """One pass's range-compressed echo: its complex backprojection at any point of the rig frame."""
+
+    def __init__(self, scan: ScanPass):
+        self.grid = nlcs.focus_grid(scan)
+        rc = bp.range_compress(scan, self.grid, upsample=UPSAMPLE)
+        self.rc = dataclasses.replace(rc, data=rc.data.astype(np.complex64))
+        self.height_m = float(scan.geometry.height_m)
+        # Per-sample noise variance, robust to the few samples the plates occupy: |n|^2 of circular complex
+        # Gaussian noise is exponential, its median s^2 ln 2.
+        self.noise_var = float(np.median(np.abs(self.rc.data) ** 2)) / math.log(2.0)
+
+    def image(self, x_m: np.ndarray, rc_m: np.ndarray, counts: bool = False):
+        """Complex BP at rig-frame points: along the rail x_m (m), closest-approach range rc_m (m); with
+        `counts`, also the number of pulses summed at each point."""
+        return bp.backproject_track_points(self.rc, self.grid, np.asarray(x_m) - self.grid.aperture_centre_m,
+                                           rc_m, counts=counts)
+
+    def x_span_m(self, rc_m: float) -> tuple[float, float]:
+        """Rig-frame x of the points at range rc_m whose beam centre the pass crossed (its imaged extent)."""
+        g = self.grid
+        along = rc_m / g.cos_squint * g.sin_squint
+        return (g.aperture_centre_m + float(self.rc.x_rel_m.min()) + along,
+                g.aperture_centre_m + float(self.rc.x_rel_m.max()) + along)
+
+
+def carrier_phase(echo: PointEcho, x_m: float, rc_m: float) -> tuple[float, float, float, float]:
+    """Eq. R5 at one point: (phase rad, d phase / dx rad/m, d phase / dR_c rad/m, phase sigma rad); NaN where
+    no pulse sees the point or the value is zero."""
+    d = PHASE_STEP_M
+    xs = np.array([x_m, x_m + d, x_m - d, x_m, x_m])
+    rs = np.array([rc_m, rc_m, rc_m, rc_m + d, rc_m - d])
+    v, n = echo.image(xs, rs, counts=True)
+    if not (n[0] > 0 and abs(v[0]) > 0 and np.all(np.abs(v) > 0)):
+        return math.nan, math.nan, math.nan, math.nan
+    slope_x = float(np.angle(v[1] * np.conj(v[2]))) / (2 * d)
+    slope_r = float(np.angle(v[3] * np.conj(v[4]))) / (2 * d)
+    sigma = math.sqrt(n[0] * echo.noise_var / (2.0 * abs(v[0]) ** 2))
+    return float(np.angle(v[0])), slope_x, slope_r, sigma
+
+
+def with_phases(scan: ScanPass, detections: list[Detection]) -> list[Detection]:
+    """The detections of a pass with their carrier phase (eq. R5) measured on its echo (the echo the detection
+    saw: the site's delay applied, background subtracted)."""
+    if not detections:
+        return detections
+    echo = PointEcho(scan)
+    out = []
+    for det in detections:
+        phase, slope_x, slope_r, sigma = carrier_phase(echo, det.x_m, det.rc_m)
+        out.append(dataclasses.replace(det, phase_rad=phase, phase_slope_x_rad_m=slope_x,
+                                       phase_slope_rc_rad_m=slope_r, phase_sigma_rad=sigma))
+    return out
