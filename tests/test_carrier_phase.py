@@ -1,0 +1,146 @@
+"""Specification of the carrier-phase refinement (eq. R5 in uwbcl.detect.phase, eq. M8 in uwbcl.displacement;
+docs/method.md 6.5).
+
+A plate's echo, backprojected at a point with the carrier restored, has the phase 2k x (its distance from the
+plate along the line of sight) plus the plate's own scattering phase, which a plate keeps between cycles. So
+the phase difference of a matched plate between two cycles measures their translation along each rail
+height's line of sight to a small part of the wavelength (~70 mm), where the plates' positions give
+millimetres. Tolerances: the slopes are 2k (sin, cos) of the look angle, within 5 % (the look angles spread
+over the beam); eq. R5's first-order move over 3 mm is good to 0.02 rad (its second order: 2k x 3 mm^2 / R);
+the phase sigma is the scatter over 40 noise draws within -30/+40 % (the 40 draws' own sampling error is
+11 %); the refinement must at least halve the plates' creep and vertical errors at SNR 10 dB and keep every
+error within 3 x its bound (the bound's calibration of docs/method.md 6.1).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from uwbcl import chain, pipeline, simulate
+from uwbcl.detect.phase import PointEcho, carrier_phase
+from uwbcl.displacement import carrier_phase_refinement, estimate_advance, phase_looks
+from uwbcl.model import PassGeometry, RadarParameters
+from uwbcl.records import AssociationSettings, ProcessingSettings
+
+RIB_M = 2.5
+HEIGHTS_M = (0.2, 0.6)
+SQUINT_DEG = 30.0
+RAIL_CENTRE_M = 1.5
+PLATES_M = np.array([[2.2, -RIB_M, 0.7], [3.0, -RIB_M, 1.3], [3.8, -RIB_M, 0.8]])  # crossings on the rail
+STEP_M = np.array([0.9, 0.004, -0.003])  # the rig's advance a -> b: P_b = P_a - STEP
+SETTINGS = AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0))
+
+
+def one_pass(targets_m: np.ndarray, height_m: float, snr_db: float | None, seed: int):
+    th = math.radians(SQUINT_DEG)
+    geometry = PassGeometry(height_m=height_m, rotation_table_angle_deg=SQUINT_DEG,
+                            reference_point_m=(RAIL_CENTRE_M + RIB_M * math.tan(th), -RIB_M, 1.0),
+                            boresight_y_sign=-1)
+    return simulate.simulate_pass(RadarParameters(), geometry, targets_m, aperture_length_m=4.0, speed_m_s=0.25,
+                                  aperture_centre_m=RAIL_CENTRE_M, snr_db=snr_db, speed_jitter=0.1,
+                                  rng=np.random.default_rng(seed))
+
+
+def two_cycles(seed: int, snr_db: float | None = 10.0):
+    """Cycles a and b of the three plates (b after STEP), located by the default pipeline (numpy)."""
+    cycles = []
+    for c, shift in ((0, np.zeros(3)), (1, STEP_M)):
+        passes = [one_pass(PLATES_M - shift, h, snr_db, 100 * seed + 10 * c + k) for k, h in enumerate(HEIGHTS_M)]
+        cycles.append(pipeline.locate_cycle(passes, ProcessingSettings()))
+    return cycles
+
+
+def advance(a, b, carrier_phase_on: bool):
+    s = dataclasses.replace(SETTINGS, carrier_phase=carrier_phase_on)
+    return estimate_advance(a.plates, b.plates, s, before_cov_m2=chain.plate_covariances(a, s.range_sigma_m),
+                            after_cov_m2=chain.plate_covariances(b, s.range_sigma_m))
+
+
+def test_a_detections_phase_slopes_are_the_carrier_along_its_line_of_sight_and_move_it_to_nearby_points():
+    scan = one_pass(PLATES_M[:1], HEIGHTS_M[0], None, 0)
+    echo = PointEcho(scan)
+    x, rc = PLATES_M[0, 0], float(np.hypot(PLATES_M[0, 1], PLATES_M[0, 2] - HEIGHTS_M[0]))
+    phase, slope_x, slope_rc, sigma = carrier_phase(echo, x, rc)
+    k2 = echo.grid.two_way_wavenumber_rad_m
+    along = RIB_M * math.tan(math.radians(SQUINT_DEG))  # the beam centre's along-track offset
+    look = math.atan2(along, rc)  # the look angle in the slant plane
+    assert slope_x == pytest.approx(k2 * math.sin(look), rel=0.05)
+    assert slope_rc == pytest.approx(k2 * math.cos(look), rel=0.05)
+    assert sigma < 1e-3  # noise-free
+    for dx, dr in ((0.003, 0.0), (0.0, -0.003), (-0.002, 0.002)):
+        moved = np.angle(echo.image(np.array([x + dx]), np.array([rc + dr]))[0])
+        predicted = phase + slope_x * dx + slope_rc * dr
+        assert abs(np.angle(np.exp(1j * (moved - predicted)))) < 0.02
+
+
+def test_a_detections_phase_sigma_is_the_scatter_of_its_phase_under_noise():
+    x, rc = PLATES_M[0, 0], float(np.hypot(PLATES_M[0, 1], PLATES_M[0, 2] - HEIGHTS_M[0]))
+    phases, sigmas = [], []
+    for seed in range(40):
+        phase, _, _, sigma = carrier_phase(PointEcho(one_pass(PLATES_M[:1], HEIGHTS_M[0], -10.0, seed)), x, rc)
+        phases.append(phase)
+        sigmas.append(sigma)
+    mean = np.angle(np.mean(np.exp(1j * np.array(phases))))
+    scatter = float(np.std(np.angle(np.exp(1j * (np.array(phases) - mean)))))
+    assert 0.05 < np.mean(sigmas) < 0.5  # a regime where the phase is measured but noisy
+    assert 0.7 < scatter / np.mean(sigmas) < 1.4
+
+
+@pytest.fixture(scope="module")
+def noisy_pairs():
+    return [two_cycles(seed) for seed in range(4)]
+
+
+def test_the_phases_cut_the_plates_creep_and_vertical_errors_and_stay_within_three_bounds(noisy_pairs):
+    errors = {False: [], True: []}
+    for a, b in noisy_pairs:
+        for on in (False, True):
+            d = advance(a, b, on)
+            assert d.status == "ok"
+            assert d.phase_looks == (2 * d.n_targets if on else 0)
+            e = d.advance_m - STEP_M
+            errors[on].append(e)
+            assert np.all(np.abs(e) <= 3 * d.bound_m)
+    rms = {on: np.sqrt(np.mean(np.square(errors[on]), axis=0)) for on in errors}
+    assert rms[True][1] < 0.5 * rms[False][1]
+    assert rms[True][2] < 0.5 * rms[False][2]
+    assert rms[True][1] < 0.0005  # creep to half a millimetre
+    assert rms[True][0] < rms[False][0] + 0.0003  # the phases say little along the rail: retreat as before
+
+
+def test_phases_that_disagree_with_the_plates_leave_the_plates_estimate(noisy_pairs):
+    a, b = noisy_pairs[0]
+    # each plate's phase changed between the cycles (a plate replaced, a rib that does not keep its phase)
+    offsets = iter((1.5, -1.2, 2.0, 0.9, -2.2))
+    changed = [dataclasses.replace(p, looks=tuple((h, dataclasses.replace(d, phase_rad=d.phase_rad + off))
+                                                  for (h, d), off in zip(p.looks, [next(offsets)] * 2)))
+               for p in b.plates]
+    plain = advance(a, b, False)
+    s = SETTINGS
+    d = estimate_advance(a.plates, changed, s, before_cov_m2=chain.plate_covariances(a, s.range_sigma_m),
+                         after_cov_m2=chain.plate_covariances(b, s.range_sigma_m))
+    assert d.phase_looks == 0
+    np.testing.assert_array_equal(d.advance_m, plain.advance_m)
+    np.testing.assert_array_equal(d.bound_m, plain.bound_m)
+
+
+def test_a_look_whose_fringe_the_plates_cannot_fix_is_not_used(noisy_pairs):
+    a, b = noisy_pairs[0]
+    d = advance(a, b, False)
+    looks = phase_looks(a.plates, b.plates, d.pairs)
+    assert looks
+    # plates that place the translation to 2 cm along the line of sight: the phase could be any fringe
+    assert carrier_phase_refinement(d.advance_m, np.diag([0.02, 0.02, 0.02]) ** 2, looks) is None
+    refined = carrier_phase_refinement(d.advance_m, np.diag([0.002, 0.002, 0.005]) ** 2, looks)
+    assert refined is not None and refined[2] == len(looks)
+
+
+def test_noise_free_cycles_are_refined_to_a_tenth_of_a_millimetre():
+    a, b = two_cycles(0, snr_db=None)
+    d = advance(a, b, True)
+    assert d.phase_looks == 2 * len(PLATES_M)
+    assert np.max(np.abs(d.advance_m[1:] - STEP_M[1:])) < 1e-4
