@@ -40,16 +40,17 @@ def one_pass(targets_m: np.ndarray, height_m: float, snr_db: float | None, seed:
     geometry = PassGeometry(height_m=height_m, rotation_table_angle_deg=SQUINT_DEG,
                             reference_point_m=(RAIL_CENTRE_M + RIB_M * math.tan(th), -RIB_M, 1.0),
                             boresight_y_sign=-1)
-    return simulate.simulate_pass(RadarParameters(), geometry, targets_m, aperture_length_m=4.0, speed_m_s=0.25,
-                                  aperture_centre_m=RAIL_CENTRE_M, snr_db=snr_db, speed_jitter=0.1,
-                                  rng=np.random.default_rng(seed))
+    return simulate.simulate_pass(RadarParameters(), geometry, targets_m, aperture_length_m=4.0,
+                                  speed_m_s=0.25, aperture_centre_m=RAIL_CENTRE_M, snr_db=snr_db,
+                                  speed_jitter=0.1, rng=np.random.default_rng(seed))
 
 
 def two_cycles(seed: int, snr_db: float | None = 10.0):
     """Cycles a and b of the three plates (b after STEP), located by the default pipeline (numpy)."""
     cycles = []
     for c, shift in ((0, np.zeros(3)), (1, STEP_M)):
-        passes = [one_pass(PLATES_M - shift, h, snr_db, 100 * seed + 10 * c + k) for k, h in enumerate(HEIGHTS_M)]
+        passes = [one_pass(PLATES_M - shift, h, snr_db, 100 * seed + 10 * c + k)
+                  for k, h in enumerate(HEIGHTS_M)]
         cycles.append(pipeline.locate_cycle(passes, ProcessingSettings()))
     return cycles
 
@@ -81,7 +82,8 @@ def test_a_detections_phase_sigma_is_the_scatter_of_its_phase_under_noise():
     x, rc = PLATES_M[0, 0], float(np.hypot(PLATES_M[0, 1], PLATES_M[0, 2] - HEIGHTS_M[0]))
     phases, sigmas = [], []
     for seed in range(40):
-        phase, _, _, sigma = carrier_phase(PointEcho(one_pass(PLATES_M[:1], HEIGHTS_M[0], -10.0, seed)), x, rc)
+        echo = PointEcho(one_pass(PLATES_M[:1], HEIGHTS_M[0], -10.0, seed))
+        phase, _, _, sigma = carrier_phase(echo, x, rc)
         phases.append(phase)
         sigmas.append(sigma)
     mean = np.angle(np.mean(np.exp(1j * np.array(phases))))

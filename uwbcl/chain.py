@@ -415,8 +415,8 @@ class RigChain:
             return None
         scale = self.covariance_scale()
         # c's phases are not b's: the moved plates take part by position only (no carrier phase, eq. M8)
-        moved = [dataclasses.replace(c.plates[k], position_m=c.plates[k].position_m + d_bc.advance_m, looks=())
-                 for k in extra]
+        moved = [dataclasses.replace(c.plates[k], position_m=c.plates[k].position_m + d_bc.advance_m,
+                                     looks=()) for k in extra]
         cov_b = np.concatenate([self._covs[b.cycle], self._covs[c.cycle][extra] + np.diag(d_bc.bound_m**2)])
         d_ab = estimate_advance(a.plates, list(b.plates) + moved, self.prior(b.cycle - a.cycle),
                                 before_cov_m2=scale * self._covs[a.cycle], after_cov_m2=scale * cov_b,
