@@ -146,3 +146,18 @@ def test_noise_free_cycles_are_refined_to_a_tenth_of_a_millimetre():
     d = advance(a, b, True)
     assert d.phase_looks == 2 * len(PLATES_M)
     assert np.max(np.abs(d.advance_m[1:] - STEP_M[1:])) < 1e-4
+
+
+def test_phases_of_another_carrier_or_another_rail_height_are_not_compared(noisy_pairs):
+    a, b = noisy_pairs[0]
+    pairs = advance(a, b, False).pairs
+    assert len(phase_looks(a.plates, b.plates, pairs)) == 2 * len(pairs)
+    def scaled(d):
+        return dataclasses.replace(d, phase_wavenumber_rad_m=1.05 * d.phase_wavenumber_rad_m)
+
+    other_radar = [dataclasses.replace(p, looks=tuple((h, scaled(d)) for h, d in p.looks)) for p in b.plates]
+    assert phase_looks(a.plates, other_radar, pairs) == []
+    other_height = [dataclasses.replace(p, looks=tuple((h + 0.002, d) for h, d in p.looks)) for p in b.plates]
+    assert phase_looks(a.plates, other_height, pairs) == []
+    same_height = [dataclasses.replace(p, looks=tuple((h + 1e-5, d) for h, d in p.looks)) for p in b.plates]
+    assert len(phase_looks(a.plates, same_height, pairs)) == 2 * len(pairs)

@@ -17,6 +17,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
+from .archive import height_mm
 from .records import (  # noqa: F401 - re-exported
     CHAINABLE_STATUSES,
     STATUSES,
@@ -127,13 +128,16 @@ def vertical_conditioned(advance_m: np.ndarray, cov_m2: np.ndarray, mean_m: floa
 def phase_looks(before: list[Located], after: list[Located], pairs: list[tuple[int, int]]
                 ) -> list[tuple[float, np.ndarray, Detection, Detection]]:
     """(rail height m, before-plate position (3,) m, its detection there, the after-plate's detection there)
-    for every matched pair and every rail height both plates were detected at with a measured phase."""
+    for every matched pair and every rail height (to the millimetre) both plates were detected at with a
+    measured phase of the same carrier."""
     looks = []
     for i, j in pairs:
-        seen_b = dict(after[j].looks)
+        seen_b = {height_mm(h): det for h, det in after[j].looks}
         for h, det_a in before[i].looks:
-            det_b = seen_b.get(h)
-            if det_b is not None and np.isfinite(det_a.phase_rad) and np.isfinite(det_b.phase_rad):
+            det_b = seen_b.get(height_mm(h))
+            # one carrier (a phase is 2k times a distance: another radar's k makes it another number)
+            if det_b is not None and np.isfinite(det_a.phase_rad) and np.isfinite(det_b.phase_rad) and \
+                    det_a.phase_wavenumber_rad_m == det_b.phase_wavenumber_rad_m:
                 looks.append((h, np.asarray(before[i].position_m, dtype=float), det_a, det_b))
     return looks
 

@@ -217,6 +217,7 @@ class Detection:
     phase_slope_x_rad_m: float = math.nan
     phase_slope_rc_rad_m: float = math.nan
     phase_sigma_rad: float = math.nan
+    phase_wavenumber_rad_m: float = math.nan  # 2k = 4 pi f_c / c of the phase: phases compare at one carrier
 
 
 @dataclasses.dataclass(frozen=True)

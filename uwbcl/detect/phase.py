@@ -85,8 +85,11 @@ def with_phases(scan: ScanPass, detections: list[Detection]) -> list[Detection]:
     saw: the site's delay applied, background subtracted)."""
     if not detections:
         return detections
-    phase, slope_x, slope_r, sigma = carrier_phase(PointEcho(scan), [d.x_m for d in detections],
+    echo = PointEcho(scan)
+    phase, slope_x, slope_r, sigma = carrier_phase(echo, [d.x_m for d in detections],
                                                    [d.rc_m for d in detections])
+    echo_k = echo.grid.two_way_wavenumber_rad_m
     return [dataclasses.replace(det, phase_rad=float(p), phase_slope_x_rad_m=float(sx),
-                                phase_slope_rc_rad_m=float(sr), phase_sigma_rad=float(sg))
+                                phase_slope_rc_rad_m=float(sr), phase_sigma_rad=float(sg),
+                                phase_wavenumber_rad_m=float(echo_k))
             for det, p, sx, sr, sg in zip(detections, phase, slope_x, slope_r, sigma)]
