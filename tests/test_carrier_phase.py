@@ -139,6 +139,9 @@ def test_a_look_whose_fringe_the_plates_cannot_fix_is_not_used(noisy_pairs):
     assert carrier_phase_refinement(d.advance_m, np.diag([0.02, 0.02, 0.02]) ** 2, looks) is None
     refined = carrier_phase_refinement(d.advance_m, np.diag([0.002, 0.002, 0.005]) ** 2, looks)
     assert refined is not None and refined[2] == len(looks)
+    # nothing to refine against: a degenerate or undefined covariance leaves the plates' estimate
+    assert carrier_phase_refinement(d.advance_m, np.zeros((3, 3)), looks) is None
+    assert carrier_phase_refinement(d.advance_m, np.full((3, 3), np.nan), looks) is None
 
 
 def test_noise_free_cycles_are_refined_to_a_tenth_of_a_millimetre():

@@ -174,10 +174,18 @@ def carrier_phase_refinement(advance_m: np.ndarray, cov_m2: np.ndarray, looks
     disagree (chi2 beyond its 1 - PHASE_TEST_PROBABILITY quantile: e.g. a plate whose phase changed between
     the cycles), and the plates' estimate stands.
     """
-    if not looks:
-        return None
     t0 = np.asarray(advance_m, dtype=float)
-    info0 = np.linalg.inv(cov_m2)
+    if not looks or not (np.all(np.isfinite(t0)) and np.all(np.isfinite(cov_m2))):
+        return None
+    try:
+        return _refine(t0, np.linalg.inv(cov_m2), cov_m2, looks)
+    except np.linalg.LinAlgError:  # a degenerate covariance: nothing to refine against
+        return None
+
+
+def _refine(t0: np.ndarray, info0: np.ndarray, cov_m2: np.ndarray, looks
+            ) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """`carrier_phase_refinement` once its inputs are known to be finite (info0 = Sigma0^-1)."""
     r, jac, reach = _phase_residuals(t0, looks)
     s2 = np.array([da.phase_sigma_rad**2 + db.phase_sigma_rad**2 for _, _, da, db in looks])
     s2 = s2 + PHASE_FLOOR_RAD**2
