@@ -155,11 +155,14 @@ def test_phases_of_another_carrier_or_another_rail_height_are_not_compared(noisy
     a, b = noisy_pairs[0]
     pairs = advance(a, b, False).pairs
     assert len(phase_looks(a.plates, b.plates, pairs)) == 2 * len(pairs)
-    def scaled(d):
-        return dataclasses.replace(d, phase_wavenumber_rad_m=1.05 * d.phase_wavenumber_rad_m)
+    def carrier(factor):
+        return [dataclasses.replace(p, looks=tuple(
+            (h, dataclasses.replace(d, phase_wavenumber_rad_m=factor * d.phase_wavenumber_rad_m))
+            for h, d in p.looks)) for p in b.plates]
 
-    other_radar = [dataclasses.replace(p, looks=tuple((h, scaled(d)) for h, d in p.looks)) for p in b.plates]
-    assert phase_looks(a.plates, other_radar, pairs) == []
+    assert phase_looks(a.plates, carrier(1.05), pairs) == []  # another radar
+    assert phase_looks(a.plates, carrier(1.002), pairs) == []  # 8 MHz off at 4 GHz
+    assert len(phase_looks(a.plates, carrier(1.0005), pairs)) == 2 * len(pairs)  # one radar, re-measured
     other_height = [dataclasses.replace(p, looks=tuple((h + 0.002, d) for h, d in p.looks)) for p in b.plates]
     assert phase_looks(a.plates, other_height, pairs) == []
     same_height = [dataclasses.replace(p, looks=tuple((h + 1e-5, d) for h, d in p.looks)) for p in b.plates]

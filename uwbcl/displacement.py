@@ -57,6 +57,8 @@ PHASE_PRIOR_MAX_RAD = np.pi / 4
 PHASE_REACH_M = 0.01
 # the phases and the plates' estimate must agree at this significance, or the plates' estimate stands
 PHASE_TEST_PROBABILITY = 1e-3
+# two detections' phases are compared only when their carriers agree to this (relative; 4 MHz at 4 GHz)
+PHASE_CARRIER_RTOL = 1e-3
 
 
 def robust_mean(samples: np.ndarray, floor: np.ndarray | float, k: float = 3.0) -> np.ndarray:
@@ -129,15 +131,17 @@ def phase_looks(before: list[Located], after: list[Located], pairs: list[tuple[i
                 ) -> list[tuple[float, np.ndarray, Detection, Detection]]:
     """(rail height m, before-plate position (3,) m, its detection there, the after-plate's detection there)
     for every matched pair and every rail height (to the millimetre) both plates were detected at with a
-    measured phase of the same carrier."""
+    measured phase, their carriers within PHASE_CARRIER_RTOL."""
     looks = []
     for i, j in pairs:
         seen_b = {height_mm(h): det for h, det in after[j].looks}
         for h, det_a in before[i].looks:
             det_b = seen_b.get(height_mm(h))
-            # one carrier (a phase is 2k times a distance: another radar's k makes it another number)
+            # one carrier: the matched filter makes a plate's phase at its own position independent of f_c,
+            # but only for the same radar and filter; another radar or setting is another number
             if det_b is not None and np.isfinite(det_a.phase_rad) and np.isfinite(det_b.phase_rad) and \
-                    det_a.phase_wavenumber_rad_m == det_b.phase_wavenumber_rad_m:
+                    abs(det_a.phase_wavenumber_rad_m - det_b.phase_wavenumber_rad_m) <= \
+                    PHASE_CARRIER_RTOL * det_a.phase_wavenumber_rad_m:
                 looks.append((h, np.asarray(before[i].position_m, dtype=float), det_a, det_b))
     return looks
 
