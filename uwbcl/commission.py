@@ -29,7 +29,9 @@ CUT_HALF_WIDTH_M = 0.3  # the measures look this far either side of a peak (half
 UPSAMPLE = 8  # band-limited (FFT) interpolation of the cuts before measuring
 
 COLUMNS = ("file", "x_m", "rc_m", "t_n_s", "r0_m", "image_azimuth_m", "image_range_m", "amplitude", "snr_db",
-           "width_azimuth_3db_m", "width_range_3db_m", "pslr_db", "islr_db")
+           "width_azimuth_3db_m", "width_range_3db_m", "pslr_db", "islr_db",
+           # appended: the carrier phase the association compares between cycles (eq. R5), and its sigma
+           "phase_rad", "phase_sigma_rad")
 
 
 # ----------------------------------------------------------------------------------- point-response measures
@@ -167,7 +169,8 @@ class FocusedPass:
 
     def rows(self) -> list[dict]:
         return [{"file": self.file, **{k: getattr(d, k) for k in COLUMNS[1:9]},
-                 **dataclasses.asdict(r)} for d, r in zip(self.detections, self.responses)]
+                 **dataclasses.asdict(r), "phase_rad": d.phase_rad, "phase_sigma_rad": d.phase_sigma_rad}
+                for d, r in zip(self.detections, self.responses)]
 
 
 def image_axes(products) -> tuple[np.ndarray, np.ndarray]:
