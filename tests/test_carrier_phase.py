@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 from uwbcl import chain, pipeline, simulate
+from uwbcl.chain import RigChain
 from uwbcl.detect.phase import PointEcho, carrier_phase
 from uwbcl.displacement import carrier_phase_refinement, estimate_advance, phase_looks
 from uwbcl.model import PassGeometry, RadarParameters
@@ -55,10 +56,18 @@ def two_cycles(seed: int, snr_db: float | None = 10.0):
     return cycles
 
 
-def advance(a, b, carrier_phase_on: bool):
-    s = dataclasses.replace(SETTINGS, carrier_phase=carrier_phase_on)
+def advance(a, b, carrier_phase_on: bool, tested_only: bool = False, settings=SETTINGS):
+    s = dataclasses.replace(settings, carrier_phase=carrier_phase_on)
     return estimate_advance(a.plates, b.plates, s, before_cov_m2=chain.plate_covariances(a, s.range_sigma_m),
-                            after_cov_m2=chain.plate_covariances(b, s.range_sigma_m))
+                            after_cov_m2=chain.plate_covariances(b, s.range_sigma_m),
+                            phase_tested_only=tested_only)
+
+
+def with_random_phases(cycle, rng: np.random.Generator):
+    """The cycle with every detection's phase drawn anew (plates whose phase does not hold between passes)."""
+    return dataclasses.replace(cycle, plates=[dataclasses.replace(p, looks=tuple(
+        (h, dataclasses.replace(d, phase_rad=float(rng.uniform(-np.pi, np.pi)))) for h, d in p.looks))
+        for p in cycle.plates])
 
 
 def test_a_detections_phase_slopes_are_the_carrier_along_its_line_of_sight_and_move_it_to_nearby_points():
@@ -138,7 +147,7 @@ def test_a_look_whose_fringe_the_plates_cannot_fix_is_not_used(noisy_pairs):
     # plates that place the translation to 2 cm along the line of sight: the phase could be any fringe
     assert carrier_phase_refinement(d.advance_m, np.diag([0.02, 0.02, 0.02]) ** 2, looks) is None
     refined = carrier_phase_refinement(d.advance_m, np.diag([0.002, 0.002, 0.005]) ** 2, looks)
-    assert refined is not None and refined[2] == len(looks)
+    assert refined is not None and refined.looks == len(looks) and refined.consistent
     # nothing to refine against: a degenerate or undefined covariance leaves the plates' estimate
     assert carrier_phase_refinement(d.advance_m, np.zeros((3, 3)), looks) is None
     assert carrier_phase_refinement(d.advance_m, np.full((3, 3), np.nan), looks) is None
@@ -167,3 +176,58 @@ def test_phases_of_another_carrier_or_another_rail_height_are_not_compared(noisy
     assert phase_looks(a.plates, other_height, pairs) == []
     same_height = [dataclasses.replace(p, looks=tuple((h + 1e-5, d) for h, d in p.looks)) for p in b.plates]
     assert len(phase_looks(a.plates, same_height, pairs)) == 2 * len(pairs)
+
+
+def test_a_fit_without_spare_looks_refines_only_where_asked_and_reports_no_test(noisy_pairs):
+    a, b = noisy_pairs[0]
+    one = dataclasses.replace(a, plates=[p for p in a.plates if p.position_m[0] > 2.5][:1])
+    # one plate's vertical is known to millimetres only with the rig's (learned) vertical step prior
+    vertical = dataclasses.replace(SETTINGS, vertical_prior_m=(0.0, 0.003))
+    d = advance(one, b, True, settings=vertical)
+    assert d.n_targets == 1 and d.phase_looks == 2 and d.phase_check == 0  # 2 looks: nothing spare
+    d = advance(one, b, True, tested_only=True, settings=vertical)
+    assert d.phase_looks == 0 and d.phase_check == 0
+    d = advance(a, b, True, tested_only=True)  # 3 plates x 2 heights: 3 spare looks
+    assert d.phase_looks == 6 and d.phase_check == 1
+
+
+def rig_cycles(seed: int, n: int, random_phases: bool = False):
+    """n cycles of a rig advancing STEP per cycle past plates every metre along 12 m of rib (each pass sees
+    three or four), SNR 10 dB; with `random_phases`, each detection's phase drawn anew."""
+    rib = np.array([[x, -RIB_M, (0.7, 1.3)[k % 2]] for k, x in enumerate(np.arange(1.0, 13.0, 1.0))])
+    rng = np.random.default_rng(seed)
+    cycles = []
+    for c in range(n):
+        seen = rib - c * STEP_M
+        seen = seen[(seen[:, 0] > 0.6) & (seen[:, 0] < 5.2)]
+        passes = [one_pass(seen, h, 10.0, 1000 * seed + 10 * c + k) for k, h in enumerate(HEIGHTS_M)]
+        cycle = dataclasses.replace(pipeline.locate_cycle(passes, ProcessingSettings()), cycle=c)
+        cycles.append(with_random_phases(cycle, rng) if random_phases else cycle)
+    return cycles
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return rig_cycles(7, 6)
+
+
+def test_a_rig_whose_phases_hold_earns_the_trust_that_refines_every_row(rig):
+    chain_ = RigChain(SETTINGS)
+    rows = [chain_.add(c) for c in rig][1:]
+    assert chain_.phase_trusted()
+    assert all(r.displacement.status == "ok" and r.displacement.phase_looks > 0 for r in rows)
+    assert sum(r.displacement.phase_check == 1 for r in rows) >= 2
+
+
+def test_a_rig_whose_phases_do_not_hold_keeps_the_plates_estimates(rig):
+    rng = np.random.default_rng(11)
+    scrambled = [with_random_phases(c, rng) for c in rig]
+    off = RigChain(dataclasses.replace(SETTINGS, carrier_phase=False))
+    plain = [r for r in (off.add(c) for c in rig) if r]
+    chain_ = RigChain(SETTINGS)
+    rows = [r for r in (chain_.add(c) for c in scrambled) if r]
+    assert not chain_.phase_trusted()
+    for r, p in zip(rows, plain):
+        assert r.displacement.phase_looks == 0 and r.displacement.phase_check == -1
+        assert r.displacement.status == p.displacement.status
+        np.testing.assert_allclose(r.displacement.advance_m, p.displacement.advance_m, atol=1e-12)

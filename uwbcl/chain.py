@@ -51,6 +51,12 @@ MOTION_SIGMA_FLOOR_M = np.array([0.05, 0.15, 0.10])
 # last LEARN_PAIRS consecutive cycle pairs together (eq. M4), once LEARN_MIN_PAIRS are available.
 LEARN_PAIRS = 6
 LEARN_MIN_PAIRS = 2
+# The carrier phases (eq. M8) refine rows without spare looks only once the rig's own ok rows have shown that
+# its phases hold between cycles: among the last PHASE_HISTORY fits that could fail (PHASE_TEST_REDUNDANCY
+# spare looks), at least PHASE_TRUST_MIN_PASSES passed and at least PHASE_TRUST_MIN_RATE of them.
+PHASE_HISTORY = 10
+PHASE_TRUST_MIN_PASSES = 2
+PHASE_TRUST_MIN_RATE = 0.8
 MISSED_HEIGHT_SIGMA_FACTOR = 3.0  # range sigma of a plate missed at some of its cycle's heights (see below)
 # Covariance calibration: the location covariances (range_sigma_m) are scaled by the pooled chi2 / dof of the
 # last SCALE_HISTORY ok rows with two or more plates, once they have SCALE_MIN_DOF degrees of freedom, within
@@ -208,6 +214,9 @@ class RigChain:
         # a pitched rail stays pitched.
         self._vertical: list[tuple[float, float, int]] = []
         self._vertical_model: tuple[tuple, tuple[float, float, float]] | None = None  # vertical_motion's
+        # +1 / -1 per ok row whose carrier phases were tested with spare looks (eq. M8): held / did not. Kept
+        # across chain restarts: whether a rig's plates keep their phase is the site's, not the chain's.
+        self._phase_checks: list[int] = []
 
     def motion(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(median per-cycle step, its per-cycle standard deviation) of the last MOTION_HISTORY ok steps (m),
@@ -377,12 +386,21 @@ class RigChain:
             return 1.0
         return float(np.clip(sum(f[0] for f in fits) / dof, *SCALE_LIMITS))
 
+    def phase_trusted(self) -> bool:
+        """Whether this rig's carrier phases have held between cycles: among the last PHASE_HISTORY ok rows
+        whose phases were tested with spare looks, >= PHASE_TRUST_MIN_PASSES and >= PHASE_TRUST_MIN_RATE of
+        them passed. Until then only a fit with spare looks (that can fail) refines a row (eq. M8)."""
+        recent = self._phase_checks[-PHASE_HISTORY:]
+        passed = recent.count(1)
+        return passed >= PHASE_TRUST_MIN_PASSES and passed >= PHASE_TRUST_MIN_RATE * len(recent)
+
     def _measure(self, a: CycleResult, b: CycleResult, prior: AssociationSettings | None = None
                  ) -> Displacement:
         scale = self.covariance_scale()
         return estimate_advance(a.plates, b.plates, prior or self.prior(b.cycle - a.cycle),
                                 before_cov_m2=scale * self._covs[a.cycle],
-                                after_cov_m2=scale * self._covs[b.cycle], rib=self._rib_scorer(a, b))
+                                after_cov_m2=scale * self._covs[b.cycle], rib=self._rib_scorer(a, b),
+                                phase_tested_only=not self.phase_trusted())
 
     def _rib_scorer(self, a: CycleResult, b: CycleResult):
         return None if self._rib is None else self._rib.scorer(a, b)
@@ -420,7 +438,7 @@ class RigChain:
         cov_b = np.concatenate([self._covs[b.cycle], self._covs[c.cycle][extra] + np.diag(d_bc.bound_m**2)])
         d_ab = estimate_advance(a.plates, list(b.plates) + moved, self.prior(b.cycle - a.cycle),
                                 before_cov_m2=scale * self._covs[a.cycle], after_cov_m2=scale * cov_b,
-                                rib=self._rib_scorer(a, b))
+                                rib=self._rib_scorer(a, b), phase_tested_only=not self.phase_trusted())
         if d_ab.status != "ok":
             return None
         # the row is b's: its pairs name b's own plates (the moved plates are c's, counted in n_targets)
@@ -496,6 +514,8 @@ class RigChain:
                                  self._covs[cur.cycle])
             if dof:
                 self._fits.append((chi2, dof))
+            if d.phase_check:
+                self._phase_checks.append(d.phase_check)
 
     def add(self, cur: CycleResult) -> SeriesRow | None:
         """Measure the next cycle (higher cycle number than every cycle before); None for the rig's first.

@@ -59,6 +59,10 @@ PHASE_REACH_M = 0.01
 PHASE_TEST_PROBABILITY = 1e-3
 # two detections' phases are compared only when their carriers agree to this (relative; 4 MHz at 4 GHz)
 PHASE_CARRIER_RTOL = 1e-3
+# A fit with at least this many looks beyond the translation's three components tests itself: phases that do
+# not hold between cycles (a plate's scattering phase drawn anew each pass) fail it almost surely. Until the
+# rig's own rows have shown that its phases hold (`RigChain`), only such fits refine a row.
+PHASE_TEST_REDUNDANCY = 2
 
 
 def robust_mean(samples: np.ndarray, floor: np.ndarray | float, k: float = 3.0) -> np.ndarray:
@@ -166,17 +170,32 @@ def _phase_residuals(t_m: np.ndarray, looks) -> tuple[np.ndarray, np.ndarray, np
     return r, jac, reach
 
 
-def carrier_phase_refinement(advance_m: np.ndarray, cov_m2: np.ndarray, looks
-                             ) -> tuple[np.ndarray, np.ndarray, int] | None:
+@dataclasses.dataclass(frozen=True)
+class PhaseFit:
+    """A carrier-phase fit (eq. M8): the refined advance (3,) m and covariance (3, 3) m^2, the looks used, and
+    whether the phases agreed with the plates (chi2 test); when they did not, the plates' estimate stands."""
+
+    advance_m: np.ndarray
+    cov_m2: np.ndarray
+    looks: int
+    consistent: bool
+
+    @property
+    def redundancy(self) -> int:
+        """Looks beyond the translation's three components."""
+        return self.looks - 3
+
+
+def carrier_phase_refinement(advance_m: np.ndarray, cov_m2: np.ndarray, looks) -> PhaseFit | None:
     """Eq. M8: the plates' advance t0 (3,) with covariance Sigma0 (3, 3) refined by the carrier phases of
     their looks (`phase_looks`): Gauss-Newton on sum_n r_n(t)^2 / s_n^2 + (t - t0)^T Sigma0^-1 (t - t0), s_n^2
     the two detections' phase variances plus PHASE_FLOOR_RAD^2.
 
     A look is used only where Sigma0 predicts its phase to PHASE_PRIOR_MAX_RAD (its fringe is then known)
-    and eq. R5 moves its phases by at most PHASE_REACH_M. Returns (advance, covariance, looks used), the
-    covariance scaled by max(1, chi2 / looks); None when no look is usable, or when the phases and the plates
-    disagree (chi2 beyond its 1 - PHASE_TEST_PROBABILITY quantile: e.g. a plate whose phase changed between
-    the cycles), and the plates' estimate stands.
+    and eq. R5 moves its phases by at most PHASE_REACH_M. Returns the fit, its covariance scaled by
+    max(1, chi2 / looks), `consistent` False when the phases and the plates disagree (chi2 beyond its
+    1 - PHASE_TEST_PROBABILITY quantile: e.g. a plate whose phase changed between the cycles); None when no
+    look is usable.
     """
     t0 = np.asarray(advance_m, dtype=float)
     if not looks or not (np.all(np.isfinite(t0)) and np.all(np.isfinite(cov_m2))):
@@ -187,8 +206,7 @@ def carrier_phase_refinement(advance_m: np.ndarray, cov_m2: np.ndarray, looks
         return None
 
 
-def _refine(t0: np.ndarray, info0: np.ndarray, cov_m2: np.ndarray, looks
-            ) -> tuple[np.ndarray, np.ndarray, int] | None:
+def _refine(t0: np.ndarray, info0: np.ndarray, cov_m2: np.ndarray, looks) -> PhaseFit | None:
     """`carrier_phase_refinement` once its inputs are known to be finite (info0 = Sigma0^-1)."""
     r, jac, reach = _phase_residuals(t0, looks)
     s2 = np.array([da.phase_sigma_rad**2 + db.phase_sigma_rad**2 for _, _, da, db in looks])
@@ -209,10 +227,23 @@ def _refine(t0: np.ndarray, info0: np.ndarray, cov_m2: np.ndarray, looks
     r, jac, _ = _phase_residuals(t, used)
     chi2 = float(np.sum(w * r**2) + (t - t0) @ info0 @ (t - t0))
     n = len(used)
-    if not chi2 <= chi2_dist.isf(PHASE_TEST_PROBABILITY, n):
-        return None
     cov = np.linalg.inv(jac.T @ (w[:, None] * jac) + info0)
-    return t, max(1.0, chi2 / n) * cov, n
+    return PhaseFit(t, max(1.0, chi2 / n) * cov, n, bool(chi2 <= chi2_dist.isf(PHASE_TEST_PROBABILITY, n)))
+
+
+def _with_phases(advance_m: np.ndarray, cov_m2: np.ndarray, looks, tested_only: bool
+                 ) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Eq. M8 in the estimate: (advance, covariance, looks used, check), refined where the fit is consistent
+    (and, with `tested_only`, could have failed: PHASE_TEST_REDUNDANCY spare looks); check +1 / -1 when the
+    fit could fail and passed / failed, else 0."""
+    fit = carrier_phase_refinement(advance_m, cov_m2, looks)
+    if fit is None:
+        return advance_m, cov_m2, 0, 0
+    tested = fit.redundancy >= PHASE_TEST_REDUNDANCY
+    check = (1 if fit.consistent else -1) if tested else 0
+    if fit.consistent and (tested or not tested_only):
+        return fit.advance_m, fit.cov_m2, fit.looks, check
+    return advance_m, cov_m2, 0, check
 
 
 def consistent_pairs(d: np.ndarray, cov: np.ndarray, chi2_max: float) -> tuple[np.ndarray, bool]:
@@ -427,7 +458,8 @@ def translation_scores(before: list[Located], after: list[Located], settings: As
 def estimate_advance(before: list[Located], after: list[Located],
                      settings: AssociationSettings = AssociationSettings(), *,
                      before_cov_m2: np.ndarray | None = None, after_cov_m2: np.ndarray | None = None,
-                     rib: Callable[[np.ndarray, float], float] | None = None) -> Displacement:
+                     rib: Callable[[np.ndarray, float], float] | None = None,
+                     phase_tested_only: bool = False) -> Displacement:
     """Delta P between two cycles, its error bound, and a status saying how far the match can be trusted.
 
     Parameters
@@ -440,6 +472,9 @@ def estimate_advance(before: list[Located], after: list[Located],
         by sigma_z m (eqs. R2-R3, `registration.RibRegistration.scorer`), added to close competitors' scores
         (eq. M7).
         None: the plates alone.
+    phase_tested_only : the carrier phases (eq. M8) refine the row only when their fit has
+        PHASE_TEST_REDUNDANCY looks beyond three and so could have failed its test (`RigChain` asks for this
+        until the rig's phases have held).
 
     Returns
     -------
@@ -507,11 +542,10 @@ def estimate_advance(before: list[Located], after: list[Located],
             # grouped across heights with another (off in y and z together) than a floor step: nothing else
             # says which, as with two plates that disagree.
             consistent = False
-    looks_used = 0
+    looks_used, phase_check = 0, 0
     if settings.carrier_phase and settings.weighted and have_cov:
-        refined = carrier_phase_refinement(advance, cov_adv, phase_looks(before, after, pairs))
-        if refined is not None:
-            advance, cov_adv, looks_used = refined
+        advance, cov_adv, looks_used, phase_check = _with_phases(
+            advance, cov_adv, phase_looks(before, after, pairs), phase_tested_only)
     bound = np.sqrt(np.diag(cov_adv) + np.exp(-min(margin, 700.0)) * offset**2)  # eq. M3
 
     if not best.inside and margin < DATA_BEATS_PRIOR * settings.min_margin:
@@ -528,4 +562,4 @@ def estimate_advance(before: list[Located], after: list[Located],
     residual = float(np.sqrt(np.mean(np.sum((d - advance) ** 2, axis=1))))
     return Displacement(advance, spread, len(pairs), residual, status, pairs,
                         len(runner_up.pairs) if runner_up else 0, bound, float(margin), vertical_data,
-                        looks_used)
+                        looks_used, phase_check)

@@ -249,6 +249,9 @@ class Displacement:
     vertical_data_m: np.ndarray = dataclasses.field(default_factory=lambda: np.full(2, np.nan))
     # carrier-phase looks (plate x rail height) that refined advance_m (eq. M8); 0: the plates alone
     phase_looks: int = 0
+    # +1 / -1: the carrier phases were tested with PHASE_TEST_REDUNDANCY spare looks and held / did not (what
+    # the chain learns whether the rig's phases hold from); 0: not tested
+    phase_check: int = 0
 
     @property
     def retreat_m(self) -> float:
