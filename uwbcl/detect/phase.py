@@ -65,10 +65,9 @@ def carrier_phase(echo: PointEcho, x_m, rc_m) -> tuple[np.ndarray, np.ndarray, n
     x = np.atleast_1d(np.asarray(x_m, dtype=float))
     r = np.atleast_1d(np.asarray(rc_m, dtype=float))
     d = PHASE_STEP_M
-    zero = np.zeros_like(x)
     xs = np.stack([x, x + d, x - d, x, x])  # (5, n): the point, then +-d along the rail and in range
     rs = np.stack([r, r, r, r + d, r - d])
-    v, n = echo.image(xs, rs + zero, counts=True)
+    v, n = echo.image(xs, rs, counts=True)
     good = (n[0] > 0) & np.all(np.abs(v) > 0, axis=0)
     with np.errstate(divide="ignore", invalid="ignore"):
         phase = np.where(good, np.angle(v[0]), np.nan)
