@@ -59,9 +59,9 @@ PHASE_REACH_M = 0.01
 PHASE_TEST_PROBABILITY = 1e-3
 # two detections' phases are compared only when their carriers agree to this (relative; 4 MHz at 4 GHz)
 PHASE_CARRIER_RTOL = 1e-3
-# A fit with at least this many looks beyond the translation's three components tests itself: phases that do
-# not hold between cycles (a plate's scattering phase drawn anew each pass) fail it almost surely. Until the
-# rig's own rows have shown that its phases hold (`RigChain`), only such fits refine a row.
+# A fit with at least this many looks beyond the two components it fits (creep, vertical) tests itself:
+# phases that do not hold between cycles (a plate's scattering phase drawn anew each pass) fail it almost
+# surely. Until the rig's own rows have shown that its phases hold (`RigChain`), only such fits refine a row.
 PHASE_TEST_REDUNDANCY = 2
 
 
@@ -182,8 +182,8 @@ class PhaseFit:
 
     @property
     def redundancy(self) -> int:
-        """Looks beyond the translation's three components."""
-        return self.looks - 3
+        """Looks beyond the two components the phases fit (creep and vertical)."""
+        return self.looks - 2
 
 
 def carrier_phase_refinement(advance_m: np.ndarray, cov_m2: np.ndarray, looks) -> PhaseFit | None:
@@ -207,7 +207,14 @@ def carrier_phase_refinement(advance_m: np.ndarray, cov_m2: np.ndarray, looks) -
 
 
 def _refine(t0: np.ndarray, info0: np.ndarray, cov_m2: np.ndarray, looks) -> PhaseFit | None:
-    """`carrier_phase_refinement` once its inputs are known to be finite (info0 = Sigma0^-1)."""
+    """`carrier_phase_refinement` once its inputs are known to be finite (info0 = Sigma0^-1).
+
+    The retreat stays the plates' (eq. M8): at one squint every look's line of sight mixes x and range
+    alike, so the phases cannot tell an along-rail error from a range error, and the plates' along-track
+    precision is usually far better than their covariance says (in range the model is right). The fit is over
+    (y, z) with x fixed, the prior on (y, z) conditioned on x; the covariance carries x's own uncertainty
+    through each look's x term: error = K e0 + noise term, K = [[1, 0, 0], A^-1 L],
+    A = J_yz^T W J_yz + C^-1, L = [J_yz^T W J_x | C^-1], C = Sigma0_yz|x."""
     r, jac, reach = _phase_residuals(t0, looks)
     s2 = np.array([da.phase_sigma_rad**2 + db.phase_sigma_rad**2 for _, _, da, db in looks])
     s2 = s2 + PHASE_FLOOR_RAD**2
@@ -217,17 +224,28 @@ def _refine(t0: np.ndarray, info0: np.ndarray, cov_m2: np.ndarray, looks) -> Pha
         return None
     used = [look for look, u in zip(looks, use) if u]
     w = 1.0 / s2[use]
+    cond = cov_m2[1:, 1:] - np.outer(cov_m2[1:, 0], cov_m2[0, 1:]) / cov_m2[0, 0]  # Sigma_yz|x
+    cond_info = np.linalg.inv(cond)
     t = t0.copy()
     for _ in range(8):
         r, jac, _ = _phase_residuals(t, used)
-        step = np.linalg.solve(jac.T @ (w[:, None] * jac) + info0, -(jac.T @ (w * r) + info0 @ (t - t0)))
-        t = t + step
+        j_yz = jac[:, 1:]
+        step = np.linalg.solve(j_yz.T @ (w[:, None] * j_yz) + cond_info,
+                               -(j_yz.T @ (w * r) + cond_info @ (t[1:] - t0[1:])))
+        t[1:] = t[1:] + step
         if np.max(np.abs(step)) < 1e-7:
             break
     r, jac, _ = _phase_residuals(t, used)
-    chi2 = float(np.sum(w * r**2) + (t - t0) @ info0 @ (t - t0))
+    j_x, j_yz = jac[:, :1], jac[:, 1:]
+    chi2 = float(np.sum(w * r**2) + (t[1:] - t0[1:]) @ cond_info @ (t[1:] - t0[1:]))
     n = len(used)
-    cov = np.linalg.inv(jac.T @ (w[:, None] * jac) + info0)
+    a_inv = np.linalg.inv(j_yz.T @ (w[:, None] * j_yz) + cond_info)
+    gain = np.zeros((3, 3))
+    gain[0, 0] = 1.0
+    gain[1:, :] = a_inv @ np.hstack([j_yz.T @ (w[:, None] * j_x), cond_info])
+    noise = np.zeros((3, 3))
+    noise[1:, 1:] = a_inv @ (j_yz.T @ (w[:, None] * j_yz)) @ a_inv
+    cov = gain @ cov_m2 @ gain.T + noise
     return PhaseFit(t, max(1.0, chi2 / n) * cov, n, bool(chi2 <= chi2_dist.isf(PHASE_TEST_PROBABILITY, n)))
 
 
