@@ -491,8 +491,8 @@ def estimate_advance(before: list[Located], after: list[Located],
         (eq. M7).
         None: the plates alone.
     phase_tested_only : the carrier phases (eq. M8) refine the row only when their fit has
-        PHASE_TEST_REDUNDANCY looks beyond three and so could have failed its test (`RigChain` asks for this
-        until the rig's phases have held).
+        PHASE_TEST_REDUNDANCY looks beyond the two it fits and so could have failed its test (`RigChain` asks
+        for this until the rig's phases have held).
 
     Returns
     -------
