@@ -18,6 +18,7 @@ import numpy as np
 from scipy.stats import chi2 as chi2_dist
 
 from .archive import height_mm
+from .geometry import closest_approach_range_m
 from .records import (  # noqa: F401 - re-exported
     CHAINABLE_STATUSES,
     STATUSES,
@@ -162,7 +163,7 @@ def _phase_residuals(t_m: np.ndarray, looks) -> tuple[np.ndarray, np.ndarray, np
     r, jac, reach = np.zeros(len(looks)), np.zeros((len(looks), 3)), np.zeros(len(looks))
     for n, (h, p, da, db) in enumerate(looks):
         q = p - t_m
-        ra, rb = float(np.hypot(p[1], p[2] - h)), float(np.hypot(q[1], q[2] - h))
+        ra, rb = float(closest_approach_range_m(p, h)), float(closest_approach_range_m(q, h))
         r[n] = np.angle(np.exp(1j * (_moved_phase(db, q[0], rb) - _moved_phase(da, p[0], ra))))
         jac[n] = -np.array([db.phase_slope_x_rad_m, db.phase_slope_rc_rad_m * q[1] / rb,
                             db.phase_slope_rc_rad_m * (q[2] - h) / rb])
@@ -188,8 +189,9 @@ class PhaseFit:
 
 def carrier_phase_refinement(advance_m: np.ndarray, cov_m2: np.ndarray, looks) -> PhaseFit | None:
     """Eq. M8: the plates' advance t0 (3,) with covariance Sigma0 (3, 3) refined by the carrier phases of
-    their looks (`phase_looks`): Gauss-Newton on sum_n r_n(t)^2 / s_n^2 + (t - t0)^T Sigma0^-1 (t - t0), s_n^2
-    the two detections' phase variances plus PHASE_FLOOR_RAD^2.
+    their looks (`phase_looks`): Gauss-Newton over creep and vertical on sum_n r_n(t)^2 / s_n^2 plus their
+    prior given the retreat, which stays t0's (`_refine`); s_n^2 the two detections' phase variances plus
+    PHASE_FLOOR_RAD^2.
 
     A look is used only where Sigma0 predicts its phase to PHASE_PRIOR_MAX_RAD (its fringe is then known)
     and eq. R5 moves its phases by at most PHASE_REACH_M. Returns the fit, its covariance scaled by
@@ -198,16 +200,17 @@ def carrier_phase_refinement(advance_m: np.ndarray, cov_m2: np.ndarray, looks) -
     look is usable.
     """
     t0 = np.asarray(advance_m, dtype=float)
-    if not looks or not (np.all(np.isfinite(t0)) and np.all(np.isfinite(cov_m2))):
+    cov_m2 = np.asarray(cov_m2, dtype=float)
+    if not looks or not (np.all(np.isfinite(t0)) and np.all(np.isfinite(cov_m2)) and cov_m2[0, 0] > 0):
         return None
     try:
-        return _refine(t0, np.linalg.inv(cov_m2), cov_m2, looks)
+        return _refine(t0, cov_m2, looks)
     except np.linalg.LinAlgError:  # a degenerate covariance: nothing to refine against
         return None
 
 
-def _refine(t0: np.ndarray, info0: np.ndarray, cov_m2: np.ndarray, looks) -> PhaseFit | None:
-    """`carrier_phase_refinement` once its inputs are known to be finite (info0 = Sigma0^-1).
+def _refine(t0: np.ndarray, cov_m2: np.ndarray, looks) -> PhaseFit | None:
+    """`carrier_phase_refinement` once its inputs are known to be finite and the retreat's variance positive.
 
     The retreat stays the plates' (eq. M8): at one squint every look's line of sight mixes x and range
     alike, so the phases cannot tell an along-rail error from a range error, and the plates' along-track

@@ -18,6 +18,7 @@ onto each other measures the translation along the line of sight to a small part
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -39,10 +40,14 @@ class PointEcho:
         rc = bp.range_compress(scan, self.grid, upsample=UPSAMPLE)
         self.rc = dataclasses.replace(rc, data=rc.data.astype(np.complex64))
         self.height_m = float(scan.geometry.height_m)
-        # Per-sample noise variance, robust to the few samples the plates occupy: |n|^2 of circular complex
-        # Gaussian noise is exponential, its median s^2 ln 2 (on the samples at the original rate: as many
-        # independent values, a quarter of the work).
-        self.noise_var = float(np.median(np.abs(self.rc.data[:, ::UPSAMPLE]) ** 2)) / math.log(2.0)
+
+    @functools.cached_property
+    def noise_var(self) -> float:
+        """Per-sample noise variance, robust to the few samples the plates occupy: |n|^2 of circular complex
+        Gaussian noise is exponential, its median s^2 ln 2 (on the samples at the original rate: as many
+        independent values, a quarter of the work). Computed once, when a phase's sigma needs it (the rib
+        registration's echoes never do)."""
+        return float(np.median(np.abs(self.rc.data[:, ::UPSAMPLE]) ** 2)) / math.log(2.0)
 
     def image(self, x_m: np.ndarray, rc_m: np.ndarray, counts: bool = False):
         """Complex BP at rig-frame points: along the rail x_m (m), closest-approach range rc_m (m); with
