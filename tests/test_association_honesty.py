@@ -4,6 +4,7 @@ the same thing every run (displacement.estimate_advance, chain.RigChain)."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from uwbcl import chain, config
 from uwbcl.displacement import estimate_advance, location_covariance_m2
@@ -212,3 +213,57 @@ def test_a_row_of_plates_a_metre_above_is_told_apart_by_the_rigs_vertical_step_p
     data_only = estimate_advance([plate(p) for p in before], [plate(q) for q in seen], AssociationSettings(),
                                  before_cov_m2=covs(before), after_cov_m2=covs(seen))
     assert d.margin <= data_only.margin + 1e-9
+
+
+# Eq. M2b: plates before, and after the cycle the same plates moved 0.6 m forward in the radar frame (the face
+# moved 0.6 m backwards) and, elsewhere, 0.8 m back (it advanced 0.8 m).
+LOOKALIKE_BEFORE = np.array([[1.0, -2.5, 0.5], [2.0, -2.5, 1.1], [3.0, -2.5, 0.5], [4.0, -2.5, 1.7]])
+FORWARD_M, BACKWARD_M = 0.8, -0.6
+
+
+def _lookalike_estimate(before: np.ndarray, after: np.ndarray, settings: AssociationSettings):
+    return estimate_advance([plate(p) for p in before], [plate(q) for q in after], settings,
+                            before_cov_m2=covs(before), after_cov_m2=covs(after))
+
+
+def test_a_face_that_moved_backwards_is_withheld_unless_the_plates_lead_by_twice_the_margin():
+    before = LOOKALIKE_BEFORE[:3]
+    d = _lookalike_estimate(before, before - (BACKWARD_M, 0, 0), AssociationSettings())
+    assert d.status == "prior_conflict" and 8.0 < d.margin < 16.0, d
+    assert abs(d.advance_m[0] - BACKWARD_M) < 1e-3  # the estimate is still the plates'
+    off = AssociationSettings(max_backward_m=100.0)
+    assert _lookalike_estimate(before, before - (BACKWARD_M, 0, 0), off).status == "ok"
+    # four plates lead by more than 2 x min_margin: the data win
+    four = _lookalike_estimate(LOOKALIKE_BEFORE, LOOKALIKE_BEFORE - (BACKWARD_M, 0, 0), AssociationSettings())
+    assert four.status == "ok" and four.margin > 16.0, four
+    # a small backward step (a cycle without a cut, measurement noise) is not a backward move
+    small = _lookalike_estimate(before, before + (0.05, 0, 0), AssociationSettings())
+    assert small.status == "ok" and abs(small.advance_m[0] + 0.05) < 1e-3
+
+
+def test_the_backward_rule_never_decides_between_look_alike_translations():
+    """When the true translation has no plate in common, look-alikes on either side of zero are equally wrong
+    (r924 of the 900 draw: -0.22 m and -1.39 m over a 3-cycle gap against a true +2.44 m): removing the
+    backward one must not make the other unique."""
+    after = np.vstack([LOOKALIKE_BEFORE - (FORWARD_M, 0, 0), LOOKALIKE_BEFORE[:3] - (BACKWARD_M, 0, 0)])
+    on = _lookalike_estimate(LOOKALIKE_BEFORE, after, AssociationSettings())
+    off = _lookalike_estimate(LOOKALIKE_BEFORE, after, AssociationSettings(max_backward_m=100.0))
+    assert on.status == off.status == "ambiguous"  # one plate's lead, with the rule or without
+    assert on.margin == off.margin and np.array_equal(on.advance_m, off.advance_m)
+
+
+def test_with_a_web_depth_a_backward_translation_lies_outside_the_prior_however_wide_its_window():
+    wide = AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0), prior_window_m=(2.0, 0.3, 0.5))
+    before = LOOKALIKE_BEFORE[:3]
+    d = _lookalike_estimate(before, before - (BACKWARD_M, 0, 0), wide)
+    assert d.status == "prior_conflict", d
+
+
+def test_the_backward_limit_is_configured_and_must_not_be_negative(tmp_path):
+    site = tmp_path / "site.toml"
+    site.write_text("[association]\nmax_backward_m = 0.4\n")
+    assert config.load_config(site).association_settings().max_backward_m == 0.4
+    site.write_text("[association]\nmax_backward_m = -0.1\n")
+    with pytest.raises(config.ConfigError) as e:
+        config.load_config(site)
+    assert e.value.key == "association.max_backward_m"

@@ -164,18 +164,19 @@ def regular_row(shift_x_m: float, xs) -> list[Located]:
 
 
 def test_the_rib_evidence_decides_between_a_step_and_its_plate_spacing_alias():
-    # a row of 1 m plates seen over 4 m, cycle b 0.9 m on: the alias -0.1 m matches all four plates, the true
-    # step three, so the plates alone choose the alias by one plate's gain (4.05), short of min_margin
+    # a row of 1 m plates seen over 4 m, cycle b 0.95 m on: the alias -0.05 m (within M2b's 0.1 m) matches
+    # all four plates, the true step three, so the plates alone choose the alias by one plate's gain (4.05),
+    # short of min_margin
     before = regular_row(0.0, [0.0, 1.0, 2.0, 3.0])
-    after = regular_row(0.9, [1.0, 2.0, 3.0, 4.0])
+    after = regular_row(0.95, [1.0, 2.0, 3.0, 4.0])
     settings = AssociationSettings()
     plain = estimate_advance(before, after, settings)
-    assert plain.status == "ambiguous" and plain.retreat_m == pytest.approx(-0.1, abs=1e-6)
-    helped = estimate_advance(before, after, settings, rib=FixedRib([0.9, 0.0, 0.0], 14.0))
-    assert helped.status == "ok" and helped.retreat_m == pytest.approx(0.9, abs=1e-6)
+    assert plain.status == "ambiguous" and plain.retreat_m == pytest.approx(-0.05, abs=1e-6)
+    helped = estimate_advance(before, after, settings, rib=FixedRib([0.95, 0.0, 0.0], 14.0))
+    assert helped.status == "ok" and helped.retreat_m == pytest.approx(0.95, abs=1e-6)
     assert helped.margin == pytest.approx(14.0 - plain.margin, abs=1e-6)
     # evidence short of min_margin over the plates' lead leaves the row ambiguous
-    short = estimate_advance(before, after, settings, rib=FixedRib([0.9, 0.0, 0.0], 10.0))
+    short = estimate_advance(before, after, settings, rib=FixedRib([0.95, 0.0, 0.0], 10.0))
     assert short.status == "ambiguous"
 
 

@@ -137,7 +137,7 @@ _SCHEMA = {
                     "max_bridge_cycles": _int, "min_margin": _number, "max_bound_m": _number,
                     "motion_model": _bool, "second_look": _bool, "rib_registration": _bool,
                     "carrier_phase": _bool, "vertical_step_sigma_m": _number,
-                    "vertical_trend_sigma_m": _number},
+                    "vertical_trend_sigma_m": _number, "max_backward_m": _number},
     "output": {f.name: _bool for f in dataclasses.fields(OutputOptions)},
     "limits": {f.name: _int for f in dataclasses.fields(ReadLimits)},
     "radar": {"range_delay_s": _number},
@@ -266,6 +266,9 @@ def validate(cfg: SiteConfig, path=None) -> None:
     if cfg.heights_m is not None and len(set(cfg.heights_m)) < 2:
         raise ConfigError(path, "site.heights_m", "needs two or more distinct heights")
     positive("association.max_bound_m", cfg.association.get("max_bound_m"))
+    if cfg.association.get("max_backward_m", 0.0) < 0:
+        raise ConfigError(path, "association.max_backward_m",
+                          f"must be >= 0, got {cfg.association['max_backward_m']}")
     if cfg.association.get("min_margin", 0.0) < 0:
         raise ConfigError(path, "association.min_margin",
                           f"must be >= 0, got {cfg.association['min_margin']}")

@@ -311,9 +311,14 @@ def _prior_log(shift: np.ndarray, settings: AssociationSettings) -> tuple[float,
     M2: ln[(1 - eps) N(t; mu, diag(w / 3)^2) * A_blind + eps], normalised in (x, z): the rib's plates share y,
     so y discriminates nothing and only penalises. With the chain's vertical step prior the Gaussian's z is
     left to `_vertical_log` (its normalisation stays). Without a prior: 0, inside.
+
+    M2b: a backward move of the face (retreat < -max_backward_m) is outside, with or without a web depth, at
+    no cost in score: it never decides between translations (when the true one has no plates in common, the
+    look-alikes on either side of zero are equally wrong), it only keeps a backward best from being `ok`.
     """
+    backward = bool(shift[0] < -settings.max_backward_m)
     if settings.prior_advance_m is None:
-        return 0.0, True
+        return 0.0, not backward
     mu = np.asarray(settings.prior_advance_m, dtype=float)
     window = np.asarray(settings.prior_window_m, dtype=float)
     sigma = window / 3.0
@@ -321,7 +326,7 @@ def _prior_log(shift: np.ndarray, settings: AssociationSettings) -> tuple[float,
     m2 = float(np.sum(((shift[axes] - mu[axes]) / sigma[axes]) ** 2))
     peak = BLIND_AREA_M2 / (2.0 * np.pi * sigma[0] * sigma[2])
     eps = PRIOR_OUTLIER_PROBABILITY
-    inside = bool(np.all(np.abs(shift - mu) <= window))
+    inside = bool(np.all(np.abs(shift - mu) <= window)) and not backward
     return float(np.log((1.0 - eps) * peak * np.exp(-0.5 * m2) + eps)), inside
 
 
@@ -504,8 +509,8 @@ def estimate_advance(before: list[Located], after: list[Located],
                       common"), consistent, >= min_confident_targets plates, bound <= max_bound_m;
       low_confidence  unique and consistent, but fewer plates or a bound above max_bound_m (not chained);
       ambiguous       a competitor (another translation, or no match at all) is within min_margin;
-      prior_conflict  the best translation lies outside the prior window without leading by
-                      DATA_BEATS_PRIOR x min_margin: the prior or the data is wrong;
+      prior_conflict  the best translation lies outside the prior window (or moves the face backwards, M2b)
+                      without leading by DATA_BEATS_PRIOR x min_margin: the prior or the data is wrong;
       inconsistent    the matched plates disagree beyond their location precision and two plates cannot say
                       which is wrong;
       too_few_targets no plate pair matches: no estimate (NaN).
