@@ -21,6 +21,7 @@ from uwbcl.detect import calibration
 from uwbcl.focus import backprojection as bp
 from uwbcl.focus import coefficients as coef
 from uwbcl.focus import nlcs
+from uwbcl.focus.engine import pulse_rows
 from uwbcl.focus.processing import DeviceMemory, DeviceMemoryError, KernelArgumentError
 from uwbcl.focus.protocol import Focuser
 from uwbcl.model import MeasuredPulse
@@ -581,3 +582,27 @@ def test_process_with_profile_prints_the_stage_table_and_writes_the_same_outputs
         assert stage in out
     for name in ("displacements.csv", "targets.csv"):
         assert (tmp_path / "plain" / name).read_bytes() == (tmp_path / "profiled" / name).read_bytes()
+
+
+def test_passes_whose_pulse_counts_differ_within_a_row_step_share_their_range_fft_plans(engine, jittery_pass):
+    """A night's passes have as many pulse counts as carriage speeds; each new row count of a range FFT would
+    be a new VkFFT plan (~50 ms, seconds to compile on PoCL): the echo's rows are rounded up to PULSE_ROW_STEP
+    with zero rows that change nothing."""
+    def trimmed(n: int):
+        keep = slice(n, jittery_pass.n_pulses - n)
+        return dataclasses.replace(jittery_pass, pulse_time_s=jittery_pass.pulse_time_s[keep],
+                                   pulse_position_m=jittery_pass.pulse_position_m[keep],
+                                   echo=jittery_pass.echo[keep])
+
+    a, b = trimmed(1), trimmed(3)
+    assert a.n_pulses != b.n_pulses and pulse_rows(a.n_pulses) == pulse_rows(b.n_pulses)
+    for scan in (a, b):
+        engine.nlcs_focus(scan)
+        engine.backprojection_focus(scan)
+    plans = set(engine.ffts._plans)
+    for scan in (trimmed(2), b):
+        got = engine.nlcs_focus(scan).image
+        ref = nlcs.nlcs_focus(scan).image
+        assert rel_err(got, ref) < CHAIN_TOL
+        engine.backprojection_focus(scan)
+    assert set(engine.ffts._plans) == plans  # no new plan for a new pulse count

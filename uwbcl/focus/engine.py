@@ -42,6 +42,11 @@ PROGRAM_FILES = ("common.cl", "range.cl", "azimuth.cl", "fft.cl", "backprojectio
 REFERENCE_EDGE_MARGIN = 3e-6
 LAGRANGE_TAPS = 6  # taps of the motion-compensation resampling (nlcs.lagrange_weights' order)
 ROW_STEP = 128  # band buffers' row counts are rounded up to this: their range-FFT plans recur across passes
+# An echo's rows (pulses) are rounded up to this, zero rows after the pulses: the pulse count moves with the
+# carriage speed from pass to pass, and every new row count of a range FFT is a new VkFFT plan (measured on
+# PoCL, 2 cores: ~50 ms with the runtime's kernel cache, 0.6-2 s to compile without; a 41-cycle study rig has
+# 19 pulse counts in 76 passes). Zero rows cost a few percent of one range FFT.
+PULSE_ROW_STEP = 32
 AC_TERMS_BOUND = 9  # H8 polynomial terms at most: the degree-8 exact-reference fit (the series has 5)
 BP_UPSAMPLE = 16  # backprojection's range upsampling
 NLCS_COEFFICIENTS = ("eta1", "y3", "y4", "q2", "q3", "q4")
@@ -50,6 +55,20 @@ NLCS_COEFFICIENTS = ("eta1", "y3", "y4", "q2", "q3", "q4")
 def padded_rows(n_rows: int, grid: nlcs.FocusGrid) -> int:
     """A band's row count rounded up to ROW_STEP (at most the whole azimuth axis)."""
     return min(-(-n_rows // ROW_STEP) * ROW_STEP, grid.n_azimuth)
+
+
+def pulse_rows(n_pulses: int) -> int:
+    """Rows of the device buffers that hold a pass's pulses: n_pulses rounded up to PULSE_ROW_STEP."""
+    return -(-n_pulses // PULSE_ROW_STEP) * PULSE_ROW_STEP
+
+
+def _with_rows(a: np.ndarray, rows: int) -> np.ndarray:
+    """`a` (n, ...) followed by zero rows up to `rows`."""
+    if a.shape[0] == rows:
+        return a
+    out = np.zeros((rows, *a.shape[1:]), dtype=a.dtype)
+    out[:a.shape[0]] = a
+    return out
 
 
 def _band_shape(grid: nlcs.FocusGrid) -> tuple[int, int]:
@@ -177,7 +196,8 @@ class FocusEngine(OpenclProcessing):
     def _nlcs_entries(self, grid: nlcs.FocusGrid, n_pulses: int) -> list:
         """(buffer, extents) of one echo through the chain, with its filter tables and H8 (the footprint)."""
         rows = _doppler_band_rows(grid)[1]  # the image spectrum's rows lie inside the Doppler band's
-        return [("echo", {"n_pulses": n_pulses}), ("x_rel", {"n_pulses": n_pulses}), ("first", {}),
+        pulses = pulse_rows(n_pulses)
+        return [("echo", {"n_pulses": pulses}), ("x_rel", {"n_pulses": pulses}), ("first", {}),
                 ("weights", {"taps": LAGRANGE_TAPS}), ("azimuth", {}),
                 ("fft_scratch", {"n": grid.n_azimuth, "cols": grid.n_range}),
                 ("fft_twiddle", {"n": grid.n_azimuth}),
@@ -202,11 +222,16 @@ class FocusEngine(OpenclProcessing):
 
     # ------------------------------------------------------------------------------------------ NLCS stages
     def range_walk_correction(self, s, x_rel_m: np.ndarray, grid: nlcs.FocusGrid) -> None:
-        """range FFT delay origin (eq. 3) and H1 (eq. 4) in place on a range spectrum (pulses, n_range)."""
+        """range FFT delay origin (eq. 3) and H1 (eq. 4) in place on a range spectrum (pulses, n_range); the
+        rows after len(x_rel_m) (`pulse_rows`' zero rows) get x = 0."""
         self._launch("range_walk_correction", s.shape[0], s.shape[1], s=s,
-                     x_rel_m=self.reals("x_rel", x_rel_m, grid, n_pulses=len(x_rel_m)), n_range=grid.n_range,
+                     x_rel_m=self._x_rel_rows(x_rel_m, grid, s.shape[0]), n_range=grid.n_range,
                      sample_rate_hz=grid.sample_rate_hz, window_start_s=grid.range_window_start_s,
                      carrier_hz=grid.carrier_frequency_hz, sin_squint=grid.sin_squint)
+
+    def _x_rel_rows(self, x_rel_m: np.ndarray, grid: nlcs.FocusGrid, rows: int):
+        """The "x_rel" buffer: pulse positions (m) padded with zeros to `rows`."""
+        return self.reals("x_rel", _with_rows(np.asarray(x_rel_m, dtype=float), rows), grid, n_pulses=rows)
 
     def resample_to_uniform_track(self, s, x_rel_m: np.ndarray, grid: nlcs.FocusGrid, p2_m_s2: float = 0.0):
         """Lagrange resampling onto the uniform track, ENLCS H2 (eq. 6), padding: -> (n_azimuth, n_range),
@@ -500,10 +525,11 @@ class FocusEngine(OpenclProcessing):
         the echo, and setting every kernel's arguments again cost more host time than the launches."""
         f = self._pass_filters(grid, k)
         with self.stage("echo chain"):
-            s = self.to_device("echo", echo, grid, n_pulses=echo.shape[0])
+            rows = pulse_rows(echo.shape[0])
+            s = self.to_device("echo", _with_rows(echo, rows), grid, n_pulses=rows)
             first, w = self._lagrange_weights(x_rel, grid)
             # the track's constant tables: uploaded only when their bytes change, so a replay sees them
-            tables = (self.reals("x_rel", x_rel, grid, n_pulses=len(x_rel)),
+            tables = (self._x_rel_rows(x_rel, grid, rows),
                       self.to_device("first", first, grid),
                       self.reals("weights", w, grid, taps=LAGRANGE_TAPS))
             out, band = self.buffer("azimuth", grid), self.buffer("doppler_rows", grid)
@@ -596,15 +622,16 @@ class FocusEngine(OpenclProcessing):
         echo, x_rel = nlcs.prepare_track(scan, grid)
         n_fine = grid.n_range * upsample
         with self.stage("range compression (BP)"):
-            s = self.to_device("echo", echo, grid, n_pulses=echo.shape[0])
+            rows = pulse_rows(echo.shape[0])
+            s = self.to_device("echo", _with_rows(echo, rows), grid, n_pulses=rows)
             self.fft(s, 1)
             self._measured_pulse_filter(s, grid)
-            fine = self.buffer("fine", grid, n_pulses=echo.shape[0], upsample=upsample)
-            self._launch("pulse_compression_upsample", echo.shape[0], n_fine, spec=s, fine=fine,
+            fine = self.buffer("fine", grid, n_pulses=rows, upsample=upsample)
+            self._launch("pulse_compression_upsample", rows, n_fine, spec=s, fine=fine,
                          n_range=grid.n_range, n_fine=n_fine, sample_rate_hz=grid.sample_rate_hz,
                          pulse_sigma_s=self._kernel_pulse_sigma_s(grid))
             self.fft(fine, 1, inverse=True)
-            data = self.host(fine)
+            data = self.host(fine[:echo.shape[0]])
         return fine, bp.RangeCompressed(data, x_rel, grid.range_window_start_s,
                                         1.0 / (grid.sample_rate_hz * upsample))
 
@@ -628,10 +655,10 @@ class FocusEngine(OpenclProcessing):
         range-compressed pulses."""
         grid = nlcs.focus_grid(scan) if grid is None else grid
         u_axis, r_axis = bp.image_axes(grid, pixel_m, range_margin_m, u_extent_m)
-        pulses = {"n_pulses": scan.n_pulses}
+        pulses = {"n_pulses": pulse_rows(scan.n_pulses)}
         self.check_footprint("backprojection_focus", grid, [
             ("echo", pulses), ("pulse_filter", {}), ("fine", {**pulses, "upsample": BP_UPSAMPLE}),
-            ("x_rel_f32", pulses),
+            ("x_rel_f32", {"n_pulses": scan.n_pulses}),
             ("bp_image", {"n_u": u_axis.size, "n_r": r_axis.size})])
         fine, rc = self.range_compress(scan, grid)
         with self.stage("backprojection"):
