@@ -55,3 +55,38 @@ __kernel void backproject(__global const float2 *restrict rc, __global const flo
     }
     image[iu * n_r + ir] = cmul(acc, cis(k * rc_pixel));
 }
+
+/* The BP value at arbitrary points of the rig frame, one point per work item: x_m along the rail relative to
+ * the aperture centre, rc_m the closest-approach range; the same sum as `backproject` (the numpy oracle is
+ * backprojection.backproject_track_points: the rib registration's lattices, eq. R1, and the carrier phases,
+ * eq. R5). counts[j] is the number of pulses summed. Split phase as in `backproject`. */
+__kernel void backproject_track_points(__global const float2 *restrict rc, __global const float *restrict x_rel_m,
+                                       __global const real_t *restrict x_m, __global const real_t *restrict rc_m,
+                                       __global float2 *restrict out, __global int *restrict counts,
+                                       const int n_points, const int n_pulses, const int n_fine,
+                                       const real_t t0_s, const real_t fine_dt_s, const real_t carrier_hz,
+                                       const real_t band_lo, const real_t band_hi) {
+    const int j = get_global_id(0);
+    if (j >= n_points) return;
+    const real_t k = 2.0 * UWBCL_TWO_PI * carrier_hz / UWBCL_C;
+    const float x = (float)x_m[j], r = (float)rc_m[j], r2 = r * r;
+    const float kf = (float)k, lo = (float)band_lo, hi = (float)band_hi;
+    const float samples_per_m = (float)(2.0 / (UWBCL_C * fine_dt_s)), first = (float)(t0_s / fine_dt_s);
+    float2 acc = (float2)(0.0f, 0.0f);
+    int n = 0;
+    for (int p = 0; p < n_pulses; ++p) {
+        const float dx = x - x_rel_m[p];
+        const float rng = sqrt(dx * dx + r2);
+        if (dx < lo * rng || dx > hi * rng) continue;
+        const float pos = rng * samples_per_m - first;
+        const float fl = floor(pos);
+        if (fl < 0.0f || fl >= (float)(n_fine - 1)) continue;
+        const int i = (int)fl;
+        const float frac = pos - fl;
+        const float2 sample = (1.0f - frac) * rc[p * n_fine + i] + frac * rc[p * n_fine + i + 1];
+        acc += cmul(sample, cis_f(kf * dx * dx / (rng + r)));
+        ++n;
+    }
+    out[j] = cmul(acc, cis(k * rc_m[j]));
+    counts[j] = n;
+}

@@ -466,7 +466,8 @@ def test_every_kernel_of_the_program_is_launched_by_name_in_a_run_of_every_entry
     echo, x_rel = nlcs.prepare_track(jittery_pass, grid)
     eng.nlcs_model_spectra(products, x_rel, [echo], np.arange(-20, 20))
     eng.calibration_spectra(products, grid.range_bins_m[[30]], np.linspace(-1.0, 1.0, 5))
-    eng.backprojection_focus(jittery_pass)
+    bp_products = eng.backprojection_focus(jittery_pass)
+    eng.backproject_track_points(bp_products.compressed, grid, np.zeros(3), np.full(3, 2.0))
     # a measured pulse (archive 1.2) adds its H4 (range.cl: range_gain) to both focusers
     f = np.linspace(-0.5 * grid.sample_rate_hz, 0.5 * grid.sample_rate_hz, 65)
     radar = dataclasses.replace(jittery_pass.radar, measured_pulse=MeasuredPulse(f, np.exp(-(f / 1e9) ** 2)))
@@ -606,3 +607,22 @@ def test_passes_whose_pulse_counts_differ_within_a_row_step_share_their_range_ff
         assert rel_err(got, ref) < CHAIN_TOL
         engine.backprojection_focus(scan)
     assert set(engine.ffts._plans) == plans  # no new plan for a new pulse count
+
+
+def test_backprojection_at_arbitrary_points_matches_the_reference(engine, jittery_pass):
+    """What the rib registration (eq. R1) backprojects for every candidate translation: a lattice of rib
+    points, and scattered points (the plates' phases, eq. R5), with the number of pulses each sums."""
+    grid = nlcs.focus_grid(jittery_pass)
+    rc = bp.range_compress(jittery_pass, grid, upsample=4)
+    rc = dataclasses.replace(rc, data=rc.data.astype(np.complex64))
+    x = np.linspace(-1.2, 1.2, 241)[:, None]
+    r = np.linspace(grid.range_bins_m[10], grid.range_bins_m[-10], 23)[None, :] * grid.cos_squint
+    ref, n_ref = bp.backproject_track_points(rc, grid, x, r, counts=True)
+    got, n_got = engine.backproject_track_points(rc, grid, x, r, counts=True)
+    assert got.shape == ref.shape == (241, 23) and got.dtype == np.complex128
+    assert np.array_equal(n_got, n_ref) and n_ref.max() > 0 and n_ref.min() == 0  # some points see no pulse
+    assert rel_err(got, ref) < CHAIN_TOL
+    rng = np.random.default_rng(5)
+    xs, rs = rng.uniform(-1, 1, 7), rng.uniform(r.min(), r.max(), 7)
+    scattered = engine.backproject_track_points(rc, grid, xs, rs)
+    assert rel_err(scattered, bp.backproject_track_points(rc, grid, xs, rs)) < CHAIN_TOL

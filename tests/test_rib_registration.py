@@ -89,6 +89,13 @@ def test_the_true_step_scores_above_every_plate_grid_alias(cluttered):
     assert e_true > max(aliases) + 5.0, (e_true, aliases)
 
 
+def test_the_engine_backprojecting_the_lattices_gives_the_references_evidence(cluttered, engine):
+    (a, b), reg = cluttered
+    _, on_device = two_cycles(clutter_per_m=8.0, focuser=engine)
+    for t in (STEP_M, STEP_M + np.array([GRID_M, 0.0, 0.0]), STEP_M + np.array([0.02, 0.0, 0.0])):
+        assert on_device.scorer(a, b)(t, 0.03) == pytest.approx(reg.scorer(a, b)(t, 0.03), rel=1e-3, abs=1e-3)
+
+
 def test_each_height_is_an_independent_look_and_their_evidence_adds_up(cluttered):
     (a, b), reg = cluttered
     one = [dataclasses.replace(c, heights_m=(HEIGHT_M,)) for c in (a, b)]

@@ -37,6 +37,7 @@ import numpy as np
 
 from . import __version__, archive, chain, outputs, pipeline, registration, threads
 from .atomic import write_text_atomic
+from .focus.reference import NUMPY_FOCUSER
 from .records import (
     BatchError,
     BatchOptions,
@@ -388,11 +389,13 @@ def locate_records(recs: dict[int, PassRecord], detection: DetectionSettings = D
                               int(first.parameters["boresight_y_sign"]), detection)
 
 
-def rib_registration(groups: dict, in_dir: Path, settings: ProcessingSettings
+def rib_registration(groups: dict, in_dir: Path, settings: ProcessingSettings, local: bool = True
                      ) -> registration.RibRegistration | None:
     """The rib registration of the association (eq. M7) over each cycle's passes, read again from their
     archives when two cycles are close to ambiguous; None when `[association] rib_registration` is off. A pass
-    that cannot be read now gives no evidence (logged): the other heights, or the plates alone, decide."""
+    that cannot be read now gives no evidence (logged): the other heights, or the plates alone, decide. The
+    lattices are backprojected by this process's backend (`pipeline.focuser`) when the passes were focused
+    here (`local`), by the numpy reference when a cluster focused them (this process may have no device)."""
     if not settings.association.rib_registration:
         return None
 
@@ -407,7 +410,7 @@ def rib_registration(groups: dict, in_dir: Path, settings: ProcessingSettings
             return None
         return pipeline.apply_range_delay(scan, settings.range_delay_s)
 
-    return registration.RibRegistration(load)
+    return registration.RibRegistration(load, pipeline.focuser(settings) if local else NUMPY_FOCUSER)
 
 
 # ----------------------------------------------------------------------------------------------- the job
@@ -678,7 +681,7 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
                      len(result.heights_m))
             cycles.append(result)
         rows_series = chain.series(cycles, settings.association, options.max_bridge_cycles,
-                                   rib_registration(groups, in_dir, settings))
+                                   rib_registration(groups, in_dir, settings, local=runner is None))
         for r in rows_series:
             if r.displacement.status != "ok":
                 log.warning("rig %s cycle %d: %s (%d plates matched, runner-up %d)", r.cycle.rig_id,

@@ -1,6 +1,6 @@
 """One pass through the focusing backend to its detections; one cycle's passes to its located plates.
 
-The backend seam: `_focuser(settings)` returns the chosen backend's `Focuser` (`uwbcl.focus.protocol`: the
+The backend seam: `focuser(settings)` returns the chosen backend's `Focuser` (`uwbcl.focus.protocol`: the
 float64 numpy reference or the OpenCL engine); it focuses the pass, and detection models the neighbours and
 the calibration targets with the same focuser. Cycle-to-cycle displacement is `chain`'s.
 """
@@ -31,7 +31,7 @@ from .records import (
 log = logging.getLogger("uwbcl")
 
 
-def _focuser(settings: ProcessingSettings) -> Focuser:
+def focuser(settings: ProcessingSettings) -> Focuser:
     """The backend's focuser: the numpy reference, or this process's engine for the settings' device."""
     if settings.backend == "numpy":
         return NUMPY_FOCUSER
@@ -113,12 +113,12 @@ def focus_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSettings
     for a pass too large for settings.limits. The site's delay, if any, is applied first
     (`apply_range_delay`), and the search covers what `settings.detection.search` asks for."""
     scan = prepare_pass(scan, settings)
-    focuser = _focuser(settings)
+    backend = focuser(settings)
     footprint = detect.search_footprint(scan, settings.detection)
-    products = _focus(scan, settings, focuser)
+    products = _focus(scan, settings, backend)
     if settings.algorithm == "nlcs":
         # The echo lets detection model the neighbours, focused by the same backend.
-        detections = detect.detect_nlcs(products, settings.detection, scan, focuser, footprint)
+        detections = detect.detect_nlcs(products, settings.detection, scan, backend, footprint)
     else:
         detections = detect.detect_bp(products, settings.detection, footprint)
     # Every backend's plates get the same carrier phase: measured on the echo itself (eq. R5).
@@ -139,7 +139,7 @@ def prepare_pass(scan: ScanPass, settings: ProcessingSettings) -> ScanPass:
 def focus_only(scan: ScanPass, settings: ProcessingSettings):
     """The focused products of one pass exactly as `focus_pass` makes them, without detection (plots)."""
     scan = prepare_pass(scan, settings)
-    return _focus(scan, settings, _focuser(settings))
+    return _focus(scan, settings, focuser(settings))
 
 
 def _focus(scan: ScanPass, settings: ProcessingSettings, focuser: Focuser):

@@ -37,6 +37,8 @@ import numpy as np
 
 from .archive import height_mm
 from .detect.phase import PointEcho
+from .focus.protocol import Focuser
+from .focus.reference import NUMPY_FOCUSER
 from .model import ScanPass
 from .records import CycleResult
 
@@ -153,9 +155,10 @@ class RibRegistration:
     Deterministic: the same passes, the same evidence.
     """
 
-    def __init__(self, load: Callable[[CycleResult, int], ScanPass | None], capacity: int = 24,
-                 max_echo_bytes: int = 256 << 20, max_scores: int = 4096):
+    def __init__(self, load: Callable[[CycleResult, int], ScanPass | None], focuser: Focuser = NUMPY_FOCUSER,
+                 capacity: int = 24, max_echo_bytes: int = 256 << 20, max_scores: int = 4096):
         self._load = load
+        self._focuser = focuser  # what backprojects the lattices (`Focuser.backproject_track_points`)
         self._capacity = capacity  # passes (a few cycles of 2-4 heights) kept, their echoes within the bytes
         self._max_echo_bytes = max_echo_bytes
         self._max_scores = max_scores
@@ -180,7 +183,8 @@ class RibRegistration:
             self._echoes.move_to_end(key)
             return self._echoes[key]
         scan = self._load(c, height_mm)
-        echo = self._remember(self._echoes, key, None if scan is None else PointEcho(scan), self._capacity)
+        echo = self._remember(self._echoes, key, None if scan is None else PointEcho(scan, self._focuser),
+                              self._capacity)
         # memory bounded whatever the passes' size: the oldest echoes go first, the two being compared stay
         while len(self._echoes) > 2 and sum(e.rc.data.nbytes for e in self._echoes.values()
                                             if e is not None) > self._max_echo_bytes:

@@ -25,6 +25,8 @@ import numpy as np
 
 from ..focus import backprojection as bp
 from ..focus import nlcs
+from ..focus.protocol import Focuser
+from ..focus.reference import NUMPY_FOCUSER
 from ..model import ScanPass
 from ..records import Detection
 
@@ -33,9 +35,11 @@ PHASE_STEP_M = 0.001  # the slopes' central differences: 2k x 1 mm ~ 0.17 rad, f
 
 
 class PointEcho:
-    """One pass's range-compressed echo: its complex backprojection at any point of the rig frame."""
+    """One pass's range-compressed echo: its complex backprojection at any point of the rig frame, by
+    `focuser` (`Focuser.backproject_track_points`; the numpy reference by default)."""
 
-    def __init__(self, scan: ScanPass):
+    def __init__(self, scan: ScanPass, focuser: Focuser = NUMPY_FOCUSER):
+        self.focuser = focuser
         self.grid = nlcs.focus_grid(scan)
         rc = bp.range_compress(scan, self.grid, upsample=UPSAMPLE)
         self.rc = dataclasses.replace(rc, data=rc.data.astype(np.complex64))
@@ -52,8 +56,9 @@ class PointEcho:
     def image(self, x_m: np.ndarray, rc_m: np.ndarray, counts: bool = False):
         """Complex BP at rig-frame points: along the rail x_m (m), closest-approach range rc_m (m); with
         `counts`, also the number of pulses summed at each point."""
-        return bp.backproject_track_points(self.rc, self.grid, np.asarray(x_m) - self.grid.aperture_centre_m,
-                                           rc_m, counts=counts)
+        return self.focuser.backproject_track_points(self.rc, self.grid,
+                                                     np.asarray(x_m) - self.grid.aperture_centre_m, rc_m,
+                                                     counts=counts)
 
     def x_span_m(self, rc_m: float) -> tuple[float, float]:
         """Rig-frame x of the points at range rc_m whose beam centre the pass crossed (its imaged extent)."""

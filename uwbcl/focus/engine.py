@@ -50,6 +50,7 @@ PULSE_ROW_STEP = 32
 AC_TERMS_BOUND = 9  # H8 polynomial terms at most: the degree-8 exact-reference fit (the series has 5)
 BP_UPSAMPLE = 16  # backprojection's range upsampling
 NLCS_COEFFICIENTS = ("eta1", "y3", "y4", "q2", "q3", "q4")
+POINT_STEP = 1024  # point counts of `backproject_track_points` are rounded up to this: its buffers recur
 
 
 def padded_rows(n_rows: int, grid: nlcs.FocusGrid) -> int:
@@ -120,6 +121,13 @@ BUFFERS = (
                doc="range-compressed, upsampled pulses"),
     BufferSpec("x_rel_f32", lambda g, n_pulses: (n_pulses,), np.float32, True, "x_rel for backprojection"),
     BufferSpec("bp_image", lambda g, n_u, n_r: (n_u, n_r), COMPLEX64, doc="the backprojection image"),
+    BufferSpec("points_echo", lambda g, n_pulses, n_fine: (n_pulses, n_fine), COMPLEX64, True,
+               "a range-compressed echo backprojected at points (uploaded again only when it changes)"),
+    BufferSpec("points_x_pulse", lambda g, n_pulses: (n_pulses,), np.float32, True, "its pulses' x - x_c"),
+    BufferSpec("points_x", lambda g, n_points: (n_points,), REAL, doc="points along the rail, x - x_c (m)"),
+    BufferSpec("points_rc", lambda g, n_points: (n_points,), REAL, doc="points' closest-approach range (m)"),
+    BufferSpec("points_value", lambda g, n_points: (n_points,), COMPLEX64, doc="the BP value per point"),
+    BufferSpec("points_count", lambda g, n_points: (n_points,), np.int32, doc="pulses summed per point"),
 ) + device_fft.BUFFERS
 
 # kernels whose work item handles four neighbouring range bins (common.cl, c4)
@@ -673,6 +681,37 @@ class FocusEngine(OpenclProcessing):
             data = self.host(image)
         return bp.BackprojectionProducts(image=data, u_axis_m=u_axis, r_axis_m=r_axis, grid=grid,
                                          compressed=rc)
+
+    def backproject_track_points(self, rc: bp.RangeCompressed, grid: nlcs.FocusGrid, x_rel_m, rc_m,
+                                 counts: bool = False):
+        """`backprojection.backproject_track_points` on the device: the BP value of the range-compressed echo
+        rc at points along the rail x_rel_m (x - x_c, m) and in closest-approach range rc_m (m), any
+        broadcastable shapes (complex128 on the host, summed in complex64 with `backproject`'s split phase);
+        with `counts`, also the number of pulses each point sums (int64). What the rib registration (eq. R1)
+        backprojects for every candidate translation."""
+        shape = np.broadcast_shapes(np.shape(x_rel_m), np.shape(rc_m))
+        x, r = (np.asarray(a, dtype=float).ravel() for a in np.broadcast_arrays(x_rel_m, rc_m))
+        n_pulses, n_fine = rc.data.shape
+        n_points = max(-(-x.size // POINT_STEP), 1) * POINT_STEP
+        pulses, points = {"n_pulses": n_pulses}, {"n_points": n_points}
+        self.check_footprint("backproject_track_points", grid, [
+            ("points_echo", {**pulses, "n_fine": n_fine}), ("points_x_pulse", pulses),
+            *((name, points) for name in ("points_x", "points_rc", "points_value", "points_count"))])
+        with self.stage("backprojection at points"):
+            value = self.buffer("points_value", grid, **points)
+            count = self.buffer("points_count", grid, **points)
+            self._launch("backproject_track_points", 1, n_points,
+                         rc=self.to_device("points_echo", rc.data, grid, **pulses, n_fine=n_fine),
+                         x_rel_m=self.to_device("points_x_pulse", rc.x_rel_m, grid, **pulses),
+                         x_m=self.reals("points_x", _with_rows(x, n_points), grid, **points),
+                         rc_m=self.reals("points_rc", _with_rows(r, n_points), grid, **points),
+                         out=value, counts=count, n_points=x.size, n_pulses=n_pulses, n_fine=n_fine,
+                         t0_s=rc.t0_s, fine_dt_s=rc.dt_s, carrier_hz=grid.carrier_frequency_hz,
+                         band_lo=grid.doppler_band[0], band_hi=grid.doppler_band[1])
+            out = self.host(value)[:x.size].astype(np.complex128).reshape(shape)
+            if counts:
+                return out, self.host(count)[:x.size].astype(np.int64).reshape(shape)
+        return out
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

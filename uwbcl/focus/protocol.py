@@ -19,7 +19,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from ..model import ScanPass
-from .backprojection import BackprojectionProducts
+from .backprojection import BackprojectionProducts, RangeCompressed
 from .nlcs import AzimuthCompression, FocusGrid, NlcsProducts
 
 
@@ -124,6 +124,29 @@ class Focuser(Protocol):
         """
         ...
 
+    def backproject_track_points(self, rc: RangeCompressed, grid: FocusGrid, x_rel_m, rc_m,
+                                 counts: bool = False):
+        """The BP value of a range-compressed echo at arbitrary points (docs/method.md section 3): what the
+        rib registration (eq. R1) and the carrier phases (eq. R5) backproject.
+
+        Parameters
+        ----------
+        rc : RangeCompressed
+            The pass's range-compressed echo (pulses x fine samples) and its pulse positions.
+        grid : FocusGrid
+            The pass's grid (carrier, Doppler band, aperture centre).
+        x_rel_m, rc_m : array_like, broadcastable
+            The points along the rail relative to the aperture centre, x - x_c (m), and in closest-approach
+            range R_c (m).
+        counts : bool
+            Also return how many pulses each point sums.
+
+        Returns
+        -------
+        ndarray, complex128, the broadcast shape (and with `counts` an int64 array of the same shape).
+        """
+        ...
+
 
 @dataclasses.dataclass(frozen=True)
 class Stage:
@@ -175,6 +198,9 @@ STAGES = (
           "FocusEngine.nlcs_model_spectra"),
     Stage("calibration_spectra", "nlcs.calibration_spectra", "nlcs.calibration_spectra",
           "FocusEngine.calibration_spectra"),
+    Stage("backproject_track_points", "backprojection.backproject_track_points",
+          "backprojection.backproject_track_points", "FocusEngine.backproject_track_points"),
 )
 
-FOCUSER_METHODS = ("nlcs_focus", "backprojection_focus", "nlcs_model_spectra", "calibration_spectra")
+FOCUSER_METHODS = ("nlcs_focus", "backprojection_focus", "nlcs_model_spectra", "calibration_spectra",
+                   "backproject_track_points")

@@ -43,5 +43,10 @@ class NumpyFocuser:
         """`nlcs.calibration_spectra` (see `Focuser.calibration_spectra`)."""
         return nlcs.calibration_spectra(products, r_m, t_n_s)
 
+    def backproject_track_points(self, rc: backprojection.RangeCompressed, grid: nlcs.FocusGrid, x_rel_m,
+                                 rc_m, counts: bool = False):
+        """`backprojection.backproject_track_points` (see `Focuser.backproject_track_points`)."""
+        return backprojection.backproject_track_points(rc, grid, x_rel_m, rc_m, counts=counts)
+
 
 NUMPY_FOCUSER = NumpyFocuser()

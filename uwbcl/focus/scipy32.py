@@ -243,5 +243,10 @@ class Scipy32Focuser:
         """The float64 reference's `nlcs.calibration_spectra`."""
         return nlcs.calibration_spectra(products, r_m, t_n_s)
 
+    def backproject_track_points(self, rc: backprojection.RangeCompressed, grid: nlcs.FocusGrid, x_rel_m,
+                                 rc_m, counts: bool = False):
+        """The float64 reference's `backprojection.backproject_track_points`."""
+        return backprojection.backproject_track_points(rc, grid, x_rel_m, rc_m, counts=counts)
+
 
 SCIPY32_FOCUSER = Scipy32Focuser()
