@@ -20,11 +20,37 @@ __kernel void pulse_compression_upsample(__global const float2 *spec, __global f
     fine[p * n_fine + c] = v;
 }
 
-/* One pixel per work item (i_r, i_u) on the (u = v t_n, r_LRCM) axes: sum over the pulses whose slant squint
- * lies in the beam's Doppler band of the linearly interpolated range-compressed echo at the exact two-way
- * delay, with the carrier phase restored. P1: r0 = r - s_q u, x_M = u + r0 s_q, R_c = r0 c_q.
- * The loop runs in float: the carrier phase k R is split into k R_c (per pixel, in real_t) and
- * k (R - R_c) = k dx^2 / (R + R_c) (float, no cancellation), which keeps the phase error near 1e-5 rad. */
+/* The sum over the pulses whose slant squint lies in the beam's Doppler band [lo, hi] of the linearly
+ * interpolated range-compressed echo at the exact two-way delay, for the point x_m along the rail (relative to
+ * the aperture centre) and closest-approach range rc_m, with the carrier phase k (R - R_c) restored; the caller
+ * applies k R_c. The loop runs in float: k (R - R_c) = k dx^2 / (R + R_c) has no cancellation, which keeps the
+ * phase error near 1e-5 rad. *summed gets the number of pulses summed. */
+inline float2 sum_over_pulses(__global const float2 *restrict rc, __global const float *restrict x_rel_m,
+                              const int n_pulses, const int n_fine, const float x_m, const float rc_m,
+                              const float k, const float lo, const float hi, const float samples_per_m,
+                              const float first, int *summed) {
+    const float rc2 = rc_m * rc_m;
+    float2 acc = (float2)(0.0f, 0.0f);
+    int n = 0;
+    for (int p = 0; p < n_pulses; ++p) {
+        const float dx = x_m - x_rel_m[p];
+        const float rng = sqrt(dx * dx + rc2);
+        if (dx < lo * rng || dx > hi * rng) continue;
+        const float pos = rng * samples_per_m - first;
+        const float fl = floor(pos);
+        if (fl < 0.0f || fl >= (float)(n_fine - 1)) continue;
+        const int i = (int)fl;
+        const float frac = pos - fl;
+        const float2 sample = (1.0f - frac) * rc[p * n_fine + i] + frac * rc[p * n_fine + i + 1];
+        acc += cmul(sample, cis_f(k * dx * dx / (rng + rc_m)));
+        ++n;
+    }
+    *summed = n;
+    return acc;
+}
+
+/* One pixel per work item (i_r, i_u) on the (u = v t_n, r_LRCM) axes: `sum_over_pulses` at its track
+ * coordinates, times exp(i k R_c) in real_t. P1: r0 = r - s_q u, x_M = u + r0 s_q, R_c = r0 c_q. */
 __kernel void backproject(__global const float2 *restrict rc, __global const float *restrict x_rel_m,
                           __global float2 *restrict image, const int n_pulses, const int n_fine,
                           const real_t t0_s, const real_t fine_dt_s, const int n_u, const int n_r,
@@ -37,22 +63,11 @@ __kernel void backproject(__global const float2 *restrict rc, __global const flo
     const real_t r0 = r - sin_squint * u;
     const real_t k = 2.0 * UWBCL_TWO_PI * carrier_hz / UWBCL_C;
     const real_t rc_pixel = r0 * sqrt(1.0 - sin_squint * sin_squint);
-    const float x_m = (float)(u + r0 * sin_squint), rc_m = (float)rc_pixel, rc2 = rc_m * rc_m;
-    const float kf = (float)k, lo = (float)band_lo, hi = (float)band_hi;
-    const float samples_per_m = (float)(2.0 / (UWBCL_C * fine_dt_s)), first = (float)(t0_s / fine_dt_s);
-    float2 acc = (float2)(0.0f, 0.0f);
-    for (int p = 0; p < n_pulses; ++p) {
-        const float dx = x_m - x_rel_m[p];
-        const float rng = sqrt(dx * dx + rc2);
-        if (dx < lo * rng || dx > hi * rng) continue;
-        const float pos = rng * samples_per_m - first;
-        const float fl = floor(pos);
-        const int i = (int)fl;
-        if (i < 0 || i >= n_fine - 1) continue;
-        const float frac = pos - fl;
-        const float2 sample = (1.0f - frac) * rc[p * n_fine + i] + frac * rc[p * n_fine + i + 1];
-        acc += cmul(sample, cis_f(kf * dx * dx / (rng + rc_m)));
-    }
+    const float x_m = (float)(u + r0 * sin_squint), rc_m = (float)rc_pixel;
+    int summed;
+    const float2 acc = sum_over_pulses(rc, x_rel_m, n_pulses, n_fine, x_m, rc_m, (float)k, (float)band_lo,
+                                       (float)band_hi, (float)(2.0 / (UWBCL_C * fine_dt_s)),
+                                       (float)(t0_s / fine_dt_s), &summed);
     image[iu * n_r + ir] = cmul(acc, cis(k * rc_pixel));
 }
 
@@ -69,24 +84,10 @@ __kernel void backproject_track_points(__global const float2 *restrict rc, __glo
     const int j = get_global_id(0);
     if (j >= n_points) return;
     const real_t k = 2.0 * UWBCL_TWO_PI * carrier_hz / UWBCL_C;
-    const float x = (float)x_m[j], r = (float)rc_m[j], r2 = r * r;
-    const float kf = (float)k, lo = (float)band_lo, hi = (float)band_hi;
-    const float samples_per_m = (float)(2.0 / (UWBCL_C * fine_dt_s)), first = (float)(t0_s / fine_dt_s);
-    float2 acc = (float2)(0.0f, 0.0f);
-    int n = 0;
-    for (int p = 0; p < n_pulses; ++p) {
-        const float dx = x - x_rel_m[p];
-        const float rng = sqrt(dx * dx + r2);
-        if (dx < lo * rng || dx > hi * rng) continue;
-        const float pos = rng * samples_per_m - first;
-        const float fl = floor(pos);
-        if (fl < 0.0f || fl >= (float)(n_fine - 1)) continue;
-        const int i = (int)fl;
-        const float frac = pos - fl;
-        const float2 sample = (1.0f - frac) * rc[p * n_fine + i] + frac * rc[p * n_fine + i + 1];
-        acc += cmul(sample, cis_f(kf * dx * dx / (rng + r)));
-        ++n;
-    }
+    int summed;
+    const float2 acc = sum_over_pulses(rc, x_rel_m, n_pulses, n_fine, (float)x_m[j], (float)rc_m[j], (float)k,
+                                       (float)band_lo, (float)band_hi, (float)(2.0 / (UWBCL_C * fine_dt_s)),
+                                       (float)(t0_s / fine_dt_s), &summed);
     out[j] = cmul(acc, cis(k * rc_m[j]));
-    counts[j] = n;
+    counts[j] = summed;
 }
