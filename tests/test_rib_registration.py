@@ -242,3 +242,20 @@ def test_a_pass_that_cannot_be_read_again_gives_no_evidence_and_is_logged(tmp_pa
     assert "high.h5: not read for the rib registration" in caplog.text
     off = ProcessingSettings(association=AssociationSettings(rib_registration=False))
     assert batch.rib_registration(groups, tmp_path, off) is None
+
+
+def test_the_association_backprojects_with_the_runs_backend_or_says_why_not(monkeypatch, caplog):
+    from uwbcl import batch, pipeline
+    from uwbcl.focus.reference import NUMPY_FOCUSER
+    from uwbcl.opencl import OpenClUnavailable
+    from uwbcl.records import ProcessingSettings
+
+    assert batch.association_focuser(ProcessingSettings(backend="numpy")) is NUMPY_FOCUSER
+
+    def no_device(settings):
+        raise OpenClUnavailable("no OpenCL platform")
+
+    monkeypatch.setattr(pipeline, "focuser", no_device)
+    with caplog.at_level("WARNING", logger="uwbcl"):
+        assert batch.association_focuser(ProcessingSettings(backend="opencl")) is NUMPY_FOCUSER
+    assert "numpy reference" in caplog.text and "no OpenCL platform" in caplog.text

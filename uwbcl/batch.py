@@ -37,7 +37,9 @@ import numpy as np
 
 from . import __version__, archive, chain, outputs, pipeline, registration, threads
 from .atomic import write_text_atomic
+from .focus.protocol import Focuser
 from .focus.reference import NUMPY_FOCUSER
+from .opencl import OpenClUnavailable
 from .records import (
     BatchError,
     BatchOptions,
@@ -389,13 +391,12 @@ def locate_records(recs: dict[int, PassRecord], detection: DetectionSettings = D
                               int(first.parameters["boresight_y_sign"]), detection)
 
 
-def rib_registration(groups: dict, in_dir: Path, settings: ProcessingSettings, local: bool = True
+def rib_registration(groups: dict, in_dir: Path, settings: ProcessingSettings
                      ) -> registration.RibRegistration | None:
     """The rib registration of the association (eq. M7) over each cycle's passes, read again from their
     archives when two cycles are close to ambiguous; None when `[association] rib_registration` is off. A pass
     that cannot be read now gives no evidence (logged): the other heights, or the plates alone, decide. The
-    lattices are backprojected by this process's backend (`pipeline.focuser`) when the passes were focused
-    here (`local`), by the numpy reference when a cluster focused them (this process may have no device)."""
+    lattices are backprojected by the settings' backend in this process (`association_focuser`)."""
     if not settings.association.rib_registration:
         return None
 
@@ -410,7 +411,20 @@ def rib_registration(groups: dict, in_dir: Path, settings: ProcessingSettings, l
             return None
         return pipeline.apply_range_delay(scan, settings.range_delay_s)
 
-    return registration.RibRegistration(load, pipeline.focuser(settings) if local else NUMPY_FOCUSER)
+    return registration.RibRegistration(load, association_focuser(settings))
+
+
+def association_focuser(settings: ProcessingSettings) -> Focuser:
+    """What backprojects the association's rib lattices in this process: the settings' backend, so a run
+    gives the same bytes wherever its passes were focused (here or on a cluster's workers); the numpy
+    reference where this process cannot start the engine (a cluster client without a device), logged, since
+    the association margins then differ from a local run's in their last digits."""
+    try:
+        return pipeline.focuser(settings)
+    except (OpenClUnavailable, ImportError) as exc:
+        log.warning("the rib registration runs on the numpy reference here (%s): association margins may "
+                    "differ from a run on the %s backend in their last digits", exc, settings.backend)
+        return NUMPY_FOCUSER
 
 
 # ----------------------------------------------------------------------------------------------- the job
@@ -681,7 +695,7 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
                      len(result.heights_m))
             cycles.append(result)
         rows_series = chain.series(cycles, settings.association, options.max_bridge_cycles,
-                                   rib_registration(groups, in_dir, settings, local=runner is None))
+                                   rib_registration(groups, in_dir, settings))
         for r in rows_series:
             if r.displacement.status != "ok":
                 log.warning("rig %s cycle %d: %s (%d plates matched, runner-up %d)", r.cycle.rig_id,
