@@ -245,17 +245,17 @@ def test_a_pass_that_cannot_be_read_again_gives_no_evidence_and_is_logged(tmp_pa
 
 
 def test_the_association_backprojects_with_the_runs_backend_or_says_why_not(monkeypatch, caplog):
-    from uwbcl import batch, pipeline
+    from uwbcl import pipeline
     from uwbcl.focus.reference import NUMPY_FOCUSER
     from uwbcl.opencl import OpenClUnavailable
     from uwbcl.records import ProcessingSettings
 
-    assert batch.association_focuser(ProcessingSettings(backend="numpy")) is NUMPY_FOCUSER
+    assert pipeline.association_focuser(ProcessingSettings(backend="numpy")) is NUMPY_FOCUSER
 
     def no_device(settings):
         raise OpenClUnavailable("no OpenCL platform")
 
     monkeypatch.setattr(pipeline, "focuser", no_device)
     with caplog.at_level("WARNING", logger="uwbcl"):
-        assert batch.association_focuser(ProcessingSettings(backend="opencl")) is NUMPY_FOCUSER
+        assert pipeline.association_focuser(ProcessingSettings(backend="opencl")) is NUMPY_FOCUSER
     assert "numpy reference" in caplog.text and "no OpenCL platform" in caplog.text

@@ -37,9 +37,6 @@ import numpy as np
 
 from . import __version__, archive, chain, outputs, pipeline, registration, threads
 from .atomic import write_text_atomic
-from .focus.protocol import Focuser
-from .focus.reference import NUMPY_FOCUSER
-from .opencl import OpenClUnavailable
 from .records import (
     BatchError,
     BatchOptions,
@@ -396,7 +393,7 @@ def rib_registration(groups: dict, in_dir: Path, settings: ProcessingSettings
     """The rib registration of the association (eq. M7) over each cycle's passes, read again from their
     archives when two cycles are close to ambiguous; None when `[association] rib_registration` is off. A pass
     that cannot be read now gives no evidence (logged): the other heights, or the plates alone, decide. The
-    lattices are backprojected by the settings' backend in this process (`association_focuser`)."""
+    lattices are backprojected by the settings' backend in this process (`pipeline.association_focuser`)."""
     if not settings.association.rib_registration:
         return None
 
@@ -411,20 +408,8 @@ def rib_registration(groups: dict, in_dir: Path, settings: ProcessingSettings
             return None
         return pipeline.apply_range_delay(scan, settings.range_delay_s)
 
-    return registration.RibRegistration(load, association_focuser(settings))
+    return registration.RibRegistration(load, pipeline.association_focuser(settings))
 
-
-def association_focuser(settings: ProcessingSettings) -> Focuser:
-    """What backprojects the association's rib lattices in this process: the settings' backend, so a run
-    gives the same bytes wherever its passes were focused (here or on a cluster's workers); the numpy
-    reference where this process cannot start the engine (a cluster client without a device), logged, since
-    the association margins then differ from a local run's in their last digits."""
-    try:
-        return pipeline.focuser(settings)
-    except (OpenClUnavailable, ImportError) as exc:
-        log.warning("the rib registration runs on the numpy reference here (%s): association margins may "
-                    "differ from a run on the %s backend in their last digits", exc, settings.backend)
-        return NUMPY_FOCUSER
 
 
 # ----------------------------------------------------------------------------------------------- the job

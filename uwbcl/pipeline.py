@@ -18,6 +18,7 @@ from .focus.engine import shared_engine  # pyopencl and pyvkfft are imported whe
 from .focus.protocol import Focuser
 from .focus.reference import NUMPY_FOCUSER
 from .model import SPEED_OF_LIGHT_M_S, ScanPass
+from .opencl import OpenClUnavailable
 from .records import (
     ALGORITHMS,
     BACKENDS,
@@ -124,6 +125,18 @@ def focus_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSettings
     # Every backend's plates get the same carrier phase: measured on the echo itself (eq. R5).
     return products, detect_phase.with_phases(scan, detections)
 
+
+def association_focuser(settings: ProcessingSettings) -> Focuser:
+    """What backprojects the association's rib lattices in this process: the settings' backend, so a run
+    gives the same bytes wherever its passes were focused (here or on a cluster's workers); the numpy
+    reference where this process cannot start the engine (a cluster client without a device), logged, since
+    the association margins then differ from a local run's in their last digits."""
+    try:
+        return focuser(settings)
+    except (OpenClUnavailable, ImportError) as exc:
+        log.warning("the rib registration runs on the numpy reference here (%s): association margins may "
+                    "differ from a run on the %s backend in their last digits", exc, settings.backend)
+        return NUMPY_FOCUSER
 
 def prepare_pass(scan: ScanPass, settings: ProcessingSettings) -> ScanPass:
     """The pass as every focuser sees it: the site's delay applied (`apply_range_delay`), checked against

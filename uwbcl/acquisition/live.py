@@ -76,7 +76,7 @@ class LiveProcessor:
         # the recent cycles' passes by height (mm) for the rib registration (eq. M7), which `uwbcl process`
         # reads again from their archives
         self._recent: dict[int, dict[int, object]] = {}
-        rib = (registration.RibRegistration(self._recent_pass, pipeline.focuser(settings))
+        rib = (registration.RibRegistration(self._recent_pass, pipeline.association_focuser(settings))
                if settings.association.rib_registration else None)
         self._chain = chain.RigChain(settings.association, rib=rib)
         self._stop = threading.Event()
