@@ -411,7 +411,6 @@ def rib_registration(groups: dict, in_dir: Path, settings: ProcessingSettings
     return registration.RibRegistration(load, pipeline.association_focuser(settings))
 
 
-
 # ----------------------------------------------------------------------------------------------- the job
 @contextlib.contextmanager
 def _exclusive(out_dir: Path):

@@ -266,12 +266,9 @@ def validate(cfg: SiteConfig, path=None) -> None:
     if cfg.heights_m is not None and len(set(cfg.heights_m)) < 2:
         raise ConfigError(path, "site.heights_m", "needs two or more distinct heights")
     positive("association.max_bound_m", cfg.association.get("max_bound_m"))
-    if cfg.association.get("max_backward_m", 0.0) < 0:
-        raise ConfigError(path, "association.max_backward_m",
-                          f"must be >= 0, got {cfg.association['max_backward_m']}")
-    if cfg.association.get("min_margin", 0.0) < 0:
-        raise ConfigError(path, "association.min_margin",
-                          f"must be >= 0, got {cfg.association['min_margin']}")
+    for key in ("max_backward_m", "min_margin"):
+        if cfg.association.get(key, 0.0) < 0:
+            raise ConfigError(path, f"association.{key}", f"must be >= 0, got {cfg.association[key]}")
     if cfg.max_bridge_cycles < 1:
         raise ConfigError(path, "association.max_bridge_cycles", f"must be >= 1, got {cfg.max_bridge_cycles}")
     try:

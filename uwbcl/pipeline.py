@@ -138,6 +138,7 @@ def association_focuser(settings: ProcessingSettings) -> Focuser:
                     "differ from a run on the %s backend in their last digits", exc, settings.backend)
         return NUMPY_FOCUSER
 
+
 def prepare_pass(scan: ScanPass, settings: ProcessingSettings) -> ScanPass:
     """The pass as every focuser sees it: the site's delay applied (`apply_range_delay`), checked against
     settings.limits (LimitExceeded before any allocation), background subtracted (`nlcs.condition_pass`, on

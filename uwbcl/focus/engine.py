@@ -53,14 +53,19 @@ NLCS_COEFFICIENTS = ("eta1", "y3", "y4", "q2", "q3", "q4")
 POINT_STEP = 1024  # point counts of `backproject_track_points` are rounded up to this: its buffers recur
 
 
+def _round_up(n: int, step: int) -> int:
+    """The smallest multiple of step >= n: buffer extents that recur from pass to pass."""
+    return -(-n // step) * step
+
+
 def padded_rows(n_rows: int, grid: nlcs.FocusGrid) -> int:
     """A band's row count rounded up to ROW_STEP (at most the whole azimuth axis)."""
-    return min(-(-n_rows // ROW_STEP) * ROW_STEP, grid.n_azimuth)
+    return min(_round_up(n_rows, ROW_STEP), grid.n_azimuth)
 
 
 def pulse_rows(n_pulses: int) -> int:
     """Rows of the device buffers that hold a pass's pulses: n_pulses rounded up to PULSE_ROW_STEP."""
-    return -(-n_pulses // PULSE_ROW_STEP) * PULSE_ROW_STEP
+    return _round_up(n_pulses, PULSE_ROW_STEP)
 
 
 def _with_rows(a: np.ndarray, rows: int) -> np.ndarray:
@@ -406,7 +411,7 @@ class FocusEngine(OpenclProcessing):
         t_cols = np.tile(np.asarray(t_n_s, dtype=float), np.size(r_m))
         # the azimuth FFT kernels take columns four at a time; widths in steps of 16 recur from pass to pass,
         # so the buffer and its FFT launches are reused
-        width = -(-r_cols.size // 16) * 16
+        width = _round_up(r_cols.size, 16)
         r_cols = np.concatenate([r_cols, np.repeat(r_cols[-1:], width - r_cols.size)])
         t_cols = np.concatenate([t_cols, np.repeat(t_cols[-1:], width - t_cols.size)])
         j = grid.nearest_bin(r_cols)
@@ -692,7 +697,7 @@ class FocusEngine(OpenclProcessing):
         shape = np.broadcast_shapes(np.shape(x_rel_m), np.shape(rc_m))
         x, r = (np.asarray(a, dtype=float).ravel() for a in np.broadcast_arrays(x_rel_m, rc_m))
         n_pulses, n_fine = rc.data.shape
-        n_points = max(-(-x.size // POINT_STEP), 1) * POINT_STEP
+        n_points = _round_up(max(x.size, 1), POINT_STEP)
         pulses, points = {"n_pulses": n_pulses}, {"n_points": n_points}
         self.check_footprint("backproject_track_points", grid, [
             ("points_echo", {**pulses, "n_fine": n_fine}), ("points_x_pulse", pulses),
