@@ -73,7 +73,7 @@ import scipy.fft  # noqa: E402
 
 from uwbcl import archive, batch, chain, detect, opencl, outputs, pipeline, simulate  # noqa: E402
 from uwbcl.focus import nlcs, scipy32  # noqa: E402
-from uwbcl.focus.protocol import Focuser  # noqa: E402
+from uwbcl.focus.protocol import FOCUSER_METHODS, Focuser  # noqa: E402
 from uwbcl.focus.reference import NUMPY_FOCUSER  # noqa: E402
 from uwbcl.focus.scipy32 import SCIPY32_FOCUSER  # noqa: E402
 from uwbcl.model import PassGeometry, RadarParameters, ScanPass  # noqa: E402
@@ -93,6 +93,7 @@ ENV_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_
             "VECLIB_MAXIMUM_THREADS", "POCL_DEVICES", "POCL_MAX_PTHREAD_COUNT", "POCL_CPU_MAX_CU_COUNT",
             "POCL_CACHE_DIR", "PYOPENCL_CTX", "CUDA_CACHE_PATH")
 LEG_NAMES = ("numpy", "scipy32", "opencl")
+BACKEND = "backend"  # the stage of the time spent inside a leg's Focuser methods (TimedFocuser)
 
 
 # --------------------------------------------------------------------------------------------- timing helpers
@@ -127,6 +128,25 @@ class FftClock:
             self.seconds += time.perf_counter() - t
             self.calls += 1
             return out
+        return timed
+
+
+class TimedFocuser:
+    """A leg's focuser whose `Focuser` methods add their seconds to `clock`'s BACKEND stage: what the leg's
+    own backend costs, against the code every leg shares (archive reading, detection's host maths, locating,
+    the CSV). The backend's stage overlaps "focus" and "detect"; it is not part of their sum."""
+
+    def __init__(self, inner: Focuser, clock: Stopwatch):
+        self._inner, self._clock = inner, clock
+
+    def __getattr__(self, name: str):
+        attr = getattr(self._inner, name)
+        if name not in FOCUSER_METHODS:
+            return attr
+
+        def timed(*args, **kwargs):
+            with self._clock(BACKEND):
+                return attr(*args, **kwargs)
         return timed
 
 
@@ -230,6 +250,7 @@ def run_batch(leg: Leg, files: list[Path], out_csv: Path, settings: ProcessingSe
 
 def _one_pass(leg: Leg, path: Path | str, settings: ProcessingSettings, clock: Stopwatch
               ) -> tuple[ScanPass, list, tuple[int, int]]:
+    leg = dataclasses.replace(leg, focuser=TimedFocuser(leg.focuser, clock))
     with clock("read"):
         scan = archive.read_pass(path)
     with clock("focus"):
@@ -491,6 +512,7 @@ def benchmark_batch(args, legs: list[Leg], workdir: Path, failures: list[str]) -
     n_sample, fft_frac = fft_fractions(legs, runs, files)
     out = report_batch_legs(runs, len(files), fft_frac, agreement, n_sample)
     out["ratios"], out["focus_only_ratios"] = throughput_ratios(runs)
+    out["shared_code"] = shared_code_bound(runs, len(files))
     engine = next((leg.focuser for leg in legs if leg.name == "opencl"), None)
     if engine is not None:
         out["floor"] = report_floor(engine, files, runs, settings)
@@ -591,7 +613,7 @@ def report_batch_legs(runs: dict[str, BatchRun], n_files: int, fft_frac: dict[st
         total = run.seconds
         rest = st["locate"] + st["displacement"] + st["csv"]
         # a pooled leg's stage seconds are summed over its workers: shares of that sum, not of the wall time
-        basis = total if run.jobs == 1 else sum(v for k, v in st.items() if k != "load_average_before")
+        basis = total if run.jobs == 1 else _summed_stages(st)
         frac, calls = fft_frac.get(name, (float("nan"), 0))
         fft_s = frac * st["focus"]
         print(f"    {name:<8} {run.jobs:4d} {1e3 * total / n_files:8.1f} {n_files / total:9.2f} "
@@ -603,7 +625,8 @@ def report_batch_legs(runs: dict[str, BatchRun], n_files: int, fft_frac: dict[st
             "jobs": run.jobs, "ms_per_pass": 1e3 * total / n_files,
             "passes_per_s": n_files / total, "passes_per_s_per_core": n_files / total / cores,
             "seconds": total,
-            "stage_seconds": {k: v for k, v in st.items() if k != "load_average_before"},
+            "stage_seconds": {k: v for k, v in st.items() if k not in ("load_average_before", BACKEND)},
+            "backend_seconds": st.get(BACKEND, 0.0),
             "load_average_before": st["load_average_before"],
             "fft_fraction_of_focus": frac, "fft_calls_per_pass": calls,
             "fft_seconds_estimate": fft_s, "detections": run.n_detections,
@@ -622,6 +645,35 @@ def report_batch_legs(runs: dict[str, BatchRun], n_files: int, fft_frac: dict[st
               f"the rest {fmt_share(total - focus, total)} "
               f"(FFTs are {100 * d['fft_fraction_of_focus']:.0f}% of focusing, "
               f"{d['fft_calls_per_pass']:.0f} calls per pass)")
+    return out
+
+
+def _summed_stages(stages: dict[str, float]) -> float:
+    """Seconds of the disjoint stages (read, focus, detect, locate, displacement, csv), summed."""
+    return sum(v for k, v in stages.items() if k not in ("load_average_before", BACKEND))
+
+
+def shared_code_bound(runs: dict[str, BatchRun], n_files: int) -> dict:
+    """Each leg's time inside its backend (`TimedFocuser`) and in the code all legs share, per pass, and the
+    largest end-to-end ratio over numpy that a backend taking no time at all could reach with the shared code
+    as it is (Amdahl: numpy's ms per pass / the OpenCL leg's shared ms per pass), printed. A pooled leg's
+    seconds are summed over its workers: its per-pass shares are divided by its jobs to compare with wall
+    time."""
+    out: dict = {"legs": {}}
+    print("    backend (the leg's Focuser methods) and shared code (read, detection's host maths, locate, "
+          "CSV), ms per pass (core time / jobs):")
+    for name, run in runs.items():
+        backend = run.stages.get(BACKEND, 0.0)
+        shared = _summed_stages(run.stages) - backend
+        scale = 1e3 / n_files / run.jobs
+        out["legs"][name] = {"backend_ms_per_pass": backend * scale, "shared_ms_per_pass": shared * scale}
+        print(f"    {name:<8} backend {backend * scale:7.1f}  shared {shared * scale:7.1f}")
+    if "numpy" in runs and "opencl" in runs:
+        shared = out["legs"]["opencl"]["shared_ms_per_pass"]
+        numpy_ms = 1e3 * runs["numpy"].seconds / n_files
+        out["opencl_over_numpy_bound"] = numpy_ms / shared if shared > 0 else float("inf")
+        print(f"    bound on opencl/numpy with this shared code (a backend that took no time): "
+              f"{out['opencl_over_numpy_bound']:.1f}x")
     return out
 
 
