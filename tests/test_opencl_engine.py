@@ -626,3 +626,21 @@ def test_backprojection_at_arbitrary_points_matches_the_reference(engine, jitter
     xs, rs = rng.uniform(-1, 1, 7), rng.uniform(r.min(), r.max(), 7)
     scattered = engine.backproject_track_points(rc, grid, xs, rs)
     assert rel_err(scattered, bp.backproject_track_points(rc, grid, xs, rs)) < CHAIN_TOL
+
+
+def test_an_upload_is_the_host_bytes_at_the_call_even_when_the_caller_reuses_its_array(engine, grid):
+    host = np.arange(grid.n_range, dtype=float)
+    arr = engine.to_device("eta1", host, grid)
+    host[:] = -1.0  # the caller's array, changed before the queue has run the copy
+    np.testing.assert_array_equal(engine.host(arr), np.arange(grid.n_range))
+
+
+def test_a_queued_read_returns_the_array_as_it_was_when_queued_not_after_later_work(engine):
+    import pyopencl.array as cla
+
+    a = cla.to_device(engine.queue, np.full((2, 4), 2.0, np.complex64))
+    gain = cla.to_device(engine.queue, np.full((2, 4), 1j, np.complex64))
+    pending = engine.host_async(a)
+    engine.launch("apply_filter", (4, 2), s=a, filter=gain, n_range=4)  # queued after the read
+    np.testing.assert_array_equal(pending.result(), np.full((2, 4), 2.0))
+    np.testing.assert_array_equal(engine.host(a), np.full((2, 4), 2j))

@@ -353,7 +353,7 @@ class FocusEngine(OpenclProcessing):
                                               aperture_m)
 
     def _enqueue_reference_spectra(self, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid, aperture_m: float):
-        """Queue the device part of `reference_spectra` and its read-back: (host array, read event)."""
+        """Queue the device part of `reference_spectra` and its read-back: (`PendingRead`, the long grid)."""
         long = nlcs.reference_grid(grid, aperture_m)  # D5: the whole beam's response fits its axis
         h7 = self._pass_filters(grid, k).h7 if long == grid else None
         with self.stage("reference spectra"):
@@ -367,13 +367,12 @@ class FocusEngine(OpenclProcessing):
                 self._launch("apply_filter", grid.n_azimuth, grid.n_range, s=ref, filter=h7,
                              n_range=grid.n_range)
             self.fft(ref, 0)
-            host, read = self.host_async(ref)
-            return nlcs.on_grid_frequencies(host, long, grid), read
+            return self.host_async(ref), long
 
     def _reference_spectra_result(self, pending, k: coef.NlcsCoefficients, grid: nlcs.FocusGrid,
                                   aperture_m: float) -> np.ndarray:
-        host, read = pending
-        read.wait()
+        read, long = pending
+        host = nlcs.on_grid_frequencies(read.result(), long, grid)
         x_ref = np.fft.fftshift(host, axes=0).astype(np.complex128)
         undecided = np.flatnonzero(undecided_band_edges(np.abs(x_ref), grid, REFERENCE_EDGE_MARGIN))
         if undecided.size:
@@ -612,15 +611,16 @@ class FocusEngine(OpenclProcessing):
 
         h8 = self._h8_table(ac, grid, lo, hi)
         band = self.buffer("model_rows", grid, rows=rows.size)
-        out = []
+        reads = []  # every echo is queued before the first result is waited for
         for echo in echoes:
             s = self._nlcs_spectrum(echo, x_rel_m, grid, k, float(p2[0]))
             with self.stage("model spectrum rows"):
                 self._launch("gather_rows", rows.size, grid.n_range, full=s, out=band, filter=h8,
                              row_origin=self._row_origin(grid, lo), n_azimuth=grid.n_azimuth,
                              n_range=grid.n_range)
-                out.append(self._range_spectra(band, rows, grid))
-        return np.array(out)
+                self.fft(band, 1)
+                reads.append(self.host_async(band[:rows.size]))
+        return np.array([nlcs.spectrum_rows_from_range_spectra(r.result(), rows, grid) for r in reads])
 
     def _range_spectra(self, band, rows: np.ndarray, grid: nlcs.FocusGrid) -> np.ndarray:
         """fft2(image) / (n m) on `rows` from their range-Doppler values (the first rows.size rows of `band`,
