@@ -136,7 +136,8 @@ BUFFERS = (
 ) + device_fft.BUFFERS
 
 # kernels whose work item handles four neighbouring range bins (common.cl, c4)
-FOUR_BIN_KERNELS = frozenset({"nlcs_filter", "nlcs_scaling", "point_response", "range_walk_correction"})
+FOUR_BIN_KERNELS = frozenset({"nlcs_filter", "nlcs_scaling", "point_response", "range_walk_correction",
+                              "backproject", "backproject_track_points"})
 
 
 class FocusEngine(OpenclProcessing):
