@@ -36,25 +36,30 @@ __kernel void nlcs_scaling(__global float2 *restrict s, __global const real_t *r
 /* H8, azimuth compression (eq. 17; C10, C11): exp(-j sum_d a_d (f_a / f_scale)^d) inside the bin's band, zero
  * outside; `poly` holds degree + 1 ascending coefficients per bin. The band is given as signed frequency
  * indices [band_first, band_last] (decided on the host, so band edges that fall on a grid frequency are
- * treated exactly as the reference treats them). */
+ * treated exactly as the reference treats them). Work item (q, row): range bins 4q..4q+3 (common.cl, c4). */
 __kernel void azimuth_compression(__global cplx_t *restrict s, __global const real_t *restrict poly, const int n_coeff,
                                   __global const int *restrict band_first, __global const int *restrict band_last,
                                   const int n_range, const int n_azimuth, const real_t azimuth_df_hz,
                                   const real_t f_scale_hz, const int row_origin) {
-    const int j = get_global_id(0), row = get_global_id(1);
+    const int j = 4 * get_global_id(0), row = get_global_id(1);
     if (j >= n_range) return;
-    const int idx = row * n_range + j;
     const int i = azimuth_index(row, row_origin, n_azimuth);
-    const real_t f = i * azimuth_df_hz;
-    if (i < band_first[j] || i > band_last[j]) {
-        s[idx] = (cplx_t)(0, 0);
-        return;
+    const real_t u = i * azimuth_df_hz / f_scale_hz;
+    const int4 bin = min(j + (int4)(0, 1, 2, 3), n_range - 1);  /* lanes past n_range repeat the last bin */
+    const int4 in = (i >= (int4)(band_first[bin.s0], band_first[bin.s1], band_first[bin.s2], band_first[bin.s3]))
+                    & (i <= (int4)(band_last[bin.s0], band_last[bin.s1], band_last[bin.s2], band_last[bin.s3]));
+    __global cplx_t *line = s + row * n_range;
+    c4 v = {(float4)0.0f, (float4)0.0f};
+    if (any(in)) {
+        const int4 at = bin * n_coeff;
+        real4_t phase = 0;
+        for (int d = n_coeff - 1; d >= 0; --d)  /* Horner */
+            phase = phase * u + (real4_t)(poly[at.s0 + d], poly[at.s1 + d], poly[at.s2 + d], poly[at.s3 + d]);
+        const c4 h = c4_mul(c4_load_lanes(line, j, n_range), cis4(-phase));
+        v.re = select(v.re, h.re, in);
+        v.im = select(v.im, h.im, in);
     }
-    const real_t u = f / f_scale_hz;
-    real_t phase = 0;
-    for (int d = n_coeff - 1; d >= 0; --d)
-        phase = phase * u + poly[j * n_coeff + d];  /* Horner */
-    s[idx] = cmul(s[idx], cis(-phase));
+    c4_store_lanes(line, j, n_range, v);
 }
 
 /* The slow-time signal, in range bin r, of a point target at azimuth time t_n after LRWC, SRC and RC (C11):

@@ -47,35 +47,40 @@ __kernel void resample_to_uniform_track(__global const float2 *restrict s, __glo
 
 /* eqs. (9)-(11), C5 and C6: H3 (bulk SRC with the reference target's exact 2-D spectrum phase), the beam's
  * Doppler-band mask, H4 (matched filter of the Gaussian pulse) and the delay origin of the range IFFT,
- * in one pass over the 2-D spectrum. Work item (k, row): range frequency k, azimuth frequency row (+ row_origin,
- * as in azimuth.cl). */
+ * in one pass over the 2-D spectrum. Work item (q, row): range frequencies 4q..4q+3 (common.cl, c4), azimuth
+ * frequency row (+ row_origin, as in azimuth.cl). */
 __kernel void secondary_range_compression(__global float2 *restrict s, const int n_range, const int n_azimuth,
                                           const real_t sample_rate_hz, const real_t window_start_s,
                                           const real_t carrier_hz, const real_t azimuth_df_hz,
                                           const real_t speed_m_s, const real_t sin_squint,
                                           const real_t reference_range_m, const real_t pulse_sigma_s,
                                           const real_t band_lo, const real_t band_hi, const int row_origin) {
-    const int k = get_global_id(0), row = get_global_id(1);
+    const int k = 4 * get_global_id(0), row = get_global_id(1);
     if (k >= n_range) return;
-    const real_t f_r = signed_index(k, n_range) * sample_rate_hz / n_range;
+    const int4 lane = k + (int4)(0, 1, 2, 3);
+    const int4 index = select(lane, lane - n_range, lane >= (n_range + 1) / 2);  /* signed_index */
+    const real4_t f_r = convert_real4(index) * sample_rate_hz / n_range;
     const real_t f_a = azimuth_index(row, row_origin, n_azimuth) * azimuth_df_hz;
     const real_t cos_squint = sqrt(1.0 - sin_squint * sin_squint);
-    const real_t x = sin_squint + UWBCL_C * f_a / (2.0 * speed_m_s * (carrier_hz + f_r));
+    const real4_t x = sin_squint + UWBCL_C * f_a / (2.0 * speed_m_s * (carrier_hz + f_r));
     const real_t x0 = sin_squint + UWBCL_C * f_a / (2.0 * speed_m_s * carrier_hz);
-    const int idx = row * n_range + k;
-    if (!(x >= band_lo && x <= band_hi && fabs(x) < SQUINT_SINE_CAP)) {
-        s[idx] = (float2)(0.0f, 0.0f);
-        return;
+    const int4 in = convert_int4((x >= band_lo) & (x <= band_hi) & (fabs(x) < SQUINT_SINE_CAP));
+    __global float2 *line = s + row * n_range;
+    c4 v = {(float4)0.0f, (float4)0.0f};
+    if (any(in)) {
+        const real4_t g = cos_squint * sqrt(fmax(1.0 - x * x, 0.0)) + sin_squint * x;
+        const real_t g0 = cos_squint * sqrt(fmax(1.0 - x0 * x0, 0.0)) + sin_squint * x0;
+        const real_t k_ref = 2.0 * UWBCL_TWO_PI * reference_range_m / UWBCL_C;
+        const real4_t phi = -k_ref * (carrier_hz + f_r) * g;  /* eq. (7) under P1 */
+        const real_t phi0 = -k_ref * carrier_hz * g0;
+        const real4_t phase = -(phi - phi0 + k_ref * f_r) + UWBCL_TWO_PI * f_r * window_start_s;
+        const real4_t a = UWBCL_PI * pulse_sigma_s * f_r;
+        const float4 h4 = convert_float4(exp(-2.0 * a * a));
+        const c4 h = c4_mul(c4_load_lanes(line, k, n_range), cis4(phase));
+        v.re = select(v.re, h4 * h.re, in);
+        v.im = select(v.im, h4 * h.im, in);
     }
-    const real_t g = cos_squint * sqrt(fmax(1.0 - x * x, 0.0)) + sin_squint * x;
-    const real_t g0 = cos_squint * sqrt(fmax(1.0 - x0 * x0, 0.0)) + sin_squint * x0;
-    const real_t k_ref = 2.0 * UWBCL_TWO_PI * reference_range_m / UWBCL_C;
-    const real_t phi = -k_ref * (carrier_hz + f_r) * g;  /* eq. (7) under P1 */
-    const real_t phi0 = -k_ref * carrier_hz * g0;
-    const real_t phase = -(phi - phi0 + k_ref * f_r) + UWBCL_TWO_PI * f_r * window_start_s;
-    const real_t a = UWBCL_PI * pulse_sigma_s * f_r;
-    const float h4 = (float)exp(-2.0 * a * a);
-    s[idx] = h4 * cmul(s[idx], cis(phase));
+    c4_store_lanes(line, k, n_range, v);
 }
 
 /* The measured pulse's matched filter H4 = conj(P(f_r)) (eq. 10), sampled on the range frequencies by the host

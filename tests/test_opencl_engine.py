@@ -644,3 +644,17 @@ def test_a_queued_read_returns_the_array_as_it_was_when_queued_not_after_later_w
     engine.launch("apply_filter", (4, 2), s=a, filter=gain, n_range=4)  # queued after the read
     np.testing.assert_array_equal(pending.result(), np.full((2, 4), 2.0))
     np.testing.assert_array_equal(engine.host(a), np.full((2, 4), 2j))
+
+
+def test_an_engine_without_fp64_phases_builds_says_so_and_stays_near_the_reference(
+        engine, jittery_pass, caplog):
+    # the float32 build (a device without cl_khr_fp64) compiles on every device, fp64 ones included
+    from uwbcl.focus.engine import FocusEngine
+
+    with caplog.at_level("WARNING", logger="uwbcl"):
+        single = FocusEngine(engine.device, fp64_phase=False)
+    assert "no fp64" in caplog.text
+    ref = nlcs.nlcs_focus(jittery_pass, ac_mode="exact").image
+    assert rel_err(single.nlcs_focus(jittery_pass).image, ref) < 1e-2  # docs/opencl.md: ~4e-3, over budget
+    ref_bp = bp.backprojection_focus(jittery_pass).image
+    assert rel_err(single.backprojection_focus(jittery_pass).image, ref_bp) < 1e-3

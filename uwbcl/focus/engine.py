@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import logging
 import time
 
 import numpy as np
@@ -35,6 +36,8 @@ from . import backprojection as bp
 from . import coefficients as coef
 from . import device_fft, nlcs
 from .processing import REAL, BufferSpec, OpenclProcessing, PreparedLaunch
+
+log = logging.getLogger("uwbcl")
 
 PROGRAM_FILES = ("common.cl", "range.cl", "azimuth.cl", "fft.cl", "backprojection.cl")
 # |X_ref| closer than this fraction of its bin's peak to the H8 fit's threshold counts as undecided in
@@ -137,7 +140,8 @@ BUFFERS = (
 
 # kernels whose work item handles four neighbouring range bins (common.cl, c4)
 FOUR_BIN_KERNELS = frozenset({"nlcs_filter", "nlcs_scaling", "point_response", "range_walk_correction",
-                              "backproject", "backproject_track_points"})
+                              "azimuth_compression", "secondary_range_compression", "backproject",
+                              "backproject_track_points"})
 
 
 class FocusEngine(OpenclProcessing):
@@ -165,6 +169,11 @@ class FocusEngine(OpenclProcessing):
         if fp64_phase and not has_fp64:
             raise opencl.OpenClUnavailable(f"{dev.name.strip()} has no fp64; use fp64_phase=False")
         self.fp64_phase = has_fp64 if fp64_phase is None else fp64_phase
+        if not self.fp64_phase:
+            log.warning("%s: phase arguments in float32 (no fp64): NLCS images differ from the float64 "
+                        "reference by ~4e-3 and backprojection by ~2e-4, over the 1e-4 budget "
+                        "(docs/opencl.md, error budget); a device with fp64 or --backend numpy keeps it",
+                        dev.name.strip())
         # repr of a float is its shortest exact form: the kernels compare with the reference's own double
         super().__init__(dev, PROGRAM_FILES, BUFFERS, defines={"SQUINT_SINE_CAP": repr(nlcs.SQUINT_SINE_CAP)},
                          fp64=self.fp64_phase, profile=profile)

@@ -296,6 +296,8 @@ class OpenclProcessing:
         if fp64:
             self.defines["UWBCL_FP64"] = ""
         options = [f"-D{k}={v}" if v != "" else f"-D{k}" for k, v in self.defines.items()]
+        if not fp64:  # unsuffixed constants as float, as on a device without fp64, also where it has fp64
+            options.append("-cl-single-precision-constant")
         source = opencl.kernel_source(*kernel_files)
         self.program = cl.Program(self.context, source).build(options=options)
         self.signatures = parse_kernel_signatures(source, self.defines)
