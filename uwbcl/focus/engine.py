@@ -154,9 +154,12 @@ class FocusEngine(OpenclProcessing):
     fp64_phase : evaluate phase arguments in float64 (default: where the device has fp64).
     profile : record every device command per stage (`profile_table`); off by default (the queue then has no
         profiling overhead).
+    fft_lanes : columns per work item of the azimuth FFT kernels, 4, 8 or 16 (default: from the device's
+        preferred float vector width, `device_fft.fft_lanes`).
     """
 
-    def __init__(self, device=None, *, fp64_phase: bool | None = None, profile: bool = False):
+    def __init__(self, device=None, *, fp64_phase: bool | None = None, profile: bool = False,
+                 fft_lanes: int | None = None):
         import pyopencl as cl
 
         try:
@@ -175,9 +178,13 @@ class FocusEngine(OpenclProcessing):
                         "(docs/opencl.md, error budget); a device with fp64 or --backend numpy keeps it",
                         dev.name.strip())
         # repr of a float is its shortest exact form: the kernels compare with the reference's own double
-        super().__init__(dev, PROGRAM_FILES, BUFFERS, defines={"SQUINT_SINE_CAP": repr(nlcs.SQUINT_SINE_CAP)},
+        lanes = device_fft.fft_lanes(dev) if fft_lanes is None else fft_lanes
+        if lanes not in (4, 8, 16):
+            raise ValueError(f"fft_lanes must be 4, 8 or 16, not {lanes}")
+        super().__init__(dev, PROGRAM_FILES, BUFFERS, defines={"SQUINT_SINE_CAP": repr(nlcs.SQUINT_SINE_CAP),
+                                                               **device_fft.fft_defines(lanes)},
                          fp64=self.fp64_phase, profile=profile)
-        self.ffts = device_fft.DeviceFft(self, VkFFTApp)
+        self.ffts = device_fft.DeviceFft(self, VkFFTApp, lanes)
         self._filters: _PassFilters | None = None  # the last grid's filter tables
         self._h8_tables: dict = {}  # name -> (compression, grid, (first, last row), table)
         self._track: tuple | None = None  # (x_rel bytes, grid, first taps, weights) of the last track
