@@ -649,15 +649,24 @@ def test_backprojection_at_arbitrary_points_matches_the_reference(engine, jitter
     assert rel_err(scattered, bp.backproject_track_points(rc, grid, xs, rs)) < CHAIN_TOL
 
 
-def test_an_upload_is_the_host_bytes_at_the_call_even_when_the_caller_reuses_its_array(engine, grid):
+@pytest.mark.parametrize("staged", [True, False], ids=["staged", "direct (above STAGING_MAX_BYTES)"])
+def test_an_upload_is_the_host_bytes_at_the_call_even_when_the_caller_reuses_its_array(
+        engine, grid, staged, monkeypatch):
+    if not staged:
+        monkeypatch.setattr(engine, "STAGING_MAX_BYTES", 0)
     host = np.arange(grid.n_range, dtype=float)
     arr = engine.to_device("eta1", host, grid)
     host[:] = -1.0  # the caller's array, changed before the queue has run the copy
     np.testing.assert_array_equal(engine.host(arr), np.arange(grid.n_range))
 
 
-def test_a_queued_read_returns_the_array_as_it_was_when_queued_not_after_later_work(engine):
+@pytest.mark.parametrize("staged", [True, False], ids=["staged", "direct (above STAGING_MAX_BYTES)"])
+def test_a_queued_read_returns_the_array_as_it_was_when_queued_not_after_later_work(
+        engine, staged, monkeypatch):
     import pyopencl.array as cla
+
+    if not staged:
+        monkeypatch.setattr(engine, "STAGING_MAX_BYTES", 0)
 
     a = cla.to_device(engine.queue, np.full((2, 4), 2.0, np.complex64))
     gain = cla.to_device(engine.queue, np.full((2, 4), 1j, np.complex64))

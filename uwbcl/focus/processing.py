@@ -211,13 +211,17 @@ class PendingRead:
     `result()` through `queue` once `copied` has completed."""
 
     cl: object
-    queue: object
+    queue: object  # None: read directly into `out` (large arrays)
     staging: object
     copied: object
     shape: tuple[int, ...]
     dtype: np.dtype
+    out: np.ndarray | None = None
 
     def result(self) -> np.ndarray:
+        if self.queue is None:
+            self.copied.wait()
+            return self.out
         out = np.empty(self.shape, self.dtype)
         if out.nbytes:
             self.cl.enqueue_copy(self.queue, out, self.staging, wait_for=[self.copied], is_blocking=True)
@@ -281,6 +285,7 @@ class OpenclProcessing:
 
     SHAPES_PER_BUFFER = 3  # shapes kept per buffer name: a batch alternates between a few pass shapes
     SPARE_KERNELS_KEPT = 16  # retired kernel objects kept per kernel name for reuse
+    STAGING_MAX_BYTES = 4 << 20  # uploads and queued reads up to this size go through a staging buffer
 
     def __init__(self, device, kernel_files: tuple[str, ...], buffers: tuple[BufferSpec, ...], *,
                  defines: dict[str, str] | None = None, fp64: bool = True, profile: bool = False):
@@ -308,6 +313,7 @@ class OpenclProcessing:
         self._buffers: dict = {}  # (name, shape, dtype) -> device array, most recently used last
         self._uploaded: dict = {}  # (name, shape, dtype) -> bytes of the last upload of a constant buffer
         self._read_queue = None  # the second queue of `host_async`'s reads, made on first use
+        self._in_flight: list = []  # host arrays of direct uploads not yet known to be complete
         self.memory_limits = DeviceMemory(int(device.global_mem_size), int(device.max_mem_alloc_size))
         self._stages: list[str] = ["(none)"]
         self._profile: list | None = [] if profile else None  # (stage, label, event, end marker or None)
@@ -405,7 +411,9 @@ class OpenclProcessing:
         once the device has finished everything queued before it, even when asked not to block (measured:
         a 1 KB write behind 0.7 s of queued kernels returned after 0.7 s, on this queue or another), so a
         plain write made every upload a host-device synchronisation. The staging buffer is released here;
-        the runtime keeps it until the copy that uses it has run (OpenCL's retain rules)."""
+        the runtime keeps it until the copy that uses it has run (OpenCL's retain rules). Arrays above
+        STAGING_MAX_BYTES are written directly (a fresh staging buffer of that size costs more in page faults
+        than the wait: a 16 MB echo 1.3 -> 45 ms); their host copy is kept until the next read-back."""
         shape, dtype = self.buffer_shape(name, grid, **extents)
         host = np.array(host, dtype=dtype, order="C")  # a private copy: the caller may reuse its own
         if host.shape != shape:
@@ -416,7 +424,10 @@ class OpenclProcessing:
         data = host.tobytes() if constant else None
         if constant and self._uploaded.get(key) == data:
             return arr
-        if host.nbytes:
+        if host.nbytes > self.STAGING_MAX_BYTES:
+            self._record("upload", self._cl.enqueue_copy(self.queue, arr.data, host, is_blocking=False))
+            self._in_flight.append(host)
+        elif host.nbytes:
             staging = self._cl.Buffer(self.context, self._cl.mem_flags.READ_ONLY
                                       | self._cl.mem_flags.COPY_HOST_PTR, hostbuf=host)
             self._record("upload", self._cl.enqueue_copy(self.queue, arr.data, staging))
@@ -428,6 +439,7 @@ class OpenclProcessing:
         out = np.empty(arr.shape, arr.dtype)
         event = self._cl.enqueue_copy(self.queue, out, arr.base_data, src_offset=arr.offset, is_blocking=True)
         self._record("read-back", event)
+        self._in_flight.clear()  # the queue is in order: every upload queued before this has completed
         return out
 
     def host_async(self, arr) -> PendingRead:
@@ -435,7 +447,14 @@ class OpenclProcessing:
         after it. The array is copied on the device into a staging buffer in queue order; the read from the
         staging buffer goes through a second queue that waits on that copy only. (A non-blocking
         clEnqueueReadBuffer on the in-order queue would do, but PoCL's returns only once everything queued
-        before it has run, and the result would then wait for the work queued after it too.)"""
+        before it has run, and the result would then wait for the work queued after it too.) Arrays above
+        STAGING_MAX_BYTES are read directly, without blocking (see `to_device`)."""
+        if arr.nbytes > self.STAGING_MAX_BYTES:
+            out = np.empty(arr.shape, arr.dtype)
+            event = self._cl.enqueue_copy(self.queue, out, arr.base_data, src_offset=arr.offset,
+                                          is_blocking=False)
+            self._record("read-back", event)
+            return PendingRead(self._cl, None, None, event, arr.shape, arr.dtype, out)
         staging = self._cl.Buffer(self.context, self._cl.mem_flags.READ_WRITE, max(arr.nbytes, 1))
         copy = self._cl.enqueue_copy(self.queue, staging, arr.base_data, src_offset=arr.offset,
                                      byte_count=arr.nbytes)
