@@ -208,7 +208,8 @@ class PreparedLaunch:
 @dataclasses.dataclass
 class PendingRead:
     """A read-back queued by `OpenclProcessing.host_async`: a device copy in a staging buffer, read on
-    `result()` through `queue` once `copied` has completed."""
+    `result()` through `queue` once `copied` has completed; or (queue None) a direct read into `out`, complete
+    with `copied` (None: nothing to read)."""
 
     cl: object
     queue: object  # None: read directly into `out` (large arrays)
@@ -220,7 +221,8 @@ class PendingRead:
 
     def result(self) -> np.ndarray:
         if self.queue is None:
-            self.copied.wait()
+            if self.copied is not None:
+                self.copied.wait()
             return self.out
         out = np.empty(self.shape, self.dtype)
         if out.nbytes:
@@ -449,13 +451,16 @@ class OpenclProcessing:
         clEnqueueReadBuffer on the in-order queue would do, but PoCL's returns only once everything queued
         before it has run, and the result would then wait for the work queued after it too.) Arrays above
         STAGING_MAX_BYTES are read directly, without blocking (see `to_device`)."""
+        if arr.nbytes == 0:
+            empty = np.empty(arr.shape, arr.dtype)
+            return PendingRead(self._cl, None, None, None, arr.shape, arr.dtype, empty)
         if arr.nbytes > self.STAGING_MAX_BYTES:
             out = np.empty(arr.shape, arr.dtype)
             event = self._cl.enqueue_copy(self.queue, out, arr.base_data, src_offset=arr.offset,
                                           is_blocking=False)
             self._record("read-back", event)
             return PendingRead(self._cl, None, None, event, arr.shape, arr.dtype, out)
-        staging = self._cl.Buffer(self.context, self._cl.mem_flags.READ_WRITE, max(arr.nbytes, 1))
+        staging = self._cl.Buffer(self.context, self._cl.mem_flags.READ_WRITE, arr.nbytes)
         copy = self._cl.enqueue_copy(self.queue, staging, arr.base_data, src_offset=arr.offset,
                                      byte_count=arr.nbytes)
         self._record("read-back", copy)
