@@ -138,7 +138,7 @@ BUFFERS = (
     BufferSpec("points_count", lambda g, n_points: (n_points,), np.int32, doc="pulses summed per point"),
 ) + device_fft.BUFFERS
 
-# kernels whose work item handles four neighbouring range bins (common.cl, c4)
+# kernels whose work item handles four neighbouring range bins, pixels or points (common.cl, c4)
 FOUR_BIN_KERNELS = frozenset({"nlcs_filter", "nlcs_scaling", "point_response", "range_walk_correction",
                               "azimuth_compression", "secondary_range_compression", "backproject",
                               "backproject_track_points"})
@@ -425,8 +425,8 @@ class FocusEngine(OpenclProcessing):
         grid = products.grid
         r_cols = np.repeat(np.asarray(r_m, dtype=float), t_n_s.size)
         t_cols = np.tile(np.asarray(t_n_s, dtype=float), np.size(r_m))
-        # the azimuth FFT kernels take columns four at a time; widths in steps of 16 recur from pass to pass,
-        # so the buffer and its FFT launches are reused
+        # widths in steps of 16 (a whole number of FFT lane groups, fft.cl) recur from pass to pass, so the
+        # buffer and its FFT launches are reused
         width = _round_up(r_cols.size, 16)
         r_cols = np.concatenate([r_cols, np.repeat(r_cols[-1:], width - r_cols.size)])
         t_cols = np.concatenate([t_cols, np.repeat(t_cols[-1:], width - t_cols.size)])
