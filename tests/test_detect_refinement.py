@@ -179,6 +179,22 @@ def test_vectorised_focus_position_is_the_per_target_search(paper_products):
         np.testing.assert_allclose(row, derivative_root_focus_position(products, r_m, t_n), rtol=0, atol=1e-9)
 
 
+def test_a_calibration_target_with_two_equal_lobes_starts_on_the_same_lobe_whatever_the_rounding():
+    # a real PulsON 440 pass (t_n = 0, 8.8 m): two maxima at +-5 samples, 1.1e-4 above the dip between them;
+    # float32 rounding picked one lobe on the engine and the other in numpy, and the calibration moved 1 cm
+    t = np.fft.ifftshift((np.arange(64) - 32) * 0.02)  # FFT order, as the focusers hold it
+    lobes = 1.0 - (np.abs(t) - 0.1) ** 2  # two equal maxima, at t = +-0.1 s
+    rng = np.random.default_rng(0)
+    picks = {float(nlcs.coarse_focus_times((lobes * (1 + 1e-7 * rng.standard_normal(t.size)))[None, :], t,
+                                           np.array([0.0]))[0]) for _ in range(50)}
+    assert len(picks) == 1 and abs(abs(picks.pop()) - 0.1) < 1e-12
+    # off-centre targets take the lobe nearest their t_n; a clear single maximum is the largest sample
+    both = nlcs.coarse_focus_times(np.vstack([lobes, lobes]), t, np.array([-0.07, 0.07]))
+    np.testing.assert_allclose(both, [-0.1, 0.1], atol=1e-12)
+    single = np.exp(-((t - 0.24) / 0.1) ** 2)
+    assert nlcs.coarse_focus_times(single[None, :], t, np.array([-0.5]))[0] == t[np.argmax(single)]
+
+
 def test_calibration_spectra_are_the_focusing_chains(paper_products):
     _, products = paper_products[1]
     grid = products.grid

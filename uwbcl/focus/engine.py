@@ -449,7 +449,8 @@ class FocusEngine(OpenclProcessing):
             band = (f >= ac.f_lo_hz.min()) & (f <= ac.f_hi_hz.max())
             y = self.host(s).astype(np.complex128)[band]
             self.fft(s, 0, inverse=True)
-            coarse = np.fft.ifftshift(grid.t_azimuth_s)[np.argmax(np.abs(self.host(s)), axis=0)]
+            coarse = nlcs.coarse_focus_times(np.abs(self.host(s)).T, np.fft.ifftshift(grid.t_azimuth_s),
+                                             t_cols)
         n = np.size(r_m) * t_n_s.size
         return f[band], y[:, :n], coarse[:n]
 

@@ -696,6 +696,34 @@ def nlcs_model_spectra(products: NlcsProducts, x_rel_m: np.ndarray, echoes, rows
     return spectrum_rows_from_range_doppler(np.array(out), rows, grid)
 
 
+# Samples of a calibration target's focused image within this fraction of its largest count as tied for the
+# coarse maximum: float32 backends round at ~1e-7, and a response with two equal lobes (seen on a real
+# PulsON 440 pass, t_n = 0: lobes at +-5 samples) otherwise starts the peak search on either lobe by rounding.
+COARSE_TIE_RTOL = 1e-4
+
+
+def coarse_focus_times(magnitude: np.ndarray, t_s: np.ndarray, t_n_s: np.ndarray) -> np.ndarray:
+    """Each calibration target's coarse focus position (s): the time of its image's largest sample; among
+    samples within COARSE_TIE_RTOL of it, the one nearest the target's t_n, then the first in `t_s`' order.
+    The same choice on every backend, so the sub-sample search (`detect.calibration.peak_times`) refines the
+    same lobe.
+
+    Parameters
+    ----------
+    magnitude : ndarray, shape (n_targets, n_samples)
+        |image| of each target along azimuth time.
+    t_s : ndarray, shape (n_samples,)
+        The samples' azimuth times (s), in the order of `magnitude`'s columns.
+    t_n_s : ndarray, shape (n_targets,)
+        Each target's t_n (s).
+    """
+    m = np.asarray(magnitude, dtype=float)
+    t, t_n = np.asarray(t_s, dtype=float), np.asarray(t_n_s, dtype=float)
+    tied = m >= (1.0 - COARSE_TIE_RTOL) * m.max(axis=1, keepdims=True)
+    distance = np.where(tied, np.abs(t[None, :] - t_n[:, None]), np.inf)
+    return t[np.argmin(distance, axis=1)]  # argmin: the first of equal distances
+
+
 def calibration_spectra(products: NlcsProducts, r_m: np.ndarray, t_n_s: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Focused azimuth spectra of simulated point targets, for the t_f(t_n) calibration (eqs. 18-19, C12).
@@ -722,7 +750,8 @@ def calibration_spectra(products: NlcsProducts, r_m: np.ndarray, t_n_s: np.ndarr
     y : ndarray, shape (n_f, n_r * n_t), complex128
         The focused spectra on those rows, one column per target, r-major (column i * n_t + j is (r_i, t_j)).
     coarse_s : ndarray, shape (n_r * n_t,)
-        Each target's coarse focus position t_f (s): the azimuth time of its focused image's largest sample.
+        Each target's coarse focus position t_f (s): the azimuth time of its focused image's largest sample
+        (`coarse_focus_times`).
     """
     grid = products.grid
     n = grid.n_azimuth
@@ -750,5 +779,6 @@ def calibration_spectra(products: NlcsProducts, r_m: np.ndarray, t_n_s: np.ndarr
     by_range *= h7
     np.fft.fft(s, axis=1, out=s)
     by_range *= h8[bin_of_r, None]
-    coarse = np.fft.ifftshift(grid.t_azimuth_s)[np.argmax(np.abs(np.fft.ifft(s, axis=1)), axis=1)]
+    coarse = coarse_focus_times(np.abs(np.fft.ifft(s, axis=1)), np.fft.ifftshift(grid.t_azimuth_s),
+                                np.tile(t_n_s, r_m.size))
     return f[band], s[:, band].T, coarse
