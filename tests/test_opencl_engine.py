@@ -670,9 +670,10 @@ def test_a_queued_read_returns_the_array_as_it_was_when_queued_not_after_later_w
 
     a = cla.to_device(engine.queue, np.full((2, 4), 2.0, np.complex64))
     gain = cla.to_device(engine.queue, np.full((2, 4), 1j, np.complex64))
-    pending = engine.host_async(a)
+    pending, empty = engine.host_async(a), engine.host_async(a[:0])
     engine.launch("apply_filter", (4, 2), s=a, filter=gain, n_range=4)  # queued after the read
     np.testing.assert_array_equal(pending.result(), np.full((2, 4), 2.0))
+    assert empty.result().shape == (0, 4)
     np.testing.assert_array_equal(engine.host(a), np.full((2, 4), 2j))
 
 
