@@ -504,10 +504,11 @@ class FocusEngine(OpenclProcessing):
                          row_origin=origin, n_azimuth=grid.n_azimuth, n_range=grid.n_range)
             self._launch("scatter_rows", grid.n_azimuth, grid.n_range, band=band, full=s, row_origin=origin,
                          n_rows=rows.size, n_azimuth=grid.n_azimuth, n_range=grid.n_range)
-            spectrum = self._range_spectra(band, rows, grid)
+            spectrum = self._range_spectra(band, rows)
         with self.stage("image"):
             self.fft(s, 0, inverse=True)
             image = np.fft.fftshift(self.host(s), axes=0)
+        spectrum = nlcs.spectrum_rows_from_range_spectra(spectrum.result(), rows, grid)
         return nlcs.NlcsProducts(image=image, grid=grid, coefficients=k, compression=ac, aperture_m=aperture,
                                  spectrum=spectrum)
 
@@ -636,15 +637,15 @@ class FocusEngine(OpenclProcessing):
                 self._launch("gather_rows", rows.size, grid.n_range, full=s, out=band, filter=h8,
                              row_origin=self._row_origin(grid, lo), n_azimuth=grid.n_azimuth,
                              n_range=grid.n_range)
-                self.fft(band, 1)
-                reads.append(self.host_async(band[:rows.size]))
+                reads.append(self._range_spectra(band, rows))
         return np.array([nlcs.spectrum_rows_from_range_spectra(r.result(), rows, grid) for r in reads])
 
-    def _range_spectra(self, band, rows: np.ndarray, grid: nlcs.FocusGrid) -> np.ndarray:
-        """fft2(image) / (n m) on `rows` from their range-Doppler values (the first rows.size rows of `band`,
-        transformed along range in place)."""
+    def _range_spectra(self, band, rows: np.ndarray):
+        """The range spectra of `rows` (the first rows.size rows of `band`, transformed along range in place),
+        their read-back queued (`PendingRead`): `nlcs.spectrum_rows_from_range_spectra` of its result is
+        fft2(image) / (n m) on those rows."""
         self.fft(band, 1)
-        return nlcs.spectrum_rows_from_range_spectra(self.host(band[:rows.size]), rows, grid)
+        return self.host_async(band[:rows.size])
 
     # -------------------------------------------------------------------------------------- backprojection
     def range_compress(self, scan: ScanPass, grid: nlcs.FocusGrid, upsample: int = BP_UPSAMPLE):
@@ -731,9 +732,9 @@ class FocusEngine(OpenclProcessing):
                          out=value, counts=count, n_points=x.size, n_pulses=n_pulses, n_fine=n_fine,
                          t0_s=rc.t0_s, fine_dt_s=rc.dt_s, carrier_hz=grid.carrier_frequency_hz,
                          band_lo=grid.doppler_band[0], band_hi=grid.doppler_band[1])
-            out = self.host(value)[:x.size].astype(np.complex128).reshape(shape)
+            out = self.host(value[:x.size]).astype(np.complex128).reshape(shape)
             if counts:
-                return out, self.host(count)[:x.size].astype(np.int64).reshape(shape)
+                return out, self.host(count[:x.size]).astype(np.int64).reshape(shape)
         return out
 
 
