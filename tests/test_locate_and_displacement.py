@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
-from uwbcl.displacement import estimate_advance, robust_mean
+from uwbcl import chain
+from uwbcl.displacement import estimate_advance, location_covariance_m2, robust_mean
 from uwbcl.locate import associate_across_heights, locate_plates, locate_target
-from uwbcl.records import AssociationSettings, Detection, Located
+from uwbcl.records import AssociationSettings, CycleResult, Detection, DetectionSettings, Located
 
 
 def _rc(wall, z, heights):
@@ -84,6 +87,78 @@ def test_association_leaves_a_plate_seen_at_one_height_unlocated():
     groups = associate_across_heights(by_height)
     assert len(groups) == 1
     assert groups[0][0.30].x_m == 0.786 and groups[0][0.15].x_m == 0.786
+
+
+SEPARATION_M = (DetectionSettings.separation_m, DetectionSettings.range_separation_m)
+
+
+def _column_scene(heights, seen_q, pull_m):
+    """Plate P (x 1.0, z 0.6) under a neighbour Q (x 1.04, z 1.3) on a rib 2.0 m away, and a plate R far along
+    the rib. Q is detected at the heights in `seen_q`; at the others its response merges with P's, whose peak
+    is pulled by `pull_m` (per height) towards Q."""
+    p, q, r = (1.0, 2.0, 0.6), (1.04, 2.0, 1.3), (3.0, 2.0, 0.9)
+    by_height = {}
+    for h in heights:
+        dets = [_detection(r[0], float(_rc(r[1], r[2], h)), 0.8)]
+        if h in seen_q:
+            dets += [_detection(p[0], float(_rc(p[1], p[2], h)), 1.0),
+                     _detection(q[0], float(_rc(q[1], q[2], h)), 0.6)]
+        else:
+            dets.append(_detection(p[0] + 0.01, float(_rc(p[1], p[2], h)) + pull_m[h], 1.0))
+        by_height[h] = dets
+    return by_height, np.array([p[0], -p[1], p[2]])
+
+
+def test_a_peak_shared_with_a_located_neighbour_is_set_aside_and_the_plate_located_from_its_clean_looks():
+    heights = (0.24, 0.45, 0.66)
+    by_height, truth = _column_scene(heights, seen_q=heights[:2], pull_m={0.66: 0.02})
+    plain = min(locate_plates(by_height), key=lambda p: np.linalg.norm(p.position_m - truth))
+    assert np.linalg.norm(plain.position_m - truth) > 0.01  # the merged peak spoils the 3-height fit
+    plates = locate_plates(by_height, separation_m=SEPARATION_M)
+    plate = min(plates, key=lambda p: np.linalg.norm(p.position_m - truth))
+    np.testing.assert_allclose(plate.position_m, truth, atol=1e-9)
+    assert plate.shared_heights_m == (0.66,) and plate.n_passes == 2
+    assert [h for h, _ in plate.looks] == [0.24, 0.45]
+    assert len(plates) == 3 and sum(bool(p.shared_heights_m) for p in plates) == 1
+
+
+def test_a_neighbour_seen_at_one_height_only_is_placed_on_the_rib_to_find_the_peaks_it_shares():
+    heights = (0.24, 0.45, 0.66)
+    by_height, truth = _column_scene(heights, seen_q=(0.24,), pull_m={0.45: 0.015, 0.66: -0.012})
+    plate = min(locate_plates(by_height, separation_m=SEPARATION_M),
+                key=lambda p: np.linalg.norm(p.position_m - truth))
+    # one clean look is not a location: the shared ones are kept, and marked
+    assert plate.shared_heights_m == (0.45, 0.66) and plate.n_passes == 3
+
+
+def test_a_shared_peak_is_kept_when_fewer_than_two_clean_looks_remain():
+    heights = (0.24, 0.66)
+    by_height, truth = _column_scene(heights, seen_q=(0.24,), pull_m={0.66: 0.02})
+    plate = min(locate_plates(by_height, separation_m=SEPARATION_M),
+                key=lambda p: np.linalg.norm(p.position_m - truth))
+    assert plate.shared_heights_m == (0.66,) and plate.n_passes == 2
+
+
+def test_resolved_or_weak_neighbours_share_nothing():
+    heights = (0.24, 0.45, 0.66)
+    by_height, _ = _column_scene(heights, seen_q=heights, pull_m={})
+    assert all(p.shared_heights_m == () for p in locate_plates(by_height, separation_m=SEPARATION_M))
+    # a neighbour at a twentieth of the plate's amplitude, seen at one height only, pulls nothing that counts
+    by_height, _ = _column_scene(heights, seen_q=(0.24,), pull_m={0.45: 0.0, 0.66: 0.0})
+    weak = {h: [dataclasses.replace(d, amplitude=0.05) if d.amplitude == 0.6 else d for d in dets]
+            for h, dets in by_height.items()}
+    assert all(p.shared_heights_m == () for p in locate_plates(weak, separation_m=SEPARATION_M))
+
+
+def test_a_plate_located_from_its_clean_looks_has_their_covariance_not_a_missed_heights():
+    heights = (0.24, 0.45, 0.66)
+    by_height, truth = _column_scene(heights, seen_q=heights[:2], pull_m={0.66: 0.02})
+    cycle = CycleResult("rig", 0, "", heights, locate_plates(by_height, separation_m=SEPARATION_M))
+    covs = chain.plate_covariances(cycle, 0.003)
+    k = next(i for i, p in enumerate(cycle.plates) if p.shared_heights_m)
+    p = cycle.plates[k]
+    np.testing.assert_allclose(covs[k], location_covariance_m2(p.position_m, (0.24, 0.45), 0.003)
+                               * chain.misfit_scale(p, 0.003), rtol=1e-12)
 
 
 # --------------------------------------------------------------------------------------------- displacement

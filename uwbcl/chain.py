@@ -106,7 +106,9 @@ def locate_cycle(rig_id: str, cycle: int, start_time: str,
     rig_id, cycle, start_time : the cycle's identity; start_time is the earliest pass's ISO 8601 UTC start.
     detections_by_height : {rail height (m): detections of the pass at that height}, two or more heights.
     boresight_y_sign : -1 when the rib is on the -Y side of the rail, +1 on the +Y side.
-    detection : its cross-height gates (cross_height_x_tol_m, cross_height_rc_tol_m) group the detections.
+    detection : its cross-height gates (cross_height_x_tol_m, cross_height_rc_tol_m) group the detections, and
+        its non-maximum-suppression semi-axes (separation_m, range_separation_m) find looks shared with a
+        neighbour (eq. L1).
 
     Returns
     -------
@@ -115,7 +117,8 @@ def locate_cycle(rig_id: str, cycle: int, start_time: str,
     heights = sorted(detections_by_height)
     by_height = {h: list(detections_by_height[h]) for h in heights}
     plates = locate_plates(by_height, boresight_y_sign, detection.cross_height_x_tol_m,
-                           detection.cross_height_rc_tol_m)
+                           detection.cross_height_rc_tol_m,
+                           separation_m=(detection.separation_m, detection.range_separation_m))
     return CycleResult(rig_id, int(cycle), start_time, tuple(heights), plates)
 
 
@@ -126,13 +129,18 @@ def plate_covariances(cycle: CycleResult, range_sigma_m: float) -> np.ndarray:
     it is often not one plate at all (a cross-height grouping of two plates, or clutter): in the availability
     study 41 % of such plates were > 3 cm off with three heights and 5 of 5 with four, against 5 % of the
     others. Its covariance is that of the extreme heights widened by MISSED_HEIGHT_SIGMA_FACTOR, so it matches
-    only loosely and weighs little.
+    only loosely and weighs little. A plate whose looks shared with a neighbour (eq. L1) were set aside is
+    located from its clean looks and has their covariance.
     """
     heights = np.asarray(cycle.heights_m)
     out = []
     for p in cycle.plates:
-        if p.n_passes >= heights.size:
-            cov = location_covariance_m2(p.position_m, heights, range_sigma_m)
+        used = [h for h, _ in p.looks]
+        set_aside = [h for h in p.shared_heights_m if h not in used]
+        if p.n_passes + len(set_aside) >= heights.size:
+            # seen at every height; where looks shared with a neighbour (eq. L1) were set aside, the clean
+            # ones locate it
+            cov = location_covariance_m2(p.position_m, used if set_aside else heights, range_sigma_m)
         else:
             cov = location_covariance_m2(p.position_m, heights[[0, -1]],
                                          range_sigma_m * MISSED_HEIGHT_SIGMA_FACTOR)

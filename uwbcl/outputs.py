@@ -39,13 +39,16 @@ DISPLACEMENT_COLUMNS = (
 TARGET_COLUMNS = (
     "rig_id", "cycle", "plate", "track", "x_m", "y_m", "z_m", "residual_m", "n_passes", "amplitude",
     "matched_plate", "inlier", "x_first_m", "y_first_m", "z_first_m",
+    # Added in 1.4: heights where the plate's peak was shared with a neighbour's (eq. L1)
+    "n_shared",
 )
 ERROR_COLUMNS = ("file", "kind", "reason")
 H5_FORMAT = "uwbcl-displacements"
 H5_FORMAT_VERSION = 1
 UNITS = {"_m": "m", "cycle": "1", "from_cycle": "1", "chain": "1", "n_targets": "1", "n_plates": "1",
          "runner_up_targets": "1", "revision": "1", "phase_looks": "1",
-         "plate": "1", "track": "1", "n_passes": "1", "matched_plate": "1", "inlier": "1", "amplitude": "arb",
+         "plate": "1", "track": "1", "n_passes": "1", "n_shared": "1", "matched_plate": "1", "inlier": "1",
+         "amplitude": "arb",
          "start_time": "ISO 8601 UTC", "rig_id": "", "status": "",
          "association_margin": "ln(likelihood ratio)"}
 
@@ -120,6 +123,7 @@ def target_records(rows: list[SeriesRow], cycles: list[CycleResult]) -> list[dic
                 "residual_m": float(p.residual_m), "n_passes": p.n_passes, "amplitude": float(p.amplitude),
                 "matched_plate": matched[j], "inlier": int(matched[j] >= 0),
                 "x_first_m": float(first[0]), "y_first_m": float(first[1]), "z_first_m": float(first[2]),
+                "n_shared": len(p.shared_heights_m),
             })
     return out
 

@@ -234,6 +234,9 @@ class Located:
     # (rail height m, detection) of every pass it was located from, heights ascending: the carrier phases the
     # association compares (eq. M8)
     looks: tuple[tuple[float, Detection], ...] = ()
+    # rail heights (m) where its peak was shared with a neighbour's response (locate.shared_look): set aside
+    # when two clean looks remain, else kept in `looks`, and the plate's covariance widened
+    shared_heights_m: tuple[float, ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
