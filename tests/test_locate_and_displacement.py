@@ -92,7 +92,7 @@ def test_association_leaves_a_plate_seen_at_one_height_unlocated():
 SEPARATION_M = (DetectionSettings.separation_m, DetectionSettings.range_separation_m)
 
 
-def _column_scene(heights, seen_q, pull_m):
+def _column_scene(heights, seen_q, pull_m, pull_x_m=0.01):
     """Plate P (x 1.0, z 0.6) under a neighbour Q (x 1.04, z 1.3) on a rib 2.0 m away, and a plate R far along
     the rib. Q is detected at the heights in `seen_q`; at the others its response merges with P's, whose peak
     is pulled by `pull_m` (per height) towards Q."""
@@ -104,7 +104,7 @@ def _column_scene(heights, seen_q, pull_m):
             dets += [_detection(p[0], float(_rc(p[1], p[2], h)), 1.0),
                      _detection(q[0], float(_rc(q[1], q[2], h)), 0.6)]
         else:
-            dets.append(_detection(p[0] + 0.01, float(_rc(p[1], p[2], h)) + pull_m[h], 1.0))
+            dets.append(_detection(p[0] + pull_x_m, float(_rc(p[1], p[2], h)) + pull_m[h], 1.0))
         by_height[h] = dets
     return by_height, np.array([p[0], -p[1], p[2]])
 
@@ -120,6 +120,15 @@ def test_a_peak_shared_with_a_located_neighbour_is_set_aside_and_the_plate_locat
     assert plate.shared_heights_m == (0.66,) and plate.n_passes == 2
     assert [h for h, _ in plate.looks] == [0.24, 0.45]
     assert len(plates) == 3 and sum(bool(p.shared_heights_m) for p in plates) == 1
+
+
+def test_a_shared_peak_the_fit_agrees_with_is_kept():
+    """Unpulled, the shared look fits the others: setting it aside would only shorten the baseline."""
+    heights = (0.24, 0.45, 0.66)
+    by_height, truth = _column_scene(heights, seen_q=heights[:2], pull_m={0.66: 0.0005}, pull_x_m=0.0)
+    plate = min(locate_plates(by_height, separation_m=SEPARATION_M),
+                key=lambda p: np.linalg.norm(p.position_m - truth))
+    assert plate.shared_heights_m == (0.66,) and plate.n_passes == 3
 
 
 def test_a_neighbour_seen_at_one_height_only_is_placed_on_the_rib_to_find_the_peaks_it_shares():

@@ -38,6 +38,7 @@ import numpy as np
 from . import __version__, archive, chain, outputs, pipeline, registration, threads
 from .atomic import write_text_atomic
 from .records import (
+    AssociationSettings,
     BatchError,
     BatchOptions,
     BatchReport,
@@ -379,13 +380,14 @@ def group_cycles(records: list[PassRecord], options: BatchOptions) -> tuple[dict
 
 
 # ----------------------------------------------------------------------------------------------- cycles
-def locate_records(recs: dict[int, PassRecord], detection: DetectionSettings = DetectionSettings()
-                   ) -> CycleResult:
-    """The located plates of one cycle from its passes' records (keyed by height in mm)."""
+def locate_records(recs: dict[int, PassRecord], detection: DetectionSettings = DetectionSettings(),
+                   range_sigma_m: float = AssociationSettings.range_sigma_m) -> CycleResult:
+    """The located plates of one cycle from its passes' records (keyed by height in mm; range_sigma_m:
+    `chain.locate_cycle`)."""
     first = min(recs.values(), key=lambda r: (r.pass_start_time, r.file))
     return chain.locate_cycle(first.rig_id, first.cycle, first.pass_start_time,
                               {r.height_m: r.detections for r in recs.values()},
-                              int(first.parameters["boresight_y_sign"]), detection)
+                              int(first.parameters["boresight_y_sign"]), detection, range_sigma_m)
 
 
 def rib_registration(groups: dict, in_dir: Path, settings: ProcessingSettings
@@ -674,7 +676,7 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
             log.error("%s: %s", p.file, p.reason)
         cycles = []
         for (rig, cycle), recs in sorted(groups.items()):
-            result = locate_records(recs, settings.detection)
+            result = locate_records(recs, settings.detection, settings.association.range_sigma_m)
             log.info("rig %s cycle %d: %d plates located from %d heights", rig, cycle, len(result.plates),
                      len(result.heights_m))
             cycles.append(result)

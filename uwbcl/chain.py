@@ -18,7 +18,7 @@ from typing import Protocol
 import numpy as np
 
 from .displacement import estimate_advance, fit_chi2, location_covariance_m2, translation_scores
-from .locate import locate_plates
+from .locate import locate_plates, misfit_scale
 from .records import (
     TRUSTED_STATUSES,
     AssociationSettings,
@@ -26,7 +26,6 @@ from .records import (
     Detection,
     DetectionSettings,
     Displacement,
-    Located,
     SeriesRow,
 )
 
@@ -98,7 +97,8 @@ def random_vertical_sigma(hist: np.ndarray, mu_m: float, sigma0_m: float) -> flo
 
 def locate_cycle(rig_id: str, cycle: int, start_time: str,
                  detections_by_height: Mapping[float, Sequence[Detection]],
-                 boresight_y_sign: int, detection: DetectionSettings = DetectionSettings()) -> CycleResult:
+                 boresight_y_sign: int, detection: DetectionSettings = DetectionSettings(),
+                 range_sigma_m: float = AssociationSettings.range_sigma_m) -> CycleResult:
     """The 3-D plates of one cycle from its passes' detections.
 
     Parameters
@@ -109,6 +109,8 @@ def locate_cycle(rig_id: str, cycle: int, start_time: str,
     detection : its cross-height gates (cross_height_x_tol_m, cross_height_rc_tol_m) group the detections, and
         its non-maximum-suppression semi-axes (separation_m, range_separation_m) find looks shared with a
         neighbour (eq. L1).
+    range_sigma_m : per-pass range precision (m, `association.range_sigma_m`): a shared look is set aside
+        only where the plate's fit with it is worse than this explains (eq. M6, `locate.locate_plates`).
 
     Returns
     -------
@@ -118,7 +120,8 @@ def locate_cycle(rig_id: str, cycle: int, start_time: str,
     by_height = {h: list(detections_by_height[h]) for h in heights}
     plates = locate_plates(by_height, boresight_y_sign, detection.cross_height_x_tol_m,
                            detection.cross_height_rc_tol_m,
-                           separation_m=(detection.separation_m, detection.range_separation_m))
+                           separation_m=(detection.separation_m, detection.range_separation_m),
+                           range_sigma_m=range_sigma_m)
     return CycleResult(rig_id, int(cycle), start_time, tuple(heights), plates)
 
 
@@ -146,18 +149,6 @@ def plate_covariances(cycle: CycleResult, range_sigma_m: float) -> np.ndarray:
                                          range_sigma_m * MISSED_HEIGHT_SIGMA_FACTOR)
         out.append(cov * misfit_scale(p, range_sigma_m))
     return np.array(out).reshape(-1, 3, 3)
-
-
-def misfit_scale(plate: Located, range_sigma_m: float) -> float:
-    """Eq. M6: max(1, chi^2 / dof) of a plate's own fit. Its 2n misfits (n per-height ranges to the located
-    point, n per-height along-track x to their mean; RMS `Located.residual_m`) have sigma_R each and
-    dof = (n - 2) + (n - 1): chi^2 = 2n rho^2 / sigma_R^2. Passes that do not meet at one point (two plates
-    grouped across heights, one height's peak on noise or a neighbour) are not the point the plate's
-    covariance describes: it is as uncertain as its own misfit says."""
-    dof = 2 * plate.n_passes - 3
-    if dof <= 0 or range_sigma_m <= 0:
-        return 1.0
-    return max(1.0, 2 * plate.n_passes * plate.residual_m**2 / (range_sigma_m**2 * dof))
 
 
 def trusted(d: Displacement) -> bool:

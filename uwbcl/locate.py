@@ -18,7 +18,7 @@ import numpy as np
 from scipy import optimize
 
 from .geometry import closest_approach_range_m
-from .records import Detection, DetectionSettings, Located
+from .records import AssociationSettings, Detection, DetectionSettings, Located
 
 # Cross-height association gates (`associate_across_heights`): their one home is DetectionSettings, where a
 # site can set them ([detection] cross_height_x_tol_m, cross_height_rc_tol_m).
@@ -54,6 +54,18 @@ def locate_target(heights_m, x_m, rc_m, weights=None, boresight_y_sign: int = -1
     misfit = np.concatenate([np.hypot(wall, z - h) - rc, x - x_hat])
     return Located(position_m=np.array([x_hat, boresight_y_sign * wall, z]),
                    residual_m=float(np.sqrt(np.mean(misfit**2))), n_passes=int(h.size), amplitude=0.0)
+
+
+def misfit_scale(plate: Located, range_sigma_m: float) -> float:
+    """Eq. M6: max(1, chi^2 / dof) of a plate's own fit. Its 2n misfits (n per-height ranges to the located
+    point, n per-height along-track x to their mean; RMS `Located.residual_m`) have sigma_R each and
+    dof = (n - 2) + (n - 1): chi^2 = 2n rho^2 / sigma_R^2. Passes that do not meet at one point (two plates
+    grouped across heights, one height's peak on noise or a neighbour) are not the point the plate's
+    covariance describes: it is as uncertain as its own misfit says."""
+    dof = 2 * plate.n_passes - 3
+    if dof <= 0 or range_sigma_m <= 0:
+        return 1.0
+    return max(1.0, 2 * plate.n_passes * plate.residual_m**2 / (range_sigma_m**2 * dof))
 
 
 def associate_across_heights(detections_by_height: dict[float, list[Detection]],
@@ -133,17 +145,18 @@ def shared_look(height_m: float, det: Detection, others: list[Located],
 
 def locate_plates(detections_by_height: dict[float, list[Detection]], boresight_y_sign: int = -1,
                   x_tol_m: float = CROSS_HEIGHT_X_TOL_M, rc_tol_m: float = CROSS_HEIGHT_RC_TOL_M,
-                  separation_m: tuple[float, float] | None = None) -> list[Located]:
+                  separation_m: tuple[float, float] | None = None,
+                  range_sigma_m: float = AssociationSettings.range_sigma_m) -> list[Located]:
     """Every plate seen at two or more heights, located in 3-D (`x_tol_m`, `rc_tol_m`: the cross-height
     association's gates, `associate_across_heights`).
 
     With `separation_m` (the detector's non-maximum-suppression semi-axes along track and in range, m), a
     plate's looks shared with a neighbour (`shared_look`, eq. L1) are marked in `Located.shared_heights_m`
-    and set aside where at least two clean looks remain: a peak between two plates is neither, and the clean
-    looks locate the plate (a fit that kept it would spread its centimetres over the others; measured on a
-    1.2 GHz radar, its creep RMS fell from 8.8 to 1.4 mm). With fewer clean looks they are kept: two looks
-    cannot show which of them is off, and the plate's misfit (eq. M6) widens its covariance where they
-    disagree.
+    and set aside where at least two clean looks remain and the plate's fit with them is worse than a range
+    precision `range_sigma_m` explains (eq. M6: chi^2 / dof > 1, the misfit that would otherwise widen its
+    covariance): a peak pulled between two plates is neither, and the clean looks locate the plate. A shared
+    look the fit agrees with stays (setting it aside would only shorten the baseline), and so do the looks of
+    a plate with fewer than two clean ones (two looks cannot show which of them is off).
     """
     groups = associate_across_heights(detections_by_height, x_tol_m, rc_tol_m)
     located = [(g, p) for g in groups if (p := _located_group(g, boresight_y_sign)) is not None]
@@ -160,7 +173,8 @@ def locate_plates(detections_by_height: dict[float, list[Detection]], boresight_
             shared = tuple(h for h in sorted(g)
                            if shared_look(h, g[h], others, singles, wall_m, separation_m))
             clean = {h: d for h, d in g.items() if h not in shared}
-            refit = _located_group(clean, boresight_y_sign) if shared and len(clean) >= 2 else None
+            pulled = shared and len(clean) >= 2 and misfit_scale(p, range_sigma_m) > 1.0
+            refit = _located_group(clean, boresight_y_sign) if pulled else None
             screened.append(dataclasses.replace(refit or p, shared_heights_m=shared))
         plates = screened
     else:

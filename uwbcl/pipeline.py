@@ -22,6 +22,7 @@ from .opencl import OpenClUnavailable
 from .records import (
     ALGORITHMS,
     BACKENDS,
+    AssociationSettings,
     CycleResult,
     Detection,
     DetectionSettings,
@@ -169,12 +170,14 @@ def detect_pass(scan: ScanPass, settings: ProcessingSettings = ProcessingSetting
 
 
 def locate_detections(passes: Sequence[ScanPass], detections: Sequence[Sequence[Detection]],
-                      detection: DetectionSettings = DetectionSettings()) -> CycleResult:
-    """The plates of one cycle from its passes and each pass's detections (same order)."""
+                      detection: DetectionSettings = DetectionSettings(),
+                      range_sigma_m: float = AssociationSettings.range_sigma_m) -> CycleResult:
+    """The plates of one cycle from its passes and each pass's detections (same order; range_sigma_m:
+    `chain.locate_cycle`)."""
     first = min(passes, key=lambda p: p.pass_start_time)
     by_height = {p.geometry.height_m: list(d) for p, d in zip(passes, detections)}
     return chain.locate_cycle(first.rig_id, first.cycle, first.pass_start_time, by_height,
-                              passes[0].geometry.boresight_y_sign, detection)
+                              passes[0].geometry.boresight_y_sign, detection, range_sigma_m)
 
 
 def locate_cycle(passes: Sequence[ScanPass], settings: ProcessingSettings = ProcessingSettings()
@@ -182,4 +185,5 @@ def locate_cycle(passes: Sequence[ScanPass], settings: ProcessingSettings = Proc
     """All passes of one rig and cycle (one per height) -> the 3-D plates of that cycle."""
     if len({p.geometry.height_m for p in passes}) < 2:
         raise ValueError("a cycle needs passes at two or more heights")
-    return locate_detections(passes, [detect_pass(p, settings) for p in passes], settings.detection)
+    return locate_detections(passes, [detect_pass(p, settings) for p in passes], settings.detection,
+                             settings.association.range_sigma_m)
