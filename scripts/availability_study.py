@@ -22,7 +22,9 @@ and, against the truth, per scenario:
 `--random N` draws N scenarios from the issue's ranges instead (`random_scenario`: squint, rib, heights, SNR,
 wobble, grid, rows, missing plates, rib side, radar, int16, a missed cycle), each run with and without a
 web-depth prior over a short history (6 cycles: a user's first night), and prints the pooled rows per SNR
-class. `--random-web LO HI` draws each scenario's web (advance per cycle) in [LO, HI] m instead of 0.9 m.
+class. `--random-web LO HI` draws each scenario's web (advance per cycle) in [LO, HI] m instead of 0.9 m;
+`--random-aligned` puts the rows' plates in columns (one bolting ring per column, x within a few cm), where
+the rows' responses merge at some heights (docs/method.md section 5, eq. L1).
 The pooled table also counts the withheld (not ok) rows and, in brackets, those whose cycle shares a located
 plate with the cycle before it at the true step (within SHARED_PLATE_TOL_M): the rest had nothing in common
 with their neighbour, so no association could have linked them (a data limit, not the method's).
@@ -81,9 +83,15 @@ class Scenario:
     missed: tuple[int, ...] = ()  # cycles with no archives
     single_height: tuple[int, ...] = ()  # cycles with only their lowest height's pass
     seed: int = 0
+    # the rows' plates in columns (one bolting ring per column, a few cm apart along the rib) instead of each
+    # row spaced on its own
+    aligned: bool = False
 
     def key(self, cycles: int) -> dict:
-        return {**dataclasses.asdict(self), "cycles": cycles, "generator": 1}
+        key = {**dataclasses.asdict(self), "cycles": cycles, "generator": 1}
+        if not self.aligned:  # the scenarios from before the field keep their archives
+            del key["aligned"]
+        return key
 
 
 # The parent scenarios (archives generated) and the variants that reprocess a parent's archives.
@@ -111,12 +119,14 @@ QUICK = ["base", "dense-3h", "dense-2h", "dense-3h-noprior"]
 RADARS = ((4.3e9, 1.7e9), (4.0e9, 1.4e9), (3.95e9, 1.2e9))  # (carrier, -10 dB bandwidth) of random scenarios
 
 
-def random_scenario(seed: int, cycles: int, web_range_m: tuple[float, float] | None = None) -> Scenario:
+def random_scenario(seed: int, cycles: int, web_range_m: tuple[float, float] | None = None,
+                    aligned: bool = False) -> Scenario:
     """A scenario drawn from issue 14's ranges (`--random`): squint 15-45 deg, rib 1.5-4.5 m, 2-4 heights,
     SNR 5/10/15/20 dB, wobble up to 15 %, a 1.0-1.5 m grid in 2 or 3 rows with 10-25 % of the plates missing,
     either rib side, one of three radars, int16 archives in 30 %, one missed cycle in half of them; the web
     (advance per cycle) 0.9 m, or uniform in `web_range_m` (`--random-web`: drawn last, so the other draws
-    of a seed stay those of the fixed-web study)."""
+    of a seed stay those of the fixed-web study); `aligned` (`--random-aligned`) puts the rows' plates in
+    columns, the other draws unchanged."""
     r = random.Random(seed)
     heights = np.linspace(r.uniform(0.1, 0.25), r.uniform(0.55, 0.8), r.choice([2, 2, 3, 3, 4]))
     rows = (0.6, 1.3) if r.choice([2, 3]) == 2 else (0.5, 1.1, 1.7)
@@ -128,7 +138,7 @@ def random_scenario(seed: int, cycles: int, web_range_m: tuple[float, float] | N
                     grid_m=r.uniform(1.0, 1.5), rows_z_m=rows, missing=r.uniform(0.1, 0.25),
                     side=r.choice([-1, 1]), carrier_hz=carrier, bandwidth_hz=bandwidth,
                     int16=r.random() < 0.3, missed=missed, seed=seed,
-                    web_m=round(r.uniform(*web_range_m), 3) if web_range_m else 0.9)
+                    web_m=round(r.uniform(*web_range_m), 3) if web_range_m else 0.9, aligned=aligned)
 
 
 # ----------------------------------------------------------------------------------------------- the scene
@@ -142,7 +152,16 @@ def scene(s: Scenario, cycles: int):
     rng = np.random.default_rng([s.seed, 1])
     x_end = s.web_m * 1.15 * cycles + 20.0
     plates, amps = [], []
-    for z in s.rows_z_m:
+    if s.aligned:
+        columns = [-10.0 + rng.uniform(0, s.grid_m)]
+        while columns[-1] < x_end:
+            columns.append(columns[-1] + s.grid_m * rng.uniform(0.85, 1.15))
+        for x in columns:
+            for z in s.rows_z_m:
+                if rng.uniform() >= s.missing:
+                    plates.append((x + rng.normal(0, 0.03), rng.normal(0, 0.02), z + rng.normal(0, 0.04)))
+                    amps.append(rng.uniform(0.6, 1.0))
+    for z in () if s.aligned else s.rows_z_m:
         x = -10.0 + rng.uniform(0, s.grid_m)
         while x < x_end:
             if rng.uniform() >= s.missing:
@@ -464,6 +483,8 @@ def main(argv=None) -> int:
                     help="instead: N scenarios drawn from the issue's ranges (`random_scenario`), each "
                          "with and without a prior (default 6 cycles each)")
     ap.add_argument("--random-seed", type=int, default=300, help="seed of the first random scenario")
+    ap.add_argument("--random-aligned", action="store_true",
+                    help="with --random: the rows' plates in columns (bolting rings), other draws unchanged")
     ap.add_argument("--random-web", type=float, nargs=2, default=None, metavar=("LO_M", "HI_M"),
                     help="draw each random scenario's web (advance per cycle, m) uniformly in [LO, HI] "
                          "instead of 0.9 m; the prior runs are told each scenario's web")
@@ -500,7 +521,8 @@ def run_random(args) -> int:
     cycles = args.cycles or 6
     results, snr_db = {}, {}
     for seed in range(args.random_seed, args.random_seed + args.random):
-        s = random_scenario(seed, cycles, tuple(args.random_web) if args.random_web else None)
+        s = random_scenario(seed, cycles, tuple(args.random_web) if args.random_web else None,
+                            args.random_aligned)
         root = args.work / s.name
         arch = generate(s, cycles, root)
         rig_m = np.array(json.loads((root / "truth.json").read_text())["rig_m"])

@@ -57,6 +57,21 @@ def test_drawing_the_web_leaves_every_other_parameter_of_a_random_scenario_as_it
         assert {**vars(fixed), "web_m": None} == {**vars(drawn), "web_m": None}
 
 
+def test_aligned_columns_put_every_rows_plates_at_the_same_x_and_change_no_other_draw():
+    study = load()
+    for seed in (400, 1420):
+        plain, aligned = study.random_scenario(seed, 6), study.random_scenario(seed, 6, aligned=True)
+        assert aligned.aligned and not plain.aligned
+        assert {**vars(plain), "aligned": None} == {**vars(aligned), "aligned": None}
+        assert "aligned" not in plain.key(6) and aligned.key(6)["aligned"] is True  # old archives stay valid
+        plates = study.scene(aligned, 6)[0]
+        xs = np.sort(plates[:, 0])
+        gaps = np.diff(xs)
+        # a column's plates lie within centimetres; columns are a grid step (0.85-1.15 of 1.0-1.5 m) apart
+        assert np.all((gaps < 0.2) | (gaps > 0.7))
+        assert np.sum(gaps < 0.2) >= len(plates) // 3
+
+
 def test_the_registration_studys_coherence_is_one_for_the_same_image_at_any_phase_and_small_for_noise():
     reg = load_script("registration_study")
     rng = np.random.default_rng(7)
