@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from uwbcl import chain
+from uwbcl import batch, chain
 from uwbcl.displacement import estimate_advance, location_covariance_m2, robust_mean
 from uwbcl.locate import associate_across_heights, locate_plates, locate_target
 from uwbcl.records import AssociationSettings, CycleResult, Detection, DetectionSettings, Located
@@ -168,6 +168,22 @@ def test_a_plate_located_from_its_clean_looks_has_their_covariance_not_a_missed_
     p = cycle.plates[k]
     np.testing.assert_allclose(covs[k], location_covariance_m2(p.position_m, (0.24, 0.45), 0.003)
                                * chain.misfit_scale(p, 0.003), rtol=1e-12)
+
+
+def test_a_rail_height_where_many_plates_share_their_peak_is_named_in_one_warning():
+    heights = (0.24, 0.45, 0.66)
+    by_height, _ = _column_scene(heights, seen_q=heights[:2], pull_m={0.66: 0.02})
+    plates = locate_plates(by_height, separation_m=SEPARATION_M)  # 3 plates, one shares its peak at 0.66 m
+    cycles = [CycleResult("rig-a", c, "", heights, plates) for c in range(4)]
+    (warning,) = batch.shared_peak_warnings(cycles)
+    assert warning.kind == "shared_peaks" and warning.file == "rig rig-a"
+    # at 0.66 m two plates per cycle were seen (Q was not): P, whose peak there is shared, and R
+    assert "0.660 m, 4 of 8 located plates" in warning.reason
+    assert batch.shared_peak_warnings(cycles[:3]) == []  # 3 plates: fewer than SHARED_PEAKS_WARN_MIN
+    resolved, _ = _column_scene(heights, seen_q=heights, pull_m={})
+    assert batch.shared_peak_warnings(
+        [CycleResult("rig-a", c, "", heights, locate_plates(resolved, separation_m=SEPARATION_M))
+         for c in range(8)]) == []
 
 
 # --------------------------------------------------------------------------------------------- displacement

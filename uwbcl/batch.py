@@ -443,6 +443,31 @@ def discover(in_dir: Path, out_dir: Path, follow_symlinks: bool = False
 FUTURE_TOLERANCE_S = 86400.0  # a pass dated more than a day ahead of this machine's clock is suspicious
 
 
+# A rail height where at least this fraction (and this many) of a rig's located plates shared their peak with
+# a neighbour (eq. L1) gets a `shared_peaks` warning: a row of plates is level with it.
+SHARED_PEAKS_WARN_FRACTION = 0.25
+SHARED_PEAKS_WARN_MIN = 4
+
+
+def shared_peak_warnings(cycles: list[CycleResult]) -> list[Problem]:
+    """One `shared_peaks` warning per rig and rail height where many located plates shared their peak with a
+    neighbour's (eq. L1, `Located.shared_heights_m`): the rows are level with that height, and the plates
+    behind are lost there (docs/method.md section 5, choosing rail heights)."""
+    counts: dict[tuple[str, int], list[int]] = defaultdict(lambda: [0, 0])  # -> [shared, plates seen there]
+    for c in cycles:
+        for p in c.plates:
+            shared = {archive.height_mm(h) for h in p.shared_heights_m}
+            for h in shared | {archive.height_mm(h) for h, _ in p.looks}:
+                counts[(c.rig_id, h)][0] += h in shared
+                counts[(c.rig_id, h)][1] += 1
+    return [Problem(f"rig {rig}", "shared_peaks",
+                    f"at rail height {h / 1000:.3f} m, {n_shared} of {n} located plates shared their peak "
+                    "with a neighbour's: a row of plates is level with this height (docs/method.md "
+                    "section 5, choosing rail heights)")
+            for (rig, h), (n_shared, n) in sorted(counts.items())
+            if n_shared >= SHARED_PEAKS_WARN_MIN and n_shared >= SHARED_PEAKS_WARN_FRACTION * n]
+
+
 def suspicious(records: list[PassRecord], now_s: float | None = None) -> list[Problem]:
     """Accepted input worth a warning: a pass id shared by different files, a start time in the future, a
     cycle that starts before an earlier-numbered cycle of the same rig (a clock or a counter went back)."""
@@ -680,6 +705,9 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
             log.info("rig %s cycle %d: %d plates located from %d heights", rig, cycle, len(result.plates),
                      len(result.heights_m))
             cycles.append(result)
+        for w in shared_peak_warnings(cycles):
+            log.warning("%s: %s", w.file, w.reason)
+            warnings.append(w)
         rows_series = chain.series(cycles, settings.association, options.max_bridge_cycles,
                                    rib_registration(groups, in_dir, settings))
         for r in rows_series:
