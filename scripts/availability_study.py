@@ -472,7 +472,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cycles", type=int, default=None, help="cycles per scenario (default 41, quick 6)")
     ap.add_argument("--quick", action="store_true",
                     help="CI size: 6 cycles, the base and dense scenarios and the dense variants")
-    ap.add_argument("--only", nargs="+", help="scenario names")
+    ap.add_argument("--only", nargs="+", help="scenario names (with --random: r<seed>)")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--reuse-detections", action="store_true",
                     help="reuse the detections of the previous run in WORK (association changes only)")
@@ -521,6 +521,8 @@ def run_random(args) -> int:
     cycles = args.cycles or 6
     results, snr_db = {}, {}
     for seed in range(args.random_seed, args.random_seed + args.random):
+        if args.only and f"r{seed}" not in args.only:  # the draw's other scenarios are skipped, not redrawn
+            continue
         s = random_scenario(seed, cycles, tuple(args.random_web) if args.random_web else None,
                             args.random_aligned)
         root = args.work / s.name
