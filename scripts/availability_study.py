@@ -161,13 +161,14 @@ def scene(s: Scenario, cycles: int):
                 if rng.uniform() >= s.missing:
                     plates.append((x + rng.normal(0, 0.03), rng.normal(0, 0.02), z + rng.normal(0, 0.04)))
                     amps.append(rng.uniform(0.6, 1.0))
-    for z in () if s.aligned else s.rows_z_m:
-        x = -10.0 + rng.uniform(0, s.grid_m)
-        while x < x_end:
-            if rng.uniform() >= s.missing:
-                plates.append((x, rng.normal(0, 0.02), z + rng.normal(0, 0.04)))
-                amps.append(rng.uniform(0.6, 1.0))
-            x += s.grid_m * rng.uniform(0.85, 1.15)
+    else:
+        for z in s.rows_z_m:
+            x = -10.0 + rng.uniform(0, s.grid_m)
+            while x < x_end:
+                if rng.uniform() >= s.missing:
+                    plates.append((x, rng.normal(0, 0.02), z + rng.normal(0, 0.04)))
+                    amps.append(rng.uniform(0.6, 1.0))
+                x += s.grid_m * rng.uniform(0.85, 1.15)
     n_clutter = int(8 * (x_end + 10))
     clutter = np.column_stack([rng.uniform(-10, x_end, n_clutter), rng.normal(0, 0.03, n_clutter),
                                rng.uniform(0.0, 2.2, n_clutter)])

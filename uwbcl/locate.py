@@ -17,6 +17,7 @@ import math
 import numpy as np
 from scipy import optimize
 
+from .archive import height_mm
 from .geometry import closest_approach_range_m
 from .records import AssociationSettings, Detection, DetectionSettings, Located
 
@@ -33,7 +34,6 @@ SHARED_LOOK_REACH = 1.5
 # and only a neighbour of at least this fraction of the detection's amplitude: a weaker one moves the peak by
 # less than about ratio x offset, millimetres
 SHARED_LOOK_MIN_AMPLITUDE = 0.1
-_SAME_HEIGHT_M = 0.0005  # two looks within this are the same rail height (heights are kept to the millimetre)
 
 
 def locate_target(heights_m, x_m, rc_m, weights=None, boresight_y_sign: int = -1) -> Located | None:
@@ -127,18 +127,19 @@ def shared_look(height_m: float, det: Detection, others: list[Located],
     (height unknown: both heights z = h' +- sqrt(R_c'^2 - W^2) on the rib at the cycle's wall distance W).
     """
     floor = SHARED_LOOK_MIN_AMPLITUDE * det.amplitude
+    here = height_mm(height_m)  # rail heights are one height to the millimetre (the archive's names)
     for p in others:
-        if p.amplitude < floor or any(abs(h - height_m) < _SAME_HEIGHT_M for h, _ in p.looks):
+        if p.amplitude < floor or any(height_mm(h) == here for h, _ in p.looks):
             continue
         if _within_reach(float(p.position_m[0]), float(closest_approach_range_m(p.position_m, height_m)), det,
                          separation_m):
             return True
     for h_other, e in singles:
-        if e.amplitude < floor or abs(h_other - height_m) < _SAME_HEIGHT_M:
+        if e.amplitude < floor or height_mm(h_other) == here:
             continue
         dz = math.sqrt(max(e.rc_m**2 - wall_m**2, 0.0))
-        if any(_within_reach(e.x_m, math.hypot(wall_m, z - height_m), det, separation_m)
-               for z in (h_other + dz, h_other - dz)):
+        if any(_within_reach(e.x_m, float(closest_approach_range_m((e.x_m, wall_m, z), height_m)), det,
+                             separation_m) for z in (h_other + dz, h_other - dz)):
             return True
     return False
 

@@ -225,8 +225,7 @@ class PendingRead:
                 self.copied.wait()
             return self.out
         out = np.empty(self.shape, self.dtype)
-        if out.nbytes:
-            self.cl.enqueue_copy(self.queue, out, self.staging, wait_for=[self.copied], is_blocking=True)
+        self.cl.enqueue_copy(self.queue, out, self.staging, wait_for=[self.copied], is_blocking=True)
         return out
 
 
