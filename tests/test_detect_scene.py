@@ -87,13 +87,13 @@ def test_the_cancellation_bound_models_only_the_strongest_peaks_and_leaves_the_o
     pulson_pass, monkeypatch
 ):
     modelled = []
-    original = cancel.cancel_neighbours
+    original = cancel.cancel_neighbours_with_residual
 
     def counting(cells, *args):
         modelled.append(len(cells))
         return original(cells, *args)
 
-    monkeypatch.setattr(cancel, "cancel_neighbours", counting)
+    monkeypatch.setattr(cancel, "cancel_neighbours_with_residual", counting)
     everything = _detect(pulson_pass, "bp")
     bounded = _detect(pulson_pass, "bp", cancel_max_targets=2)
     uncancelled = _detect(pulson_pass, "bp", neighbour_cancellation_passes=0)

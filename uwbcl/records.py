@@ -100,6 +100,10 @@ class DetectionSettings:
     # neighbour cancellation (cancel_max_targets); a pass focused without its echo keeps the calibration.
     synthesis_passes: int = 1
     synthesis_tol_m: float = 1e-5
+    # Two plates in one peak (detect.split, docs/method.md section 4, eq. S2): a modelled peak whose residual,
+    # after neighbour cancellation, holds a second plate under the range resolution (a bolting ring's column
+    # seen from a rail height level with one row) is split into two detections. Needs neighbour cancellation.
+    split_merged: bool = True
 
 
 @dataclasses.dataclass(frozen=True)

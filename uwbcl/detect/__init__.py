@@ -26,7 +26,7 @@ from ..focus.protocol import Focuser
 from ..focus.reference import NUMPY_FOCUSER
 from ..model import ScanPass
 from ..records import Detection, DetectionSettings
-from . import calibration, cancel, peaks, refine, synthesis
+from . import calibration, cancel, peaks, refine, split, synthesis
 
 # The lattice (m) of the backprojection refinement of NLCS detections beyond the rail ends (BP's pixel).
 BP_SUBSCENE_CELL_M = 0.01
@@ -75,7 +75,7 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     if scan is not None and (cancelling or settings.synthesis_passes > 0):
         model = cancel.NlcsModel.of(products, scan, focuser, rows, spectrum)
     if cancelling and model is not None:
-        cells = _cancel(cells, model, settings)
+        cells = _cancel(cells, model, settings, floor)
     a, b = [c[0] for c in cells], [c[1] for c in cells]
     t_f, r, t_n = calibration.peak_track_times(products, a, b, focuser)
     if settings.synthesis_passes > 0 and model is not None:  # the modelled plates, by synthesis (S1)
@@ -145,18 +145,29 @@ def search_footprint(scan: ScanPass, settings: DetectionSettings) -> geo.BeamFoo
                               scan.radar.wavelength_m, edge)
 
 
-def _cancel(cells: list[cancel.Cell], model: cancel.CancellationModel, settings: DetectionSettings
-            ) -> list[cancel.Cell]:
+def _cancel(cells: list[cancel.Cell], model: cancel.CancellationModel, settings: DetectionSettings,
+            floor: float | None = None) -> list[cancel.Cell]:
     """Neighbour cancellation of the strongest `cancel_max_targets` cells (all when 0; `cells` are strongest
-    first) within `cancel_time_budget_s` (0: none); the others keep their first refinement."""
+    first) within `cancel_time_budget_s` (0: none); the others keep their first refinement. Then, with
+    `split_merged` and an NLCS model, a second plate added where a modelled peak holds two (`split`, eq. S2),
+    after the modelled ones; `floor` is the image's noise level (`peaks.local_peaks`)."""
     n = _modelled(len(cells), settings)
     if n < 2:
         return cells
     budget = settings.cancel_time_budget_s
     deadline = time.monotonic() + budget if budget > 0 else math.inf
-    return cancel.cancel_neighbours(cells[:n], model, settings.neighbour_cancellation_passes,
-                                    settings.neighbour_cancellation_tol_m, settings.neighbour_gain_degree,
-                                    deadline) + cells[n:]
+    args = (settings.neighbour_cancellation_passes, settings.neighbour_cancellation_tol_m,
+            settings.neighbour_gain_degree, deadline)
+    modelled, residual = cancel.cancel_neighbours_with_residual(cells[:n], model, *args)
+    if settings.split_merged and isinstance(model, cancel.NlcsModel) and floor is not None \
+            and residual is not None:
+        threshold = peaks.detection_threshold(max(abs(c[2]) for c in cells), floor, settings)
+        modelled = split.split_merged(modelled, residual, model,
+                                      (settings.separation_m, settings.range_separation_m), threshold,
+                                      peaks.detection_threshold(0.0, floor, settings),
+                                      settings.neighbour_cancellation_tol_m, settings.neighbour_gain_degree,
+                                      deadline)
+    return modelled + cells[n:]
 
 
 def _beyond_rail_by_backprojection(scan: ScanPass, grid: nlcs.FocusGrid, t_n_s: np.ndarray, r0_m: np.ndarray

@@ -117,6 +117,12 @@ class CancellationModel(Protocol):
 
 def cancel_neighbours(cells: list[Cell], model: CancellationModel, passes: int, tol_m: float, degree: int,
                       deadline_s: float = math.inf) -> list[Cell]:
+    """`cancel_neighbours_with_residual` without the residual."""
+    return cancel_neighbours_with_residual(cells, model, passes, tol_m, degree, deadline_s)[0]
+
+
+def cancel_neighbours_with_residual(cells: list[Cell], model: CancellationModel, passes: int, tol_m: float,
+                                    degree: int, deadline_s: float = math.inf) -> tuple[list[Cell], object]:
     """Re-refine every peak on the data with the modelled responses of all the other peaks subtracted.
 
     Parameters
@@ -137,10 +143,14 @@ def cancel_neighbours(cells: list[Cell], model: CancellationModel, passes: int, 
 
     Returns
     -------
-    list of (a, b, value)
+    cells : list of (a, b, value)
         The re-refined peaks, in the order of `cells`.
+    residual
+        The data minus every model of the last pass (`model.residual`), the models made at the positions that
+        pass started from; None when no pass ran.
     """
     rc, grid = model.compressed, model.grid
+    residual = None
     for _ in range(passes):
         if time.monotonic() > deadline_s:
             log.warning("neighbour cancellation stopped by its time budget before a pass (%d targets)",
@@ -161,13 +171,13 @@ def cancel_neighbours(cells: list[Cell], model: CancellationModel, passes: int, 
                 break
             refined.append(model.refine_peak(at, i, residual, models))
         if len(refined) < len(cells):
-            return refined + cells[len(refined):]
+            return refined + cells[len(refined):], residual
         cells = refined
         moved = np.hypot((np.array([c[0] for c in cells]) - at[:, 0]) * model.cell_m[0],
                          (np.array([c[1] for c in cells]) - at[:, 1]) * model.cell_m[1])
         if moved.max() <= tol_m:
             break
-    return cells
+    return cells, residual
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -243,6 +253,15 @@ class NlcsModel:
 
     def residual(self, models: np.ndarray) -> np.ndarray:
         return self.spectrum - models.sum(axis=0)
+
+    def lattice(self, spectrum: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """The image of `spectrum` (on `rows`) on the lattice of fractional indices a (n_a,) x b (n_b,)."""
+        return refine.TrigInterpolant.from_rows(self.rows, spectrum, self.grid.n_azimuth).lattice(a, b)
+
+    def shift_ramp(self, da: float, db: float) -> np.ndarray:
+        """The factor that moves an image by (da, db) cells, on its spectrum's rows (exact: band limited)."""
+        ka, kb = self.rows / self.grid.n_azimuth, np.fft.fftfreq(self.spectrum.shape[-1])
+        return np.exp(-2j * np.pi * ka * da)[:, None] * np.exp(-2j * np.pi * kb * db)[None, :]
 
     def refine_peak(self, at: np.ndarray, i: int, residual: np.ndarray, models: np.ndarray) -> Cell:
         interpolant = refine.TrigInterpolant.from_rows(self.rows, residual + models[i], self.grid.n_azimuth)

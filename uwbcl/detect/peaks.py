@@ -60,7 +60,7 @@ def local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float]
     floor_mask = valid if floor_mask is None else floor_mask
     floor = np.median(mag[floor_mask]) if floor_mask.any() else 0.0
     peak_max = mag[valid].max() if valid.any() else 0.0
-    threshold = max(peak_max * 10 ** (s.relative_floor_db / 20), floor * 10 ** (s.min_snr_db / 20))
+    threshold = detection_threshold(peak_max, floor, s)
     candidates = valid & (mag > threshold)
     if s.cfar_db > 0:
         candidates &= mag > range_bin_medians(mag, valid, rc_m, pixel_m[1]) * 10 ** (s.cfar_db / 20)
@@ -82,6 +82,12 @@ def local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float]
         idx = np.argwhere(candidates & is_max)
     order = np.argsort(mag[idx[:, 0], idx[:, 1]], kind="stable")[::-1][: s.max_targets]
     return idx[order], floor
+
+
+def detection_threshold(peak_max: float, floor: float, s: DetectionSettings) -> float:
+    """The smallest |value| a peak may have: `s.relative_floor_db` under the strongest peak and `s.min_snr_db`
+    over the noise level `floor` (the median magnitude)."""
+    return max(peak_max * 10 ** (s.relative_floor_db / 20), floor * 10 ** (s.min_snr_db / 20))
 
 
 def range_bin_medians(mag: np.ndarray, valid: np.ndarray, rc_m: np.ndarray | None, bin_m: float

@@ -68,6 +68,11 @@ class TrigInterpolant:
     def value(self, a: float, b: float) -> complex:
         return complex(np.exp(2j * np.pi * self.ka * a) @ (self.coeffs @ np.exp(2j * np.pi * self.kb * b)))
 
+    def lattice(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """V on the lattice of fractional indices a (n_a,) x b (n_b,): shape (n_a, n_b), complex."""
+        rows = np.exp(2j * np.pi * np.outer(a, self.ka))
+        return rows @ self.coeffs @ np.exp(2j * np.pi * np.outer(self.kb, b))
+
     def _local(self, a: float, b: float) -> tuple[complex, float, np.ndarray, np.ndarray]:
         """V, g = |V|^2 and the gradient and Hessian of g at (a, b). The derivatives of V are the same sums
         with coeffs[k, l] (2 pi i ka_k)^p (2 pi i kb_l)^q: one mat-mul of coeffs with e_b, w_b e_b, w_b^2 e_b,
