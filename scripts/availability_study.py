@@ -391,11 +391,10 @@ def score(out: Path, rig_m: np.ndarray) -> dict:
     # Cumulative drift: against the truth from the first cycle of each row's chain.
     chain_start: dict[int, int] = {}
     drift, cum_cover = np.zeros(2), []
-    first_cycle = int(np.flatnonzero(np.isfinite(rig_m[:, 0]))[0])
     for r in rows:
         ch = int(r["chain"])
-        if ch not in chain_start:
-            chain_start[ch] = first_cycle if ch == 0 else int(r["cycle"])
+        if ch not in chain_start:  # chain 0 counts from its first row's from_cycle (docs/outputs.md)
+            chain_start[ch] = int(r["from_cycle"]) if ch == 0 else int(r["cycle"])
         cum = np.array([float(r["cumulative_retreat_m"]), float(r["cumulative_creep_m"])])
         if np.all(np.isfinite(cum)):
             c = int(r["cycle"])
@@ -406,12 +405,11 @@ def score(out: Path, rig_m: np.ndarray) -> dict:
                 cum_cover.append(bool(np.all(np.abs(e) <= 3 * b)))
     # Withheld rows whose cycle shares a located plate with the cycle before it (at the true step): the data
     # could have linked them. The others had nothing in common with their neighbour: no association can.
-    plates, before = located_plates(out), first_cycle
+    plates = located_plates(out)
     withheld_shared = 0
     for r in rows:
         c = int(r["cycle"])
-        withheld_shared += r["status"] != "ok" and shared_plates(plates, before, c, rig_m) > 0
-        before = c
+        withheld_shared += r["status"] != "ok" and shared_plates(plates, int(r["from_cycle"]), c, rig_m) > 0
     err = np.array(err).reshape(-1, 2)
     statuses: dict[str, int] = {}
     for r in rows:

@@ -63,6 +63,11 @@ def test_a_column_seen_level_with_its_lower_plate_is_split_into_both_plates_with
     assert len(found) == 3
     errors = _nearest_errors_m(found, truth)
     assert errors.max() < PAIR_TOL_M, errors
+    pair = [d for d in found if not math.isnan(d.split_separation_m)]
+    assert len(pair) == 2  # the lone plate is not marked
+    apart = math.hypot(pair[0].x_m - pair[1].x_m, pair[0].rc_m - pair[1].rc_m)
+    assert pair[0].split_separation_m == pair[1].split_separation_m == pytest.approx(apart)
+    assert apart == pytest.approx(math.hypot(*(truth[2] - truth[1])), abs=PAIR_TOL_M)
 
 
 def test_without_the_split_the_column_is_one_detection_centimetres_from_both_plates():

@@ -31,7 +31,9 @@ UPSAMPLE = 8  # band-limited (FFT) interpolation of the cuts before measuring
 COLUMNS = ("file", "x_m", "rc_m", "t_n_s", "r0_m", "image_azimuth_m", "image_range_m", "amplitude", "snr_db",
            "width_azimuth_3db_m", "width_range_3db_m", "pslr_db", "islr_db",
            # appended: the carrier phase the association compares between cycles (eq. R5), and its sigma
-           "phase_rad", "phase_sigma_rad")
+           "phase_rad", "phase_sigma_rad",
+           # appended: a plate of a split peak (eq. S2): the distance to the other (nan: not split)
+           "split_separation_m")
 
 
 # ----------------------------------------------------------------------------------- point-response measures
@@ -169,7 +171,8 @@ class FocusedPass:
 
     def rows(self) -> list[dict]:
         return [{"file": self.file, **{k: getattr(d, k) for k in COLUMNS[1:9]},
-                 **dataclasses.asdict(r), "phase_rad": d.phase_rad, "phase_sigma_rad": d.phase_sigma_rad}
+                 **dataclasses.asdict(r), "phase_rad": d.phase_rad, "phase_sigma_rad": d.phase_sigma_rad,
+                 "split_separation_m": d.split_separation_m}
                 for d, r in zip(self.detections, self.responses)]
 
 

@@ -152,7 +152,8 @@ def locate_plates(detections_by_height: dict[float, list[Detection]], boresight_
     association's gates, `associate_across_heights`).
 
     With `separation_m` (the detector's non-maximum-suppression semi-axes along track and in range, m), a
-    plate's looks shared with a neighbour (`shared_look`, eq. L1) are marked in `Located.shared_heights_m`
+    plate's looks shared with a neighbour (`shared_look`, eq. L1) or split from a peak that held two
+    (`Detection.split_separation_m`, eq. S2: a few mm less precise) are marked in `Located.shared_heights_m`
     and set aside where at least two clean looks remain and the plate's fit with them is worse than a range
     precision `range_sigma_m` explains (eq. M6: chi^2 / dof > 1, the misfit that would otherwise widen its
     covariance): a peak pulled between two plates is neither, and the clean looks locate the plate. A shared
@@ -171,8 +172,8 @@ def locate_plates(detections_by_height: dict[float, list[Detection]], boresight_
         screened = []
         for k, (g, p) in enumerate(located):
             others = [q for j, (_, q) in enumerate(located) if j != k]
-            shared = tuple(h for h in sorted(g)
-                           if shared_look(h, g[h], others, singles, wall_m, separation_m))
+            shared = tuple(h for h in sorted(g) if not math.isnan(g[h].split_separation_m)
+                           or shared_look(h, g[h], others, singles, wall_m, separation_m))
             clean = {h: d for h, d in g.items() if h not in shared}
             pulled = shared and len(clean) >= 2 and misfit_scale(p, range_sigma_m) > 1.0
             refit = _located_group(clean, boresight_y_sign) if pulled else None

@@ -14,6 +14,7 @@ calibration targets with the backend that focused the pass.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
@@ -74,12 +75,12 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     model = None
     if scan is not None and (cancelling or settings.synthesis_passes > 0):
         model = cancel.NlcsModel.of(products, scan, focuser, rows, spectrum)
+    n, pairs = _modelled(len(cells), settings), []
     if cancelling and model is not None:
-        cells = _cancel(cells, model, settings, floor)
+        cells, n, pairs = _cancel(cells, model, settings, floor)
     a, b = [c[0] for c in cells], [c[1] for c in cells]
     t_f, r, t_n = calibration.peak_track_times(products, a, b, focuser)
     if settings.synthesis_passes > 0 and model is not None:  # the modelled plates, by synthesis (S1)
-        n = _modelled(len(cells), settings)
         t_f[:n], r[:n], t_n[:n] = synthesis.locate(cells[:n], model, settings.synthesis_passes,
                                                    settings.synthesis_tol_m, settings.neighbour_gain_degree)
     r0 = r - grid.speed_m_s * grid.sin_squint * t_n  # eq. (19), C12: r_LC = r_LRCM - v sin(theta_q) t_nc
@@ -87,6 +88,9 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
         t_n, r0 = _beyond_rail_by_backprojection(scan, grid, t_n, r0)
     found = [_detection(grid, float(t_n[i]), float(r0[i]), grid.speed_m_s * float(t_f[i]), float(r[i]),
                         abs(val), floor) for i, (_, _, val) in enumerate(cells)]
+    for i, j in pairs:  # the two plates of a split peak (S2) carry their distance
+        apart = math.hypot(found[i].x_m - found[j].x_m, found[i].rc_m - found[j].rc_m)
+        found[i], found[j] = (dataclasses.replace(found[k], split_separation_m=apart) for k in (i, j))
     return _in_range(_in_footprint(found, grid, footprint), settings)
 
 
@@ -120,7 +124,7 @@ def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings =
     cells = [refine.maximise_nelder_mead(value, float(i), float(j), step=refine.BP_SIMPLEX_STEP_CELLS)
              for i, j in pixels]
     if settings.neighbour_cancellation_passes > 0 and len(cells) > 1:
-        cells = _cancel(cells, cancel.BackprojectionModel(products), settings)
+        cells = _cancel(cells, cancel.BackprojectionModel(products), settings)[0]
     out = []
     for a, b, val in cells:
         u = products.u_axis_m[0] + a * du
@@ -146,28 +150,29 @@ def search_footprint(scan: ScanPass, settings: DetectionSettings) -> geo.BeamFoo
 
 
 def _cancel(cells: list[cancel.Cell], model: cancel.CancellationModel, settings: DetectionSettings,
-            floor: float | None = None) -> list[cancel.Cell]:
+            floor: float | None = None) -> tuple[list[cancel.Cell], int, list[tuple[int, int]]]:
     """Neighbour cancellation of the strongest `cancel_max_targets` cells (all when 0; `cells` are strongest
     first) within `cancel_time_budget_s` (0: none); the others keep their first refinement. Then, with
     `split_merged` and an NLCS model, a second plate added where a modelled peak holds two (`split`, eq. S2),
-    after the modelled ones; `floor` is the image's noise level (`peaks.local_peaks`)."""
+    after the modelled ones; `floor` is the image's noise level (`peaks.local_peaks`). Returns the cells, how
+    many of the first are modelled and the split pairs' indices (`split.split_merged`)."""
     n = _modelled(len(cells), settings)
     if n < 2:
-        return cells
+        return cells, n, []
     budget = settings.cancel_time_budget_s
     deadline = time.monotonic() + budget if budget > 0 else math.inf
     args = (settings.neighbour_cancellation_passes, settings.neighbour_cancellation_tol_m,
             settings.neighbour_gain_degree, deadline)
     modelled, residual = cancel.cancel_neighbours_with_residual(cells[:n], model, *args)
+    pairs: list[tuple[int, int]] = []
     if settings.split_merged and isinstance(model, cancel.NlcsModel) and floor is not None \
             and residual is not None:
         threshold = peaks.detection_threshold(max(abs(c[2]) for c in cells), floor, settings)
-        modelled = split.split_merged(modelled, residual, model,
-                                      (settings.separation_m, settings.range_separation_m), threshold,
-                                      peaks.detection_threshold(0.0, floor, settings),
-                                      settings.neighbour_cancellation_tol_m, settings.neighbour_gain_degree,
-                                      deadline)
-    return modelled + cells[n:]
+        modelled, pairs = split.split_merged(
+            modelled, residual, model, (settings.separation_m, settings.range_separation_m), threshold,
+            peaks.detection_threshold(0.0, floor, settings), settings.neighbour_cancellation_tol_m,
+            settings.neighbour_gain_degree, deadline)
+    return modelled + cells[n:], len(modelled), pairs
 
 
 def _beyond_rail_by_backprojection(scan: ScanPass, grid: nlcs.FocusGrid, t_n_s: np.ndarray, r0_m: np.ndarray

@@ -66,7 +66,7 @@ SPLIT_LATTICE_PER_AXIS = 8
 def split_merged(cells: list[cancel.Cell], residual: np.ndarray, model: cancel.NlcsModel,
                  separation_m: tuple[float, float],
                  threshold: float, noise_threshold: float, tol_m: float, degree: int,
-                 deadline_s: float = math.inf) -> list[cancel.Cell]:
+                 deadline_s: float = math.inf) -> tuple[list[cancel.Cell], list[tuple[int, int]]]:
     """The peaks of an NLCS image, with a second plate added where a peak holds two (S2).
 
     Parameters
@@ -91,11 +91,13 @@ def split_merged(cells: list[cancel.Cell], residual: np.ndarray, model: cancel.N
 
     Returns
     -------
-    list of (a, b, value)
+    cells : list of (a, b, value)
         `cells` (refitted where a plate was added) followed by the added plates.
+    pairs : list of (int, int)
+        Each split peak's index and its added plate's, in `cells`.
     """
     if not cells:
-        return cells
+        return cells, []
     scale = np.asarray(model.cell_m, dtype=float) / np.asarray(separation_m, dtype=float)  # cells -> ellipses
     found = [_residual_peak(model, residual, c, scale) for c in cells]
     candidates: list[cancel.Cell] = []
@@ -107,7 +109,7 @@ def split_merged(cells: list[cancel.Cell], residual: np.ndarray, model: cancel.N
             candidates.append(peak)
             parents.append(i)
     if not candidates or time.monotonic() > deadline_s:
-        return cells
+        return cells, []
     n = len(cells)
     trial, after = _fit_pairs(cells, candidates, parents, model, SPLIT_REACH / scale, tol_m, degree,
                               deadline_s)
@@ -119,12 +121,13 @@ def split_merged(cells: list[cancel.Cell], residual: np.ndarray, model: cancel.N
         left = abs(_residual_peak(model, after, trial[i], scale)[2])
         if abs(new[2]) >= threshold and apart and left <= SPLIT_EXPLAINED * abs(found[i][2]):
             keep.append(k)
-    if len(keep) == len(candidates):
-        return trial
     if not keep:
-        return cells
-    return _fit_pairs(cells, [candidates[k] for k in keep], [parents[k] for k in keep], model,
-                      SPLIT_REACH / scale, tol_m, degree, deadline_s)[0]
+        return cells, []
+    parents = [parents[k] for k in keep]
+    if len(keep) < len(candidates):
+        trial = _fit_pairs(cells, [candidates[k] for k in keep], parents, model, SPLIT_REACH / scale, tol_m,
+                           degree, deadline_s)[0]
+    return trial, [(i, n + k) for k, i in enumerate(parents)]
 
 
 def _fit_pairs(cells: list[cancel.Cell], candidates: list[cancel.Cell], parents: list[int],
@@ -199,7 +202,8 @@ def _fit_shifts(model: cancel.NlcsModel, residual: np.ndarray, models: np.ndarra
         normal = (jac.conj() @ jac.T).real
         grad = (jac.conj() @ r.ravel()).real
         while True:
-            step = np.linalg.solve(normal + damping * np.diag(np.diag(normal)), -grad)
+            # lstsq: a model that vanishes (no gain fitted) makes its columns zero and the system singular
+            step = np.linalg.lstsq(normal + damping * np.diag(np.diag(normal)), -grad, rcond=None)[0]
             trial = p + step
             trial[:2 * g] = np.clip(trial[:2 * g], -bound, bound)
             r1, moved1, c1 = evaluate(trial)
