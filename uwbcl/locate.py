@@ -158,7 +158,8 @@ def locate_plates(detections_by_height: dict[float, list[Detection]], boresight_
     precision `range_sigma_m` explains (eq. M6: chi^2 / dof > 1, the misfit that would otherwise widen its
     covariance): a peak pulled between two plates is neither, and the clean looks locate the plate. A shared
     look the fit agrees with stays (setting it aside would only shorten the baseline), and so do the looks of
-    a plate with fewer than two clean ones (two looks cannot show which of them is off).
+    a plate with fewer than two clean ones (two looks cannot show which of them is off). A split look is set
+    aside wherever two clean looks remain, whatever the fit.
     """
     groups = associate_across_heights(detections_by_height, x_tol_m, rc_tol_m)
     located = [(g, p) for g in groups if (p := _located_group(g, boresight_y_sign)) is not None]
@@ -172,10 +173,13 @@ def locate_plates(detections_by_height: dict[float, list[Detection]], boresight_
         screened = []
         for k, (g, p) in enumerate(located):
             others = [q for j, (_, q) in enumerate(located) if j != k]
+            split = any(not math.isnan(d.split_separation_m) for d in g.values())
             shared = tuple(h for h in sorted(g) if not math.isnan(g[h].split_separation_m)
                            or shared_look(h, g[h], others, singles, wall_m, separation_m))
             clean = {h: d for h, d in g.items() if h not in shared}
-            pulled = shared and len(clean) >= 2 and misfit_scale(p, range_sigma_m) > 1.0
+            # a split look is set aside whatever the fit: its few mm of bias (S2) hide along the dilution
+            # direction of a poor geometry, where the fit agrees with them
+            pulled = shared and len(clean) >= 2 and (split or misfit_scale(p, range_sigma_m) > 1.0)
             refit = _located_group(clean, boresight_y_sign) if pulled else None
             screened.append(dataclasses.replace(refit or p, shared_heights_m=shared))
         plates = screened

@@ -9,17 +9,21 @@ non-maximum suppression keeps as one detection: both plates lose that height's l
 located), and the merged range biases whichever plate it is associated with (eq. L1 sets such looks aside).
 
 The test is CLEAN's second look, with a joint refit. After neighbour cancellation the data minus every
-modelled plate (`cancel.CancellationModel.residual`) is searched within SPLIT_REACH separation ellipses of
+modelled plate (the last cancellation pass's residual) is searched within SPLIT_REACH separation ellipses of
 each modelled peak. A lone plate's residual is its model's mismatch, a few per cent of its peak (measured
 1.7-3 % at 20 dB); a merged pair leaves the difference of the two responses from the one between them
-(15 % for two plates 0.76 resolution cells apart). A residual peak of at least SPLIT_MIN_RATIO of its peak,
-over the detection's SNR floor, is a candidate: all peaks and the candidates are re-refined jointly
-(`cancel.cancel_neighbours`, SPLIT_PASSES) and a candidate is kept when
+(15 % for two plates 0.76 resolution cells apart). A residual peak between SPLIT_MIN_RATIO and
+SPLIT_MAX_RATIO of its peak, over the detection's SNR floor, is a candidate. Each candidate and its peak are
+fitted jointly (`_fit_shifts`: their models moved by phase ramps on the spectrum, SPLIT_FIT_ROUNDS rounds with
+the models made again, Aitken-extrapolated), all peaks are re-refined once with the others' models removed,
+and a candidate is kept when
 
 * it stands over the detection's floors on the data minus the others (it is a plate, not a remainder),
 * it and every other peak stay SPLIT_MIN_SEPARATION ellipses apart (the two did not collapse into one), and
 * the pair explains the residual: the residual's largest value near its peak drops to SPLIT_EXPLAINED of
   what it was (a model mismatch is not removed by a second plate beside it).      (S2)
+
+Backprojection detections are not split: their models are echoes, which a phase ramp does not move.
 """
 
 from __future__ import annotations
@@ -64,9 +68,9 @@ SPLIT_LATTICE_PER_AXIS = 8
 
 
 def split_merged(cells: list[cancel.Cell], residual: np.ndarray, model: cancel.NlcsModel,
-                 separation_m: tuple[float, float],
-                 threshold: float, noise_threshold: float, tol_m: float, degree: int,
-                 deadline_s: float = math.inf) -> tuple[list[cancel.Cell], list[tuple[int, int]]]:
+                 separation_m: tuple[float, float], threshold: float, noise_threshold: float, tol_m: float,
+                 degree: int, deadline_s: float = math.inf
+                 ) -> tuple[list[cancel.Cell], list[tuple[int, int]]]:
     """The peaks of an NLCS image, with a second plate added where a peak holds two (S2).
 
     Parameters
