@@ -153,7 +153,7 @@ def _fit_pairs(cells: list[cancel.Cell], candidates: list[cancel.Cell], parents:
             if before is not None and before @ before > 0:  # Aitken: the rounds converge geometrically
                 rho = float(step @ before / (before @ before))
                 if 0.0 < rho < SPLIT_MAX_RATE:
-                    step = step / (1.0 - rho)
+                    step = np.clip(step / (1.0 - rho), -np.tile(reach_cells, 2), np.tile(reach_cells, 2))
             for j, (da, db) in zip(group, step.reshape(2, 2)):
                 trial[j] = (trial[j][0] + da, trial[j][1] + db, trial[j][2])
     refined, residual = cancel.cancel_neighbours_with_residual(trial, model, 1, tol_m, degree, deadline_s)
