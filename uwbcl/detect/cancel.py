@@ -18,6 +18,7 @@ import dataclasses
 import logging
 import math
 import time
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
@@ -87,6 +88,18 @@ def fit_pulse_gains(data: np.ndarray, x_rel_m: np.ndarray, echoes: list[tuple[np
     return np.einsum("jkm,jm->jk", basis, series)
 
 
+def fitted_models(model: CancellationModel, u_m: np.ndarray, r_m: np.ndarray, degree: int,
+                  gain_map: Callable[[np.ndarray], np.ndarray] | None = None):
+    """Each target's model (`model.models`) at (u = v t_n, r_LRCM) (n,) m: its unit-gain echo
+    (`bp.point_target_echo`) times the per-pulse gains fitted to the range-compressed echo jointly with the
+    others' (`fit_pulse_gains`), mapped by `gain_map` when given (`synthesis.real_gains`)."""
+    rc, grid = model.compressed, model.grid
+    echoes = [bp.point_target_echo(grid, rc.x_rel_m, rc.t_s, u_m[j], r_m[j]) for j in range(len(u_m))]
+    gains = fit_pulse_gains(rc.data, rc.x_rel_m, echoes, degree)
+    # only the models outlive this call: one echo per target would be n_pulses x n_t each
+    return model.models(u_m, r_m, echoes, gain_map(gains) if gain_map is not None else gains)
+
+
 class CancellationModel(Protocol):
     """The image-specific step of `cancel_neighbours`."""
 
@@ -149,7 +162,6 @@ def cancel_neighbours_with_residual(cells: list[Cell], model: CancellationModel,
         The data minus every model of the last pass (`model.residual`), the models made at the positions that
         pass started from; None when no pass ran.
     """
-    rc, grid = model.compressed, model.grid
     residual = None
     for _ in range(passes):
         if time.monotonic() > deadline_s:
@@ -157,11 +169,7 @@ def cancel_neighbours_with_residual(cells: list[Cell], model: CancellationModel,
                         len(cells))
             break
         at = np.array([(a, b) for a, b, _ in cells])
-        u, r = model.positions(at)
-        echoes = [bp.point_target_echo(grid, rc.x_rel_m, rc.t_s, u[j], r[j]) for j in range(len(at))]
-        gains = fit_pulse_gains(rc.data, rc.x_rel_m, echoes, degree)
-        models = model.models(u, r, echoes, gains)
-        del echoes  # one model per target is held: n_pulses x n_t each for BP
+        models = fitted_models(model, *model.positions(at), degree)
         residual = model.residual(models)
         refined: list[Cell] = []
         for i in range(len(at)):
@@ -258,9 +266,13 @@ class NlcsModel:
         """The image of `spectrum` (on `rows`) on the lattice of fractional indices a (n_a,) x b (n_b,)."""
         return refine.TrigInterpolant.from_rows(self.rows, spectrum, self.grid.n_azimuth).lattice(a, b)
 
+    def frequencies(self) -> tuple[np.ndarray, np.ndarray]:
+        """The spectrum's azimuth (on `rows`) and range frequencies, cycles per cell (`TrigInterpolant`)."""
+        return self.rows / self.grid.n_azimuth, np.fft.fftfreq(self.spectrum.shape[-1])
+
     def shift_ramp(self, da: float, db: float) -> np.ndarray:
         """The factor that moves an image by (da, db) cells, on its spectrum's rows (exact: band limited)."""
-        ka, kb = self.rows / self.grid.n_azimuth, np.fft.fftfreq(self.spectrum.shape[-1])
+        ka, kb = self.frequencies()
         return np.exp(-2j * np.pi * ka * da)[:, None] * np.exp(-2j * np.pi * kb * db)[None, :]
 
     def refine_peak(self, at: np.ndarray, i: int, residual: np.ndarray, models: np.ndarray) -> Cell:

@@ -35,7 +35,6 @@ import time
 
 import numpy as np
 
-from ..focus import backprojection as bp
 from . import cancel, synthesis
 
 # The residual is searched within this many separation ellipses of a modelled peak: eq. L1's reach, where two
@@ -171,15 +170,10 @@ def _fit_pairs(cells: list[cancel.Cell], candidates: list[cancel.Cell], parents:
 
 def _models(cells: list[cancel.Cell], model: cancel.NlcsModel, degree: int, real: bool = False
             ) -> tuple[np.ndarray, np.ndarray]:
-    """Every peak's model (gains fitted jointly, `cancel.fit_pulse_gains`; with `real`, their real parts,
-    `synthesis.real_gains`) and the data minus all of them."""
+    """Every peak's model (`cancel.fitted_models`; with `real`, the gains' real parts, `synthesis.real_gains`)
+    and the data minus all of them."""
     at = np.array([(a, b) for a, b, _ in cells], dtype=float)
-    u, r = model.positions(at)
-    rc, grid = model.compressed, model.grid
-    echoes = [bp.point_target_echo(grid, rc.x_rel_m, rc.t_s, u[j], r[j]) for j in range(len(at))]
-    gains = cancel.fit_pulse_gains(rc.data, rc.x_rel_m, echoes, degree)
-    gains = synthesis.real_gains(gains) if real else gains
-    models = model.models(u, r, echoes, gains)
+    models = cancel.fitted_models(model, *model.positions(at), degree, synthesis.real_gains if real else None)
     return models, model.residual(models)
 
 
@@ -192,8 +186,8 @@ def _fit_shifts(model: cancel.NlcsModel, residual: np.ndarray, models: np.ndarra
     m = models[group]
     target = residual + m.sum(axis=0)
     g = len(group)
-    ka = 2j * np.pi * (model.rows / model.grid.n_azimuth)[:, None]
-    kb = 2j * np.pi * np.fft.fftfreq(target.shape[-1])[None, :]
+    ka, kb = model.frequencies()
+    ka, kb = 2j * np.pi * ka[:, None], 2j * np.pi * kb[None, :]  # d/da, d/db of the inverse transform
     bound = np.tile(reach_cells, g)
 
     def evaluate(p):
@@ -233,7 +227,8 @@ def _fit_shifts(model: cancel.NlcsModel, residual: np.ndarray, models: np.ndarra
             break
     return [(float(p[2 * j]), float(p[2 * j + 1])) for j in range(g)]
 
-def _residual_peak(model: cancel.CancellationModel, residual, cell: cancel.Cell, scale: np.ndarray
+
+def _residual_peak(model: cancel.NlcsModel, residual: np.ndarray, cell: cancel.Cell, scale: np.ndarray
                    ) -> cancel.Cell:
     """The largest |residual| within SPLIT_REACH ellipses of a peak, on a lattice: (a, b, value)."""
     half = SPLIT_REACH / scale  # cells

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..focus import backprojection as bp
 from . import calibration, cancel, refine
 
 
@@ -60,13 +59,9 @@ def locate(cells: list[cancel.Cell], model: cancel.NlcsModel, passes: int, tol_m
     at = np.array([(a, b) for a, b, _ in cells], dtype=float).reshape(-1, 2)
     t_f, r_image, t_n_image = calibration.peak_track_times(products, at[:, 0], at[:, 1], model.focuser)
     r, t_n = r_image.copy(), t_n_image.copy()
-    rc = model.compressed
     for _ in range(passes if len(cells) else 0):
         u = grid.speed_m_s * t_n
-        echoes = [bp.point_target_echo(grid, rc.x_rel_m, rc.t_s, u[j], r[j]) for j in range(len(cells))]
-        gains = real_gains(cancel.fit_pulse_gains(rc.data, rc.x_rel_m, echoes, degree))
-        models = model.models(u, r, echoes, gains)
-        del echoes
+        models = cancel.fitted_models(model, u, r, degree, real_gains)
         peak = np.array([_model_peak(model, models[j], at[j]) for j in range(len(cells))])
         found = np.isfinite(peak[:, 0])  # a plate whose model has no peak keeps its last position
         if not found.any():
