@@ -18,7 +18,7 @@ from typing import Protocol
 import numpy as np
 
 from .displacement import estimate_advance, fit_chi2, location_covariance_m2, translation_scores
-from .locate import locate_plates, misfit_scale
+from .locate import locate_plates, look_sigma_factor, misfit_scale
 from .records import (
     TRUSTED_STATUSES,
     AssociationSettings,
@@ -133,20 +133,24 @@ def plate_covariances(cycle: CycleResult, range_sigma_m: float) -> np.ndarray:
     study 41 % of such plates were > 3 cm off with three heights and 5 of 5 with four, against 5 % of the
     others. Its covariance is that of the extreme heights widened by MISSED_HEIGHT_SIGMA_FACTOR, so it matches
     only loosely and weighs little. A plate whose looks shared with a neighbour (eq. L1) were set aside is
-    located from its clean looks and has their covariance.
+    located from its clean looks and has their covariance. A look split from a peak that held two plates
+    (eq. S2) has `locate.look_sigma_factor` times a lone plate's standard deviation (eq. S3).
     """
     heights = np.asarray(cycle.heights_m)
     out = []
     for p in cycle.plates:
         used = [h for h, _ in p.looks]
+        # each look's standard deviation: a split look's is larger (eq. S3)
+        sigma = range_sigma_m * np.array([look_sigma_factor(d) for _, d in p.looks]) if p.looks \
+            else range_sigma_m
         set_aside = [h for h in p.shared_heights_m if h not in used]
         if p.n_passes + len(set_aside) >= heights.size:
             # seen at every height; where looks shared with a neighbour (eq. L1) were set aside, the clean
             # ones locate it
-            cov = location_covariance_m2(p.position_m, used if set_aside else heights, range_sigma_m)
+            cov = location_covariance_m2(p.position_m, used if p.looks else heights, sigma)
         else:
             cov = location_covariance_m2(p.position_m, heights[[0, -1]],
-                                         range_sigma_m * MISSED_HEIGHT_SIGMA_FACTOR)
+                                         np.max(sigma) * MISSED_HEIGHT_SIGMA_FACTOR)
         out.append(cov * misfit_scale(p, range_sigma_m))
     return np.array(out).reshape(-1, 3, 3)
 

@@ -34,6 +34,11 @@ SHARED_LOOK_REACH = 1.5
 # and only a neighbour of at least this fraction of the detection's amplitude: a weaker one moves the peak by
 # less than about ratio x offset, millimetres
 SHARED_LOOK_MIN_AMPLITUDE = 0.1
+# Eq. S3: the standard deviation of a look split from a peak that held two plates (eq. S2), in units of a lone
+# plate's (association.range_sigma_m), along track and in range. Measured against the availability study's
+# truth (docs/method.md section 5): split looks 7.7 / 7.2 mm RMS in x / R_c against 3.7 / 3.1 mm for lone
+# plates (dense-3h, 10 dB), with tails to 37 mm; 3 covers the bulk, and eq. M6 widens the tails.
+SPLIT_SIGMA_FACTOR = 3.0
 
 
 def locate_target(heights_m, x_m, rc_m, weights=None, boresight_y_sign: int = -1) -> Located | None:
@@ -56,16 +61,30 @@ def locate_target(heights_m, x_m, rc_m, weights=None, boresight_y_sign: int = -1
                    residual_m=float(np.sqrt(np.mean(misfit**2))), n_passes=int(h.size), amplitude=0.0)
 
 
+def look_sigma_factor(det: Detection) -> float:
+    """Eq. S3: a look's standard deviation in units of a lone plate's (SPLIT_SIGMA_FACTOR for one of the two
+    plates of a split peak, 1 otherwise)."""
+    return 1.0 if math.isnan(det.split_separation_m) else SPLIT_SIGMA_FACTOR
+
+
 def misfit_scale(plate: Located, range_sigma_m: float) -> float:
     """Eq. M6: max(1, chi^2 / dof) of a plate's own fit. Its 2n misfits (n per-height ranges to the located
-    point, n per-height along-track x to their mean; RMS `Located.residual_m`) have sigma_R each and
-    dof = (n - 2) + (n - 1): chi^2 = 2n rho^2 / sigma_R^2. Passes that do not meet at one point (two plates
-    grouped across heights, one height's peak on noise or a neighbour) are not the point the plate's
-    covariance describes: it is as uncertain as its own misfit says."""
+    point, n per-height along-track x to their mean) have sigma_R each (times `look_sigma_factor` for a split
+    look, eq. S3) and dof = (n - 2) + (n - 1); without its looks, chi^2 = 2n rho^2 / sigma_R^2 from their RMS
+    `Located.residual_m`. Passes that do not meet at one point (two plates grouped across heights, one
+    height's peak on noise or a neighbour) are not the point the plate's covariance describes: it is as
+    uncertain as its own misfit says."""
     dof = 2 * plate.n_passes - 3
     if dof <= 0 or range_sigma_m <= 0:
         return 1.0
-    return max(1.0, 2 * plate.n_passes * plate.residual_m**2 / (range_sigma_m**2 * dof))
+    if not plate.looks:
+        return max(1.0, 2 * plate.n_passes * plate.residual_m**2 / (range_sigma_m**2 * dof))
+    x, y, z = (float(v) for v in plate.position_m)
+    chi2 = 0.0
+    for h, d in plate.looks:
+        miss_r = math.hypot(y, z - h) - d.rc_m
+        chi2 += (miss_r**2 + (d.x_m - x) ** 2) / (look_sigma_factor(d) * range_sigma_m) ** 2
+    return max(1.0, chi2 / dof)
 
 
 def associate_across_heights(detections_by_height: dict[float, list[Detection]],
@@ -101,7 +120,8 @@ def _located_group(group: dict[float, Detection], boresight_y_sign: int) -> Loca
     """`locate_target` on one cross-height group, with its looks and mean amplitude."""
     hs = sorted(group)
     dets = [group[h] for h in hs]
-    loc = locate_target(hs, [d.x_m for d in dets], [d.rc_m for d in dets], boresight_y_sign=boresight_y_sign)
+    loc = locate_target(hs, [d.x_m for d in dets], [d.rc_m for d in dets],
+                        weights=[look_sigma_factor(d) ** -2 for d in dets], boresight_y_sign=boresight_y_sign)
     if loc is None:
         return None
     return dataclasses.replace(loc, amplitude=float(np.mean([d.amplitude for d in dets])),
