@@ -232,7 +232,7 @@ def test_a_plate_whose_looks_were_all_split_weighs_as_their_precision_says():
     looks = {h: [dataclasses.replace(_detection(1.0, float(_rc(wall, z, h)) + (0.012 if h == 0.45 else 0.0)),
                                      split_separation_m=0.08)] for h in hs3}
     (plate3,) = locate_plates(looks, separation_m=SEPARATION_M)
-    lone = dataclasses.replace(plate3, looks=tuple((h, dataclasses.replace(d, split_separation_m=float("nan")))
+    lone = dataclasses.replace(plate3, looks=tuple((h, dataclasses.replace(d, split_separation_m=np.nan))
                                                    for h, d in plate3.looks))
     assert misfit_scale(lone, 0.003) > 1.0  # 12 mm is beyond a lone plate's precision
     assert misfit_scale(plate3, 0.003) == max(1.0, misfit_scale(lone, 0.003) / f2) == 1.0

@@ -83,10 +83,11 @@ def location_covariance_m2(position_m, heights_m, range_sigma_m, along_sigma_m: 
     """First-order 3x3 covariance of a plate located from per-height ranges of standard deviation sigma_R.
 
     Propagates sigma_R (one value, or one per height: a split look's is larger, eq. S3) through the weighted
-    least squares R_c,i^2 - h_i^2 = c0 - 2 z h_i (locate.py, weights 1 / sigma_R,i^2) and W = sqrt(c0 - z^2).
-    The (y, z) errors are strongly correlated along a direction set by (z - h) / W: the geometric dilution that
-    makes plates far above or below the rail poor in Y and Z, but poor in a known way. Along track, x is the
-    weighted mean of the per-height x (along_sigma_m each, default sigma_R,i). docs/method.md D2.
+    least squares R_c,i^2 - h_i^2 = c0 - 2 z h_i (locate.py, weights 1 / sigma_R,i^2) and
+    W = sqrt(c0 - z^2). The (y, z) errors are strongly correlated along a direction set by (z - h) / W: the
+    geometric dilution that makes plates far above or below the rail poor in Y and Z, but poor in a known way.
+    Along track, x is the weighted mean of the per-height x (along_sigma_m each, default sigma_R,i).
+    docs/method.md D2.
     """
     _, y, z = np.asarray(position_m, dtype=float)
     h = np.asarray(heights_m, dtype=float)
