@@ -99,8 +99,8 @@ def test_the_split_needs_the_residual_between_a_mismatch_and_a_second_plate(monk
 
 
 def test_the_setting_is_read_from_the_site_file_and_checked():
-    assert DetectionSettings().split_merged is False  # off by default (docs/method.md section 6.1)
-    site = config.parse_config({"detection": {"split_merged": True}})
-    assert site.detection_settings().split_merged is True
+    assert DetectionSettings().split_merged is True  # on by default (docs/method.md section 6.1)
+    site = config.parse_config({"detection": {"split_merged": False}})
+    assert site.detection_settings().split_merged is False
     with pytest.raises(ConfigError, match="split_merged"):
         config.parse_config({"detection": {"split_merged": 1}})

@@ -103,9 +103,9 @@ class DetectionSettings:
     # Two plates in one peak (detect.split, docs/method.md section 4, eq. S2): a modelled peak whose residual,
     # after neighbour cancellation, holds a second plate under the range resolution (a bolting ring's column
     # seen from a rail height level with one row) is split into two detections. Needs neighbour cancellation.
-    # Off by default: it recovers most of the availability a columned bolt pattern costs, but on a dense
-    # 3-row grid at 10 dB it made three heights worse than two (docs/method.md section 6.1).
-    split_merged: bool = False
+    # It recovers most of the availability a columned bolt pattern costs; its looks count as
+    # SPLIT_SIGMA_FACTOR times less precise than a lone plate's (eq. S3, docs/method.md sections 5 and 6.1).
+    split_merged: bool = True
 
 
 @dataclasses.dataclass(frozen=True)
