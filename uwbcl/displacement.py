@@ -82,26 +82,24 @@ def location_covariance_m2(position_m, heights_m, range_sigma_m, along_sigma_m: 
                            ) -> np.ndarray:
     """First-order 3x3 covariance of a plate located from per-height ranges of standard deviation sigma_R.
 
-    Propagates sigma_R (one value, or one per height: a split look's is larger, eq. S3) through the weighted
-    least squares R_c,i^2 - h_i^2 = c0 - 2 z h_i (locate.py, weights 1 / sigma_R,i^2) and
-    W = sqrt(c0 - z^2). The (y, z) errors are strongly correlated along a direction set by (z - h) / W: the
-    geometric dilution that makes plates far above or below the rail poor in Y and Z, but poor in a known way.
-    Along track, x is the weighted mean of the per-height x (along_sigma_m each, default sigma_R,i).
-    docs/method.md D2.
+    Propagates sigma_R (one value, or one per height: a split look's is larger, eq. S3) through the least
+    squares R_c,i^2 - h_i^2 = c0 - 2 z h_i (locate.py, unweighted) and W = sqrt(c0 - z^2). The (y, z) errors
+    are strongly correlated along a direction set by (z - h) / W: the geometric dilution that makes plates far
+    above or below the rail poor in Y and Z, but poor in a known way. Along track, x is the mean of the
+    per-height x (along_sigma_m each, default sigma_R,i). docs/method.md D2.
     """
     _, y, z = np.asarray(position_m, dtype=float)
     h = np.asarray(heights_m, dtype=float)
     sigma = np.broadcast_to(np.asarray(range_sigma_m, dtype=float), h.shape)
     wall = abs(y)
     rc = np.hypot(wall, z - h)
-    w = 1.0 / sigma  # whitened rows: the weighted fit's covariance of (c0, z)
-    m = np.linalg.pinv(np.column_stack([np.ones_like(h), -2.0 * h]) * w[:, None])
-    cov_cz = m @ np.diag((2.0 * rc) ** 2) @ m.T
+    m = np.linalg.pinv(np.column_stack([np.ones_like(h), -2.0 * h]))
+    cov_cz = m @ np.diag((2.0 * rc * sigma) ** 2) @ m.T  # of (c0, z)
     jac = np.array([[0.5 / wall, -z / wall], [0.0, 1.0]])  # (W, z) from (c0, z)
     cov_wz = jac @ cov_cz @ jac.T
     sign = 1.0 if y >= 0 else -1.0
     along = sigma if along_sigma_m is None else np.broadcast_to(float(along_sigma_m), h.shape)
-    return np.array([[1.0 / np.sum(along**-2.0), 0.0, 0.0],
+    return np.array([[np.sum(along**2) / h.size**2, 0.0, 0.0],
                      [0.0, cov_wz[0, 0], sign * cov_wz[0, 1]],
                      [0.0, sign * cov_wz[0, 1], cov_wz[1, 1]]])
 

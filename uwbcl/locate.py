@@ -120,8 +120,7 @@ def _located_group(group: dict[float, Detection], boresight_y_sign: int) -> Loca
     """`locate_target` on one cross-height group, with its looks and mean amplitude."""
     hs = sorted(group)
     dets = [group[h] for h in hs]
-    loc = locate_target(hs, [d.x_m for d in dets], [d.rc_m for d in dets],
-                        weights=[look_sigma_factor(d) ** -2 for d in dets], boresight_y_sign=boresight_y_sign)
+    loc = locate_target(hs, [d.x_m for d in dets], [d.rc_m for d in dets], boresight_y_sign=boresight_y_sign)
     if loc is None:
         return None
     return dataclasses.replace(loc, amplitude=float(np.mean([d.amplitude for d in dets])),
