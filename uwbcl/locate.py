@@ -172,7 +172,7 @@ def locate_plates(detections_by_height: dict[float, list[Detection]], boresight_
 
     With `separation_m` (the detector's non-maximum-suppression semi-axes along track and in range, m), a
     plate's looks shared with a neighbour (`shared_look`, eq. L1) or split from a peak that held two
-    (`Detection.split_separation_m`, eq. S2: a few mm less precise) are marked in `Located.shared_heights_m`
+    (`Detection.split_separation_m`, eq. S2: 3x less precise, eq. S3) are marked in `Located.shared_heights_m`
     and set aside where at least two clean looks remain and the plate's fit with them is worse than a range
     precision `range_sigma_m` explains (eq. M6: chi^2 / dof > 1, the misfit that would otherwise widen its
     covariance): a peak pulled between two plates is neither, and the clean looks locate the plate. A shared

@@ -230,7 +230,7 @@ class Detection:
     phase_sigma_rad: float = math.nan
     phase_wavenumber_rad_m: float = math.nan  # 2k = 4 pi f_c / c of the phase: phases compare at one carrier
     # One of the two plates of a peak that held two (detect.split, eq. S2): the (x, R_c) distance to the other
-    # (m); NaN when the peak held one. Such a look is a few mm less precise than a lone plate's.
+    # (m); NaN when the peak held one. Such a look counts as 3x less precise (locate, eq. S3).
     split_separation_m: float = math.nan
 
 
