@@ -79,11 +79,11 @@ def misfit_scale(plate: Located, range_sigma_m: float) -> float:
         return 1.0
     if not plate.looks:
         return max(1.0, 2 * plate.n_passes * plate.residual_m**2 / (range_sigma_m**2 * dof))
-    x, y, z = (float(v) for v in plate.position_m)
     chi2 = 0.0
     for h, d in plate.looks:
-        miss_r = math.hypot(y, z - h) - d.rc_m
-        chi2 += (miss_r**2 + (d.x_m - x) ** 2) / (look_sigma_factor(d) * range_sigma_m) ** 2
+        miss_r = float(closest_approach_range_m(plate.position_m, h)) - d.rc_m
+        miss_x = d.x_m - float(plate.position_m[0])
+        chi2 += (miss_r**2 + miss_x**2) / (look_sigma_factor(d) * range_sigma_m) ** 2
     return max(1.0, chi2 / dof)
 
 
