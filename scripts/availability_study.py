@@ -298,7 +298,7 @@ def run_process(arch: Path, out: Path, s: Scenario, heights, prior: bool, jobs: 
                 config: Path | None) -> float:
     out.mkdir(parents=True, exist_ok=True)
     if reuse is not None:
-        copy_detections(reuse, out)
+        copy_detections(reuse, out, config)
     cmd = [sys.executable, "-m", "uwbcl.cli", "process", str(arch), "--out", str(out), "--backend", "numpy",
            "--jobs", str(jobs), "--no-progress"]
     if prior:
@@ -331,9 +331,12 @@ def newest_run(root: Path) -> Path | None:
     return max(runs, key=lambda p: ((p / batch.CACHE_DIR).stat().st_mtime, p.name), default=None)
 
 
-def copy_detections(src_out: Path, out: Path) -> None:
-    """Detections cached by an earlier run (any code version) -> the cache key of the current code."""
-    settings = config.override(config.SiteConfig(), backend="numpy").processing_settings()
+def copy_detections(src_out: Path, out: Path, site: Path | None = None) -> None:
+    """Detections cached by an earlier run (any code version) -> the cache key of the current code and of the
+    settings `uwbcl process` runs with (the site file `site`, when given: its detection settings key the
+    cache too)."""
+    cfg = config.load_config(site) if site is not None else config.SiteConfig()
+    settings = config.override(cfg, backend="numpy").processing_settings()
     dst = out / batch.CACHE_DIR / batch.settings_key(settings)
     if dst.is_dir():
         return
