@@ -9,7 +9,13 @@ import pytest
 
 from uwbcl import batch, chain
 from uwbcl.displacement import estimate_advance, location_covariance_m2, robust_mean
-from uwbcl.locate import associate_across_heights, locate_plates, locate_target, misfit_scale
+from uwbcl.locate import (
+    associate_across_heights,
+    locate_plates,
+    locate_target,
+    misfit_scale,
+    two_look_wall_m,
+)
 from uwbcl.records import AssociationSettings, CycleResult, Detection, DetectionSettings, Located
 
 
@@ -80,6 +86,55 @@ def test_association_pairs_plates_of_one_vertical_column_by_range():
     np.testing.assert_allclose(sorted(p.position_m[2] for p in plates), zs, rtol=0, atol=1e-9)
     for p in plates:
         assert p.position_m[1] == pytest.approx(-2.0, abs=1e-9)
+
+
+def _ring(heights, wall, zs, x=1.0):
+    """Detections of one bolting ring (plates at zs m, one x) on a rib `wall` m away, plus two lone plates
+    along the rib that give the cycle its wall distance."""
+    return {h: [_detection(x, float(_rc(wall, z, h)), 1.0) for z in zs]
+            + [_detection(x0, float(_rc(wall, 0.9, h)), 1.0) for x0 in (3.0, 4.5)] for h in heights}
+
+
+def test_the_rib_gate_rejects_a_cross_height_pair_that_would_put_a_plate_off_the_rib():
+    """A ring of three plates (z 0.5 / 1.1 / 1.7 m) on a 1.82 m rib from rail heights 0.107 and 0.675 m, the
+    lowest plate merged into the middle one at 0.675 m (their ranges 4 cm apart). Without the rib, x and R_c
+    pair the middle plate at 0.107 m with the top one at 0.675 m (R_c 5 mm apart): a plate 0.25 m off the rib
+    and 0.5 m off in height. On the rib (eq. L2) the pairs are the true ones."""
+    heights, wall = (0.107, 0.675), 1.82
+    by_height = _ring(heights, wall, (0.5, 1.1, 1.7))
+    merged = float(np.mean(_rc(wall, np.array([0.5, 1.1]), 0.675)))
+    by_height[0.675] = [_detection(1.0, merged, 1.0), *by_height[0.675][2:]]
+    plain = locate_plates(by_height, wall_tol_m=0.0)
+    ring = [p for p in plain if p.position_m[0] < 2]
+    assert max(abs(abs(p.position_m[1]) - wall) for p in ring) > 0.2  # the pairing without the rib
+    on_rib = [p for p in locate_plates(by_height) if p.position_m[0] < 2]
+    assert len(on_rib) == 2
+    assert max(abs(abs(p.position_m[1]) - wall) for p in on_rib) < 0.05
+    # the top plate exactly; the merged look puts the other between its two plates
+    assert min(abs(p.position_m[2] - 1.7) for p in on_rib) < 1e-6
+
+
+def test_the_rib_gate_needs_three_plates_and_keeps_every_plate_of_a_clean_column():
+    heights, wall = (0.05, 0.25, 0.6), 2.5
+    by_height = _ring(heights, wall, (0.4, 1.0, 1.6))
+    with_gate, without = locate_plates(by_height), locate_plates(by_height, wall_tol_m=0.0)
+    assert len(with_gate) == len(without) == 5
+    for a, b in zip(with_gate, without):
+        np.testing.assert_allclose(a.position_m, b.position_m, atol=1e-9)
+    two = {h: d[:1] + d[3:4] for h, d in by_height.items()}  # two plates: no wall distance, no gate
+    assert len(locate_plates(two)) == 2
+
+
+def test_the_wall_of_two_looks_and_its_sigma_match_finite_differences():
+    h_a, h_b, wall, z = 0.2, 0.7, 2.0, 1.1
+    ra, rb = float(_rc(wall, z, h_a)), float(_rc(wall, z, h_b))
+    w, sigma = two_look_wall_m(h_a, ra, 0.003, h_b, rb, 0.004)
+    assert w == pytest.approx(wall, abs=1e-12)
+    e = 1e-7
+    ga = (two_look_wall_m(h_a, ra + e, 0, h_b, rb, 0)[0] - w) / e
+    gb = (two_look_wall_m(h_a, ra, 0, h_b, rb + e, 0)[0] - w) / e
+    assert sigma == pytest.approx(np.hypot(0.003 * ga, 0.004 * gb), rel=1e-5)
+    assert np.isnan(two_look_wall_m(0.0, 1.0, 0.0, 0.1, 3.0, 0.0)[0])  # the ranges meet nowhere
 
 
 def test_association_leaves_a_plate_seen_at_one_height_unlocated():

@@ -121,7 +121,7 @@ def locate_cycle(rig_id: str, cycle: int, start_time: str,
     plates = locate_plates(by_height, boresight_y_sign, detection.cross_height_x_tol_m,
                            detection.cross_height_rc_tol_m,
                            separation_m=(detection.separation_m, detection.range_separation_m),
-                           range_sigma_m=range_sigma_m)
+                           range_sigma_m=range_sigma_m, wall_tol_m=detection.cross_height_wall_tol_m)
     return CycleResult(rig_id, int(cycle), start_time, tuple(heights), plates)
 
 

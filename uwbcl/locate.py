@@ -25,6 +25,10 @@ from .records import AssociationSettings, Detection, DetectionSettings, Located
 # site can set them ([detection] cross_height_x_tol_m, cross_height_rc_tol_m).
 CROSS_HEIGHT_X_TOL_M = DetectionSettings.cross_height_x_tol_m
 CROSS_HEIGHT_RC_TOL_M = DetectionSettings.cross_height_rc_tol_m
+CROSS_HEIGHT_WALL_TOL_M = DetectionSettings.cross_height_wall_tol_m
+# Eq. L2 needs the cycle's wall distance: the median of at least this many plates grouped without it (fewer, and
+# one wrong grouping could set it).
+WALL_MIN_PLATES = 3
 _GATED = 1e6  # the assignment cost of a pair outside either gate: never chosen over a gated-in pair
 # Eq. L1 (`shared_look`): a neighbour predicted within this many of the detector's non-maximum-suppression
 # ellipses of a detection, and not detected on its own in that pass, shares the detection's peak. At 1.0 the
@@ -87,14 +91,40 @@ def misfit_scale(plate: Located, range_sigma_m: float) -> float:
     return max(1.0, chi2 / dof)
 
 
+def two_look_wall_m(h_a, rc_a, sigma_a, h_b, rc_b, sigma_b) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. L2: the wall distance W (m) of the one point that two looks (rail height h, range R_c, its standard
+    deviation sigma; m, arrays that broadcast, h_a != h_b) put on a rib parallel to the rail, and W's standard
+    deviation (first order). NaN where the two ranges meet at no real point.
+
+    C13 with two heights: z = ((R_a^2 - h_a^2) - (R_b^2 - h_b^2)) / (2 (h_b - h_a)), W^2 = R_a^2 - (z - h_a)^2.
+    """
+    h_a, rc_a, h_b, rc_b = (np.asarray(v, dtype=float) for v in (h_a, rc_a, h_b, rc_b))
+    dh = h_b - h_a
+    z = ((rc_a**2 - h_a**2) - (rc_b**2 - h_b**2)) / (2.0 * dh)
+    w2 = rc_a**2 - (z - h_a) ** 2
+    wall = np.sqrt(np.where(w2 > 0, w2, np.nan))
+    dz_a, dz_b = rc_a / dh, -rc_b / dh
+    dw_a = (rc_a - (z - h_a) * dz_a) / wall
+    dw_b = -(z - h_a) * dz_b / wall
+    return wall, np.hypot(dw_a * sigma_a, dw_b * sigma_b)
+
+
 def associate_across_heights(detections_by_height: dict[float, list[Detection]],
-                             x_tol_m: float = CROSS_HEIGHT_X_TOL_M, rc_tol_m: float = CROSS_HEIGHT_RC_TOL_M
+                             x_tol_m: float = CROSS_HEIGHT_X_TOL_M, rc_tol_m: float = CROSS_HEIGHT_RC_TOL_M,
+                             wall_m: float | None = None, wall_tol_m: float = CROSS_HEIGHT_WALL_TOL_M,
+                             range_sigma_m: float = AssociationSettings.range_sigma_m
                              ) -> list[dict[float, Detection]]:
     """Group the detections of one plate across the passes of one cycle.
 
     A plate has the same along-track x from every height, and its R_c changes by at most the height
     difference, so each height is matched to the reference height (the one with most detections) by an optimal
     assignment on (dx / x_tol)^2 + (dR_c / (|dh| + rc_tol))^2, gated at 1 per term.
+
+    With the cycle's wall distance `wall_m` (m) the pair's point must also lie on the rib (eq. L2): the term
+    (dW / max(wall_tol_m, 3 sigma_W))^2, gated at 1 too, where dW is its wall distance (`two_look_wall_m`,
+    each look's sigma `range_sigma_m` x `look_sigma_factor`) minus `wall_m`. In a column of plates
+    (a bolting ring) every detection of one height is within the x and R_c gates of every detection of the
+    other; only the rib tells which pairs are one plate.
     """
     heights = sorted(detections_by_height)
     if not heights:
@@ -109,11 +139,25 @@ def associate_across_heights(detections_by_height: dict[float, list[Detection]],
         dx = np.array([[abs(a.x_m - b.x_m) for b in other] for a in ref]) / x_tol_m
         dr = np.array([[abs(a.rc_m - b.rc_m) for b in other] for a in ref]) / (abs(h - ref_h) + rc_tol_m)
         cost = dx**2 + dr**2
-        gated = np.where((dx <= 1) & (dr <= 1), cost, _GATED)
+        inside = (dx <= 1) & (dr <= 1)
+        if wall_m is not None and wall_tol_m > 0:
+            sig_a = range_sigma_m * np.array([look_sigma_factor(a) for a in ref])[:, None]
+            sig_b = range_sigma_m * np.array([look_sigma_factor(b) for b in other])[None, :]
+            wall, sigma = two_look_wall_m(ref_h, np.array([a.rc_m for a in ref])[:, None], sig_a,
+                                          h, np.array([b.rc_m for b in other])[None, :], sig_b)
+            dw = np.abs(wall - wall_m) / np.maximum(wall_tol_m, 3.0 * sigma)
+            dw = np.where(np.isfinite(dw), dw, np.inf)  # no real point: not one plate
+            cost, inside = cost + np.where(np.isfinite(dw), dw, 0.0) ** 2, inside & (dw <= 1)
+        gated = np.where(inside, cost, _GATED)
         for i, j in zip(*optimize.linear_sum_assignment(gated)):
             if gated[i, j] < _GATED:
                 groups[i][h] = other[j]
     return [g for g in groups if len(g) >= 2]
+
+
+def _wall_m(located: list[tuple[dict[float, Detection], Located]]) -> float:
+    """The cycle's wall distance (m): the median |y| of its located plates."""
+    return float(np.median([abs(p.position_m[1]) for _, p in located]))
 
 
 def _located_group(group: dict[float, Detection], boresight_y_sign: int) -> Located | None:
@@ -166,9 +210,12 @@ def shared_look(height_m: float, det: Detection, others: list[Located],
 def locate_plates(detections_by_height: dict[float, list[Detection]], boresight_y_sign: int = -1,
                   x_tol_m: float = CROSS_HEIGHT_X_TOL_M, rc_tol_m: float = CROSS_HEIGHT_RC_TOL_M,
                   separation_m: tuple[float, float] | None = None,
-                  range_sigma_m: float = AssociationSettings.range_sigma_m) -> list[Located]:
-    """Every plate seen at two or more heights, located in 3-D (`x_tol_m`, `rc_tol_m`: the cross-height
-    association's gates, `associate_across_heights`).
+                  range_sigma_m: float = AssociationSettings.range_sigma_m,
+                  wall_tol_m: float = CROSS_HEIGHT_WALL_TOL_M) -> list[Located]:
+    """Every plate seen at two or more heights, located in 3-D (`x_tol_m`, `rc_tol_m`, `wall_tol_m`: the
+    cross-height association's gates, `associate_across_heights`). The detections are grouped twice when
+    `wall_tol_m` > 0: the second time on the rib (eq. L2) at the median wall distance of the first grouping's
+    plates, once it has WALL_MIN_PLATES.
 
     With `separation_m` (the detector's non-maximum-suppression semi-axes along track and in range, m), a
     plate's looks shared with a neighbour (`shared_look`, eq. L1) or split from a peak that held two
@@ -182,13 +229,17 @@ def locate_plates(detections_by_height: dict[float, list[Detection]], boresight_
     """
     groups = associate_across_heights(detections_by_height, x_tol_m, rc_tol_m)
     located = [(g, p) for g in groups if (p := _located_group(g, boresight_y_sign)) is not None]
+    if wall_tol_m > 0 and len(located) >= WALL_MIN_PLATES:
+        groups = associate_across_heights(detections_by_height, x_tol_m, rc_tol_m, _wall_m(located),
+                                          wall_tol_m, range_sigma_m)
+        located = [(g, p) for g in groups if (p := _located_group(g, boresight_y_sign)) is not None]
     if separation_m is not None and located:
         grouped = {id(d) for g in groups for d in g.values()}
         singles = [(h, d) for h, dets in detections_by_height.items() for d in dets if id(d) not in grouped]
         # a single that overlaps a grouped detection of its own pass is that plate's side lobe, not a plate
         singles = [(h, d) for h, d in singles
                    if not any(_within_reach(d.x_m, d.rc_m, g[h], separation_m) for g in groups if h in g)]
-        wall_m = float(np.median([abs(p.position_m[1]) for _, p in located]))
+        wall_m = _wall_m(located)
         screened = []
         for k, (g, p) in enumerate(located):
             others = [q for j, (_, q) in enumerate(located) if j != k]
