@@ -26,8 +26,8 @@ from .records import AssociationSettings, Detection, DetectionSettings, Located
 CROSS_HEIGHT_X_TOL_M = DetectionSettings.cross_height_x_tol_m
 CROSS_HEIGHT_RC_TOL_M = DetectionSettings.cross_height_rc_tol_m
 CROSS_HEIGHT_WALL_TOL_M = DetectionSettings.cross_height_wall_tol_m
-# Eq. L2 needs the cycle's wall distance: the median of at least this many plates grouped without it (fewer, and
-# one wrong grouping could set it).
+# Eq. L2 needs the cycle's wall distance: the median of at least this many plates grouped without it (fewer,
+# and one wrong grouping could set it).
 WALL_MIN_PLATES = 3
 _GATED = 1e6  # the assignment cost of a pair outside either gate: never chosen over a gated-in pair
 # Eq. L1 (`shared_look`): a neighbour predicted within this many of the detector's non-maximum-suppression
@@ -96,7 +96,8 @@ def two_look_wall_m(h_a, rc_a, sigma_a, h_b, rc_b, sigma_b) -> tuple[np.ndarray,
     deviation sigma; m, arrays that broadcast, h_a != h_b) put on a rib parallel to the rail, and W's standard
     deviation (first order). NaN where the two ranges meet at no real point.
 
-    C13 with two heights: z = ((R_a^2 - h_a^2) - (R_b^2 - h_b^2)) / (2 (h_b - h_a)), W^2 = R_a^2 - (z - h_a)^2.
+    C13 with two heights: z = ((R_a^2 - h_a^2) - (R_b^2 - h_b^2)) / (2 (h_b - h_a)),
+    W^2 = R_a^2 - (z - h_a)^2.
     """
     h_a, rc_a, h_b, rc_b = (np.asarray(v, dtype=float) for v in (h_a, rc_a, h_b, rc_b))
     dh = h_b - h_a
