@@ -73,6 +73,9 @@ def test_without_a_file_the_defaults_apply():
     ("[site]\nheights_m = [0.2]\n", "site.heights_m"),
     ("[association]\ntolerance_m = [0.05, 0.1]\n", "association.tolerance_m"),
     ("[processing]\nbackend = 'cuda'\n", "processing.backend"),
+    ("[detection]\ncross_height_x_tol_m = 0.0\n", "detection.cross_height_x_tol_m"),
+    ("[detection]\ncross_height_rc_tol_m = nan\n", "detection.cross_height_rc_tol_m"),
+    ("[detection]\ncross_height_wall_tol_m = -0.1\n", "detection.cross_height_wall_tol_m"),
     ("[site\n", "-"),
 ])
 def test_a_mistake_names_the_file_and_the_key(tmp_path, text, key):

@@ -217,6 +217,9 @@ _RANGES = {
     "detection.cancel_time_budget_s": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0 (0: none)"),
     "detection.synthesis_passes": (lambda v: 0 <= v <= 16, "between 0 and 16"),
     "detection.synthesis_tol_m": (_positive, "finite and > 0"),
+    "detection.cross_height_x_tol_m": (_positive, "finite and > 0"),
+    "detection.cross_height_rc_tol_m": (_positive, "finite and > 0"),
+    "detection.cross_height_wall_tol_m": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0 (0: off)"),
     **{f"limits.{f.name}": (lambda v: v >= 1, ">= 1") for f in dataclasses.fields(ReadLimits)},
 }
 
