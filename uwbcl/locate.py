@@ -22,7 +22,7 @@ from .geometry import closest_approach_range_m
 from .records import AssociationSettings, Detection, DetectionSettings, Located
 
 # Cross-height association gates (`associate_across_heights`): their one home is DetectionSettings, where a
-# site can set them ([detection] cross_height_x_tol_m, cross_height_rc_tol_m).
+# site can set them ([detection] cross_height_x_tol_m, cross_height_rc_tol_m, cross_height_wall_tol_m).
 CROSS_HEIGHT_X_TOL_M = DetectionSettings.cross_height_x_tol_m
 CROSS_HEIGHT_RC_TOL_M = DetectionSettings.cross_height_rc_tol_m
 CROSS_HEIGHT_WALL_TOL_M = DetectionSettings.cross_height_wall_tol_m
@@ -146,9 +146,8 @@ def associate_across_heights(detections_by_height: dict[float, list[Detection]],
             sig_b = range_sigma_m * np.array([look_sigma_factor(b) for b in other])[None, :]
             wall, sigma = two_look_wall_m(ref_h, np.array([a.rc_m for a in ref])[:, None], sig_a,
                                           h, np.array([b.rc_m for b in other])[None, :], sig_b)
-            dw = np.abs(wall - wall_m) / np.maximum(wall_tol_m, 3.0 * sigma)
-            dw = np.where(np.isfinite(dw), dw, np.inf)  # no real point: not one plate
-            cost, inside = cost + np.where(np.isfinite(dw), dw, 0.0) ** 2, inside & (dw <= 1)
+            dw = np.abs(wall - wall_m) / np.maximum(wall_tol_m, 3.0 * sigma)  # NaN: no real point, no plate
+            cost, inside = cost + np.nan_to_num(dw) ** 2, inside & (dw <= 1)
         gated = np.where(inside, cost, _GATED)
         for i, j in zip(*optimize.linear_sum_assignment(gated)):
             if gated[i, j] < _GATED:
