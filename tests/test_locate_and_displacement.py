@@ -134,6 +134,9 @@ def test_the_wall_of_two_looks_and_its_sigma_match_finite_differences():
     ga = (two_look_wall_m(h_a, ra + e, 0, h_b, rb, 0)[0] - w) / e
     gb = (two_look_wall_m(h_a, ra, 0, h_b, rb + e, 0)[0] - w) / e
     assert sigma == pytest.approx(np.hypot(0.003 * ga, 0.004 * gb), rel=1e-5)
+    # the same first-order propagation as a two-height plate's covariance (D2), written in closed form
+    cov = location_covariance_m2((0.0, -wall, z), (h_a, h_b), (0.003, 0.004))
+    assert sigma == pytest.approx(np.sqrt(cov[1, 1]), rel=1e-9)
     assert np.isnan(two_look_wall_m(0.0, 1.0, 0.0, 0.1, 3.0, 0.0)[0])  # the ranges meet nowhere
 
 

@@ -94,7 +94,9 @@ def misfit_scale(plate: Located, range_sigma_m: float) -> float:
 def two_look_wall_m(h_a, rc_a, sigma_a, h_b, rc_b, sigma_b) -> tuple[np.ndarray, np.ndarray]:
     """Eq. L2: the wall distance W (m) of the one point that two looks (rail height h, range R_c, its standard
     deviation sigma; m, arrays that broadcast, h_a != h_b) put on a rib parallel to the rail, and W's standard
-    deviation (first order). NaN where the two ranges meet at no real point.
+    deviation (first order: D2's propagation for two heights, `displacement.location_covariance_m2`, in
+    closed form so that every pair of a cycle's looks is one array operation). NaN where the two ranges meet
+    at no real point.
 
     C13 with two heights: z = ((R_a^2 - h_a^2) - (R_b^2 - h_b^2)) / (2 (h_b - h_a)),
     W^2 = R_a^2 - (z - h_a)^2.
