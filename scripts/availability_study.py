@@ -86,11 +86,21 @@ class Scenario:
     # the rows' plates in columns (one bolting ring per column, a few cm apart along the rib) instead of each
     # row spaced on its own
     aligned: bool = False
+    # How the passes are acquired and written: choices the archive format leaves to the writer.
+    prf_hz: float = 20.0
+    speed_m_s: float = 0.25  # nominal carriage speed (the track spacing is speed / PRF)
+    rail_m: float = 3.0  # rail travel
+    sample_rate_hz: float = 4.0e9  # complex (I/Q) fast-time sampling rate
+    window_margin_m: float = 0.4  # range window beyond the nearest and farthest scatterer seen
+    aperture_m: float = 0.14  # real antenna aperture along the rail
+    reference_z: str = "rows"  # the reference point's Z_r: "rows" (their mean), "zero", "rail" (mean height)
 
     def key(self, cycles: int) -> dict:
         key = {**dataclasses.asdict(self), "cycles": cycles, "generator": 1}
-        if not self.aligned:  # the scenarios from before the field keep their archives
-            del key["aligned"]
+        defaults = Scenario(self.name)
+        for name in ("aligned", *ACQUISITION):  # the scenarios from before these fields keep their archives
+            if getattr(self, name) == getattr(defaults, name):
+                del key[name]
         return key
 
 
@@ -116,6 +126,8 @@ VARIANTS = {  # name: (parent, heights to keep or None, web-depth prior?)
     "four-heights-2h": ("four-heights-snr10", (0.15, 0.75), True),
 }
 QUICK = ["base", "dense-3h", "dense-2h", "dense-3h-noprior"]
+ACQUISITION = ("prf_hz", "speed_m_s", "rail_m", "sample_rate_hz", "window_margin_m", "aperture_m",
+               "reference_z")
 RADARS = ((4.3e9, 1.7e9), (4.0e9, 1.4e9), (3.95e9, 1.2e9))  # (carrier, -10 dB bandwidth) of random scenarios
 
 
@@ -187,7 +199,7 @@ def scene(s: Scenario, cycles: int):
 
 def pass_echo(s: Scenario, rng, scat_m: np.ndarray, amp: np.ndarray, height_m: float, decreasing: bool):
     """Complex baseband echo of one pass (archive-format section 2), positions and times per pulse."""
-    prf, v0, rail = 20.0, 0.25, 3.0
+    prf, v0, rail = s.prf_hz, s.speed_m_s, s.rail_m
     lam = C_M_S / s.carrier_hz
     # Carriage speed: a slow hunting oscillation plus a random walk, positions logged per pulse.
     n_max = int(rail / (v0 * (1 - s.wobble)) * prf) + 2
@@ -206,11 +218,12 @@ def pass_echo(s: Scenario, rng, scat_m: np.ndarray, amp: np.ndarray, height_m: f
     horiz = np.linalg.norm(rel[:, :, :2], axis=2)
     sin_off = np.clip((bore[0] * rel[:, :, 1] - bore[1] * rel[:, :, 0]) / horiz, -1, 1)
     front = (rel[:, :, :2] @ bore[:2]) > 0
-    gain = np.where(front, np.sinc(0.14 * sin_off / lam) ** 2, 0.0) * (horiz / rng_m)  # elevation: cos
+    # elevation: cos
+    gain = np.where(front, np.sinc(s.aperture_m * sin_off / lam) ** 2, 0.0) * (horiz / rng_m)
     a = amp[None, :] * gain / rng_m**2
     seen = a.max(axis=0) > 0.02 * a.max()
-    r_lo, r_hi = rng_m[:, seen].min() - 0.4, rng_m[:, seen].max() + 0.4
-    fs = 4.0e9
+    r_lo, r_hi = rng_m[:, seen].min() - s.window_margin_m, rng_m[:, seen].max() + s.window_margin_m
+    fs = s.sample_rate_hz
     m = int(math.ceil((r_hi - r_lo) * 2 / C_M_S * fs / 32)) * 32
     t0 = 2 * r_lo / C_M_S
     tn = t0 + np.arange(m) / fs
@@ -241,8 +254,8 @@ def write_archive(path: Path, s: Scenario, cycle: int, height_m: float, when: dt
         f.create_group("radar").attrs.update({
             "carrier_frequency_hz": s.carrier_hz, "bandwidth_hz": s.bandwidth_hz,
             "bandwidth_definition": "-10 dB",
-            "pulse_shape": "gaussian", "sample_rate_hz": fs, "pulse_repetition_frequency_hz": 20.0,
-            "antenna_aperture_m": 0.14, "range_window_start_s": t0,
+            "pulse_shape": "gaussian", "sample_rate_hz": fs, "pulse_repetition_frequency_hz": s.prf_hz,
+            "antenna_aperture_m": s.aperture_m, "range_window_start_s": t0,
             "samples_per_pulse": np.int64(echo.shape[1])})
         f.create_group("geometry").attrs.update({
             "height_m": height_m, "rotation_table_angle_deg": s.squint_deg,
@@ -283,7 +296,8 @@ def generate(s: Scenario, cycles: int, root: Path) -> Path:
         for k, h in enumerate(heights):
             rng = np.random.default_rng([s.seed, 2, c, k])
             t, pos, echo, t0, fs, _ = pass_echo(s, rng, radar_frame[near], amp[near], h, (c + k) % 2 == 1)
-            ref = (s.rib_m * math.tan(th), s.side * s.rib_m, float(np.mean(s.rows_z_m)))
+            ref_z = {"rows": float(np.mean(s.rows_z_m)), "zero": 0.0, "rail": float(np.mean(s.heights_m))}
+            ref = (s.rib_m * math.tan(th), s.side * s.rib_m, ref_z[s.reference_z])
             when = start + dt.timedelta(minutes=40 * c, seconds=40 * k)
             name = f"rig-{s.name}_c{c:06d}_h{round(h * 1000):04d}.h5"
             write_archive(arch / when.strftime("%Y-%m-%d") / name, s, c, h, when, t, pos, echo, t0, fs, ref)

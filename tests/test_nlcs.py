@@ -416,6 +416,23 @@ def test_the_paper_passes_get_1024_azimuth_rows_and_a_2048_row_reference_axis():
         assert eight_fold == (4096 if scenario is PAPER_SIM1 else 2048)
 
 
+def test_a_broad_beam_is_focused_on_the_processed_beam_with_a_bounded_axis_and_the_same_target():
+    """C6b: a 0.05 m aperture at 4.3 GHz (its main lobe reaches endfire) is processed as the aperture whose
+    first null is at 35 deg; the 0.14 m antenna keeps its own beam. Without C6b the broad beam's axis was
+    16384 rows."""
+    broad = dataclasses.replace(RADAR, antenna_aperture_m=0.05)
+    scans = [sim.simulate_pass(radar, GEOM, [REF], aperture_length_m=2.0, speed_m_s=0.15,
+                               rng=np.random.default_rng(0)) for radar in (RADAR, broad)]
+    assert nlcs.beam_aperture_m(scans[0]) == RADAR.antenna_aperture_m
+    null = geo.beam_half_width_rad(nlcs.beam_aperture_m(scans[1]), broad.wavelength_m)
+    assert math.degrees(null) == pytest.approx(35.0)
+    grids = [nlcs.focus_grid(s) for s in scans]
+    assert grids[1].n_azimuth <= 2 * grids[0].n_azimuth
+    assert grids[1].doppler_band[1] < math.sin(GEOM.rotation_table_angle_rad + null) + 1e-12
+    found = [detect.detect_nlcs(nlcs.nlcs_focus(s))[0] for s in scans]
+    assert abs(found[1].x_m - found[0].x_m) < 1e-3 and abs(found[1].rc_m - found[0].rc_m) < 1e-3
+
+
 def test_the_shorter_azimuth_axis_focuses_the_paper_pass_as_the_8x_padding_does():
     scan = PAPER_SIM1.simulate()[0]  # noise-free
     short = nlcs.nlcs_focus(scan)

@@ -194,7 +194,7 @@ def focus_one(path: Path, png: Path, settings: ProcessingSettings, label: str) -
     responses = [point_response(image, az, rg, d.image_azimuth_m, d.image_range_m) for d in detections]
     rail = (float(scan.pulse_position_m.min() - products.grid.aperture_centre_m),
             float(scan.pulse_position_m.max() - products.grid.aperture_centre_m))
-    beam = geo.pass_footprint(*rail, scan.geometry.rotation_table_angle_rad, scan.radar.antenna_aperture_m,
+    beam = geo.pass_footprint(*rail, scan.geometry.rotation_table_angle_rad, products.aperture_m,
                               scan.radar.wavelength_m, "3db")
     edges = beam.u_edges_m(rg, products.grid.sin_squint)
     plot_pass(png, image, az, rg, detections, rail,

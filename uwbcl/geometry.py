@@ -100,6 +100,19 @@ def beam_half_width_rad(aperture_m: float, wavelength_m: float) -> float:
     return math.asin(min(1.0, wavelength_m / aperture_m))
 
 
+# The widest beam the focusing processes (docs/method.md C6b): a first null at most this far from boresight.
+# The antennas the method was measured with (0.14 m at 3.95-4.3 GHz) have theirs at 29.9-32.8 deg; a broader
+# one (an aperture under 1.74 wavelengths) would put the Doppler band at endfire, where H6's group delay and
+# so the azimuth axis (D5) grow without bound: a 0.07 m aperture took 16384 rows instead of 1024.
+MAX_PROCESSED_NULL_RAD = math.radians(35.0)
+
+
+def processed_aperture_m(aperture_m: float, wavelength_m: float) -> float:
+    """Eq. C6b: the aperture the focusing models the beam with, the antenna's or, for a broader beam, the one
+    whose first null is at MAX_PROCESSED_NULL_RAD (m)."""
+    return max(aperture_m, wavelength_m / math.sin(MAX_PROCESSED_NULL_RAD))
+
+
 def rotation_table_angle_for(reference_point_m, aperture_centre_m: float,
                              boresight_y_sign: int = -1) -> float:
     """Rotation-table angle that puts the reference point on boresight: tan(theta_h) = x_T / W (degrees)."""

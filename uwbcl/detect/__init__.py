@@ -137,7 +137,7 @@ def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings =
 def search_footprint(scan: ScanPass, settings: DetectionSettings) -> geo.BeamFootprint | None:
     """The beam footprint `settings.search` asks for (docs/method.md section 4): None for "rail", else the
     pass's footprint to the beam's -3 dB edges ("footprint") or first nulls ("main_lobe"), from the rail's
-    extent about the aperture centre, the rotation table angle and the antenna aperture."""
+    extent about the aperture centre, the rotation table angle and the beam the focusing processes (C6b)."""
     if settings.search == "rail":
         return None
     edge = {"footprint": "3db", "main_lobe": "null"}.get(settings.search)
@@ -145,7 +145,7 @@ def search_footprint(scan: ScanPass, settings: DetectionSettings) -> geo.BeamFoo
         raise ValueError(f"unknown detection search region {settings.search!r} (rail|footprint|main_lobe)")
     x = scan.pulse_position_m - scan.aperture_centre_m
     return geo.pass_footprint(float(x.min()), float(x.max()),
-                              scan.geometry.rotation_table_angle_rad, scan.radar.antenna_aperture_m,
+                              scan.geometry.rotation_table_angle_rad, nlcs.beam_aperture_m(scan),
                               scan.radar.wavelength_m, edge)
 
 

@@ -478,7 +478,7 @@ class FocusEngine(OpenclProcessing):
             raise ValueError(f"unknown azimuth compression mode {ac_mode!r} (exact|series)")
         grid = nlcs.focus_grid(scan) if grid is None else grid
         echo, x_rel = nlcs.prepare_track(scan, grid)
-        aperture = scan.radar.antenna_aperture_m
+        aperture = nlcs.beam_aperture_m(scan)
         self.check_footprint("nlcs_focus", grid, self._nlcs_entries(grid, echo.shape[0])
                              + self._reference_entries(grid, aperture))
         k = coef.nlcs_coefficients(grid.range_bins_m, grid.speed_m_s, grid.sin_squint, grid.wavelength_m)

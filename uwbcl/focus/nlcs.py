@@ -169,13 +169,18 @@ def focus_grid(scan: ScanPass, azimuth_oversampling: float | None = None) -> Foc
         range_window_start_s=scan.range_window_start_s, sample_rate_hz=scan.radar.sample_rate_hz,
         n_range=scan.samples_per_pulse, carrier_frequency_hz=scan.radar.carrier_frequency_hz,
         pulse_sigma_s=scan.radar.pulse_sigma_s, measured_pulse=scan.radar.measured_pulse,
-        doppler_band=geo.slant_doppler_band(g, scan.radar.antenna_aperture_m, scan.radar.wavelength_m),
+        doppler_band=geo.slant_doppler_band(g, beam_aperture_m(scan), scan.radar.wavelength_m),
     )
     if azimuth_oversampling:
         n_az = 1 << math.ceil(math.log2(azimuth_oversampling * n_track))
     else:
         n_az = _power_of_two_holding(2.0 * AZIMUTH_GUARD * azimuth_half_support_s(grid), grid)
     return dataclasses.replace(grid, n_azimuth=max(n_az, 2))
+
+
+def beam_aperture_m(scan: ScanPass) -> float:
+    """The aperture (m) the focusing models the pass's beam with (eq. C6b, `geo.processed_aperture_m`)."""
+    return geo.processed_aperture_m(scan.radar.antenna_aperture_m, scan.radar.wavelength_m)
 
 
 def _power_of_two_holding(duration_s: float, grid: FocusGrid) -> int:
@@ -659,7 +664,7 @@ def nlcs_focus(scan: ScanPass, *, ac_mode: str = "exact", grid: FocusGrid | None
     s = range_ifft(s, grid)
     s = azimuth_compensation(s, k.eta1, grid)
     s = _azimuth_nlcs_chain(s, k, grid)
-    aperture = scan.radar.antenna_aperture_m
+    aperture = beam_aperture_m(scan)
     if compression is not None:
         ac = compression
     elif ac_mode == "exact":

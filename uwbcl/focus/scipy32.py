@@ -189,7 +189,7 @@ def nlcs_focus_scipy32(scan: ScanPass, ac_mode: str = "exact", grid: nlcs.FocusG
     grid = nlcs.focus_grid(scan) if grid is None else grid
     echo, x_rel = nlcs.prepare_track(scan, grid)
     k = coef.nlcs_coefficients(grid.range_bins_m, grid.speed_m_s, grid.sin_squint, grid.wavelength_m)
-    aperture = scan.radar.antenna_aperture_m
+    aperture = nlcs.beam_aperture_m(scan)
     if compression is not None:
         ac = compression
     else:
