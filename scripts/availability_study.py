@@ -132,7 +132,7 @@ RADARS = ((4.3e9, 1.7e9), (4.0e9, 1.4e9), (3.95e9, 1.2e9))  # (carrier, -10 dB b
 
 
 def random_scenario(seed: int, cycles: int, web_range_m: tuple[float, float] | None = None,
-                    aligned: bool = False) -> Scenario:
+                    aligned: bool = False, acquisition: bool = False) -> Scenario:
     """A scenario drawn from issue 14's ranges (`--random`): squint 15-45 deg, rib 1.5-4.5 m, 2-4 heights,
     SNR 5/10/15/20 dB, wobble up to 15 %, a 1.0-1.5 m grid in 2 or 3 rows with 10-25 % of the plates missing,
     either rib side, one of three radars, int16 archives in 30 %, one missed cycle in half of them; the web
@@ -144,13 +144,34 @@ def random_scenario(seed: int, cycles: int, web_range_m: tuple[float, float] | N
     rows = (0.6, 1.3) if r.choice([2, 3]) == 2 else (0.5, 1.1, 1.7)
     carrier, bandwidth = r.choice(RADARS)
     missed = tuple(sorted(r.sample(range(2, cycles), 1))) if r.random() < 0.5 else ()
-    return Scenario(f"r{seed}", squint_deg=r.uniform(15, 45), rib_m=r.uniform(1.5, 4.5),
+    scenario = Scenario(f"r{seed}", squint_deg=r.uniform(15, 45), rib_m=r.uniform(1.5, 4.5),
                     heights_m=tuple(round(float(h), 3) for h in heights),
                     snr_db=r.choice([5.0, 10.0, 15.0, 20.0]), wobble=r.uniform(0.0, 0.15),
                     grid_m=r.uniform(1.0, 1.5), rows_z_m=rows, missing=r.uniform(0.1, 0.25),
                     side=r.choice([-1, 1]), carrier_hz=carrier, bandwidth_hz=bandwidth,
                     int16=r.random() < 0.3, missed=missed, seed=seed,
                     web_m=round(r.uniform(*web_range_m), 3) if web_range_m else 0.9, aligned=aligned)
+    if not acquisition:
+        return scenario
+    acq = random_acquisition(random.Random(f"{seed}-acquisition"))
+    acq["sample_rate_hz"] = round(acq["sample_rate_hz"] * bandwidth, -6)
+    return dataclasses.replace(scenario, **acq)
+
+
+def random_acquisition(r: random.Random) -> dict:
+    """The writer's choices the archive format leaves free (`--random-acquisition`): a rail 1.5-4 m long,
+    a PRF of 10-50 Hz and a track spacing of 4-25 mm (the carriage speed follows), a complex sampling rate of
+    1.5-3 times the -10 dB bandwidth, a range window 0.2-1.5 m beyond the scatterers seen, an antenna aperture
+    of 0.05-0.20 m (a broad beam's first null at endfire, C6b) and the reference point at the rows' mean
+    height, at Z_r = 0 or at the rails' mean height. Drawn from their own stream, so a seed's scene is the one
+    it has without them."""
+    prf = r.choice([10.0, 20.0, 40.0, 50.0])
+    return {"rail_m": round(r.uniform(1.5, 4.0), 2), "prf_hz": prf,
+            "speed_m_s": round(min(0.5, max(0.05, prf * r.uniform(0.004, 0.025))), 3),
+            "sample_rate_hz": r.uniform(1.5, 3.0),  # times the -10 dB bandwidth (random_scenario)
+            "window_margin_m": round(r.uniform(0.2, 1.5), 2),
+            "aperture_m": r.choice([0.05, 0.08, 0.10, 0.14, 0.20]),
+            "reference_z": r.choice(["rows", "zero", "rail"])}
 
 
 # ----------------------------------------------------------------------------------------------- the scene
@@ -501,6 +522,9 @@ def main(argv=None) -> int:
     ap.add_argument("--random-seed", type=int, default=300, help="seed of the first random scenario")
     ap.add_argument("--random-aligned", action="store_true",
                     help="with --random: the rows' plates in columns (bolting rings), other draws unchanged")
+    ap.add_argument("--random-acquisition", action="store_true",
+                    help="with --random: also draw the writer's free choices (`random_acquisition`: rail, "
+                         "PRF, speed, sampling rate, range window, antenna aperture, reference point)")
     ap.add_argument("--random-web", type=float, nargs=2, default=None, metavar=("LO_M", "HI_M"),
                     help="draw each random scenario's web (advance per cycle, m) uniformly in [LO, HI] "
                          "instead of 0.9 m; the prior runs are told each scenario's web")
@@ -540,7 +564,7 @@ def run_random(args) -> int:
         if args.only and f"r{seed}" not in args.only:  # the draw's other scenarios are skipped, not redrawn
             continue
         s = random_scenario(seed, cycles, tuple(args.random_web) if args.random_web else None,
-                            args.random_aligned)
+                            args.random_aligned, args.random_acquisition)
         root = args.work / s.name
         arch = generate(s, cycles, root)
         rig_m = np.array(json.loads((root / "truth.json").read_text())["rig_m"])
@@ -556,7 +580,11 @@ def run_random(args) -> int:
               f"{s.snr_db:.0f} dB, wobble {100 * s.wobble:.0f} %, "
               f"grid {s.grid_m:.2f} m x {len(s.rows_z_m)} rows, side {s.side:+d}, "
               f"{s.carrier_hz / 1e9:.2f}/{s.bandwidth_hz / 1e9:.1f} GHz, web {s.web_m:.2f} m"
-              f"{', int16' if s.int16 else ''}{f', missed {list(s.missed)}' if s.missed else ''}", flush=True)
+              f"{', int16' if s.int16 else ''}{f', missed {list(s.missed)}' if s.missed else ''}"
+              + (f"; rail {s.rail_m} m, {s.prf_hz:.0f} Hz x {s.speed_m_s} m/s, "
+                 f"fs {s.sample_rate_hz / 1e9:.2f} GHz, window +{s.window_margin_m} m, "
+                 f"aperture {s.aperture_m} m, reference z {s.reference_z}"
+                 if args.random_acquisition else ""), flush=True)
     print(table(results))
     print(summary(results, snr_db))
     if args.json:
