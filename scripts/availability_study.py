@@ -25,6 +25,9 @@ web-depth prior over a short history (6 cycles: a user's first night), and print
 class. `--random-web LO HI` draws each scenario's web (advance per cycle) in [LO, HI] m instead of 0.9 m;
 `--random-aligned` puts the rows' plates in columns (one bolting ring per column, x within a few cm), where
 the rows' responses merge at some heights (docs/method.md section 5, eq. L1).
+`--random-acquisition` also draws what the archive format leaves to its writer (`random_acquisition`: the rail's
+length, PRF and carriage speed, the sampling rate, the range window, the antenna's aperture down to a beam whose
+first null is at endfire, the reference point), which the other studies hold at one value.
 The pooled table also counts the withheld (not ok) rows and, in brackets, those whose cycle shares a located
 plate with the cycle before it at the true step (within SHARED_PLATE_TOL_M): the rest had nothing in common
 with their neighbour, so no association could have linked them (a data limit, not the method's).
@@ -94,6 +97,7 @@ class Scenario:
     window_margin_m: float = 0.4  # range window beyond the nearest and farthest scatterer seen
     aperture_m: float = 0.14  # real antenna aperture along the rail
     reference_z: str = "rows"  # the reference point's Z_r: "rows" (their mean), "zero", "rail" (mean height)
+    rail_offset_m: float = 0.0  # X_r of the rail's centre: the format puts it at 0; a writer may not
 
     def key(self, cycles: int) -> dict:
         key = {**dataclasses.asdict(self), "cycles": cycles, "generator": 1}
@@ -127,7 +131,7 @@ VARIANTS = {  # name: (parent, heights to keep or None, web-depth prior?)
 }
 QUICK = ["base", "dense-3h", "dense-2h", "dense-3h-noprior"]
 ACQUISITION = ("prf_hz", "speed_m_s", "rail_m", "sample_rate_hz", "window_margin_m", "aperture_m",
-               "reference_z")
+               "reference_z", "rail_offset_m")
 RADARS = ((4.3e9, 1.7e9), (4.0e9, 1.4e9), (3.95e9, 1.2e9))  # (carrier, -10 dB bandwidth) of random scenarios
 
 
@@ -230,7 +234,7 @@ def pass_echo(s: Scenario, rng, scat_m: np.ndarray, amp: np.ndarray, height_m: f
     travelled = np.concatenate([[0.0], np.cumsum(speed[:-1] / prf)])
     n = int(np.searchsorted(travelled, rail, side="right"))
     t, travelled = t[:n], travelled[:n]
-    pos = (rail / 2 - travelled) if decreasing else (travelled - rail / 2)
+    pos = s.rail_offset_m + ((rail / 2 - travelled) if decreasing else (travelled - rail / 2))
     # Antenna: boresight (sin th, s cos th, 0); two-way pattern of a uniform aperture D in azimuth.
     th = math.radians(s.squint_deg)
     bore = np.array([math.sin(th), s.side * math.cos(th), 0.0])
@@ -312,13 +316,13 @@ def generate(s: Scenario, cycles: int, root: Path) -> Path:
         if c in s.missed:
             continue
         radar_frame = scat - truth.rig_m[c]
-        near = np.abs(radar_frame[:, 0] - s.rib_m * math.tan(th)) < 8.0
+        near = np.abs(radar_frame[:, 0] - s.rail_offset_m - s.rib_m * math.tan(th)) < 8.0
         heights = s.heights_m[:1] if c in s.single_height else s.heights_m
         for k, h in enumerate(heights):
             rng = np.random.default_rng([s.seed, 2, c, k])
             t, pos, echo, t0, fs, _ = pass_echo(s, rng, radar_frame[near], amp[near], h, (c + k) % 2 == 1)
             ref_z = {"rows": float(np.mean(s.rows_z_m)), "zero": 0.0, "rail": float(np.mean(s.heights_m))}
-            ref = (s.rib_m * math.tan(th), s.side * s.rib_m, ref_z[s.reference_z])
+            ref = (s.rail_offset_m + s.rib_m * math.tan(th), s.side * s.rib_m, ref_z[s.reference_z])
             when = start + dt.timedelta(minutes=40 * c, seconds=40 * k)
             name = f"rig-{s.name}_c{c:06d}_h{round(h * 1000):04d}.h5"
             write_archive(arch / when.strftime("%Y-%m-%d") / name, s, c, h, when, t, pos, echo, t0, fs, ref)
