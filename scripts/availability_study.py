@@ -25,9 +25,9 @@ web-depth prior over a short history (6 cycles: a user's first night), and print
 class. `--random-web LO HI` draws each scenario's web (advance per cycle) in [LO, HI] m instead of 0.9 m;
 `--random-aligned` puts the rows' plates in columns (one bolting ring per column, x within a few cm), where
 the rows' responses merge at some heights (docs/method.md section 5, eq. L1).
-`--random-acquisition` also draws what the archive format leaves to its writer (`random_acquisition`: the rail's
-length, PRF and carriage speed, the sampling rate, the range window, the antenna's aperture down to a beam whose
-first null is at endfire, the reference point), which the other studies hold at one value.
+`--random-acquisition` also draws what the archive format leaves to its writer (`random_acquisition`: the
+rail's length, PRF and carriage speed, the sampling rate, the range window, the antenna's aperture down to a
+beam whose first null is at endfire, the reference point), which the other studies hold at one value.
 The pooled table also counts the withheld (not ok) rows and, in brackets, those whose cycle shares a located
 plate with the cycle before it at the true step (within SHARED_PLATE_TOL_M): the rest had nothing in common
 with their neighbour, so no association could have linked them (a data limit, not the method's).
@@ -98,6 +98,7 @@ class Scenario:
     aperture_m: float = 0.14  # real antenna aperture along the rail
     reference_z: str = "rows"  # the reference point's Z_r: "rows" (their mean), "zero", "rail" (mean height)
     rail_offset_m: float = 0.0  # X_r of the rail's centre: the format puts it at 0; a writer may not
+    echo_scale: float = 1.0  # the echo's arbitrary linear amplitude unit (archive-format section 3)
 
     def key(self, cycles: int) -> dict:
         key = {**dataclasses.asdict(self), "cycles": cycles, "generator": 1}
@@ -131,7 +132,7 @@ VARIANTS = {  # name: (parent, heights to keep or None, web-depth prior?)
 }
 QUICK = ["base", "dense-3h", "dense-2h", "dense-3h-noprior"]
 ACQUISITION = ("prf_hz", "speed_m_s", "rail_m", "sample_rate_hz", "window_margin_m", "aperture_m",
-               "reference_z", "rail_offset_m")
+               "reference_z", "rail_offset_m", "echo_scale")
 RADARS = ((4.3e9, 1.7e9), (4.0e9, 1.4e9), (3.95e9, 1.2e9))  # (carrier, -10 dB bandwidth) of random scenarios
 
 
@@ -262,7 +263,7 @@ def pass_echo(s: Scenario, rng, scat_m: np.ndarray, amp: np.ndarray, height_m: f
     peak = a.max()  # the strongest plate (clutter is 20x weaker)
     noise = peak * 10 ** (-s.snr_db / 20)
     echo += noise / math.sqrt(2) * (rng.standard_normal(echo.shape) + 1j * rng.standard_normal(echo.shape))
-    return t, pos, echo, t0, fs, bore
+    return t, pos, s.echo_scale * echo, t0, fs, bore
 
 
 def write_archive(path: Path, s: Scenario, cycle: int, height_m: float, when: dt.datetime, t, pos, echo, t0,
