@@ -20,6 +20,7 @@ import numpy as np
 from . import archive, pipeline
 from . import geometry as geo
 from .atomic import write_csv_atomic
+from .focus import nlcs
 from .model import SPEED_OF_LIGHT_M_S
 from .outputs import _pyplot, _save, safe_name
 from .records import Detection, ProcessingSettings
@@ -194,7 +195,7 @@ def focus_one(path: Path, png: Path, settings: ProcessingSettings, label: str) -
     responses = [point_response(image, az, rg, d.image_azimuth_m, d.image_range_m) for d in detections]
     rail = (float(scan.pulse_position_m.min() - products.grid.aperture_centre_m),
             float(scan.pulse_position_m.max() - products.grid.aperture_centre_m))
-    beam = geo.pass_footprint(*rail, scan.geometry.rotation_table_angle_rad, products.aperture_m,
+    beam = geo.pass_footprint(*rail, scan.geometry.rotation_table_angle_rad, nlcs.beam_aperture_m(scan),
                               scan.radar.wavelength_m, "3db")
     edges = beam.u_edges_m(rg, products.grid.sin_squint)
     plot_pass(png, image, az, rg, detections, rail,
