@@ -28,7 +28,7 @@ import math
 import numpy as np
 import pytest
 
-from uwbcl import archive, calibrate, cli, config, pipeline
+from uwbcl import archive, calibrate, cli, config, locate, pipeline
 from uwbcl import geometry as geo
 from uwbcl.importers import synthetic
 from uwbcl.records import ConfigError, Detection, DetectionSettings, ProcessingSettings
@@ -113,8 +113,12 @@ def test_an_import_with_the_calibrated_site_file_records_the_delay_and_places_th
     settings = config.load_config(calibrated[1]).processing_settings()
     found = pipeline.detect_pass(scan, dataclasses.replace(settings, backend="numpy", range_delay_s=None))
     assert len(found) == 2
-    for d, (x, _, _) in zip(sorted(found, key=lambda d: d.x_m), REFLECTORS_M):
+    for d, (x, _, _), beyond in zip(sorted(found, key=lambda d: d.x_m), REFLECTORS_M, (0.4, 0.5)):
         assert abs(d.x_m - x) < 0.01 and abs(d.rc_m - RC_TRUE_M) < 0.01
+        # eq. L3: the antenna was 0.4 / 0.5 m past the rail's ends when the beam centre crossed them
+        assert d.beyond_rail_m == pytest.approx(beyond, abs=0.01)
+        assert locate.look_sigma_factor(d) == pytest.approx(1 + locate.BEYOND_RAIL_SIGMA_PER_SQRT_M
+                                                            * math.sqrt(d.beyond_rail_m))
 
 
 def test_without_calibration_focus_says_the_pass_is_uncalibrated(scene, capsys):
@@ -128,6 +132,7 @@ def test_a_rail_search_misses_the_reflectors_beyond_the_rail_ends(scene):
     settings = ProcessingSettings(backend="numpy", detection=DetectionSettings(min_range_m=2.2, cfar_db=10.0))
     found = pipeline.detect_pass(scan, settings)
     assert not any(abs(d.x_m - x) < 0.05 for d in found for x in REFLECTORS_M[:, 0])
+    assert all(d.beyond_rail_m == 0.0 and locate.look_sigma_factor(d) == 1.0 for d in found)
 
 
 # ----------------------------------------------------------------------------------- the delay's rules

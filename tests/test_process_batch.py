@@ -11,6 +11,7 @@ import csv
 import dataclasses
 import fcntl
 import hashlib
+import json
 import os
 import shutil
 import threading
@@ -148,6 +149,19 @@ def test_a_damaged_cache_entry_is_recomputed_not_trusted(archive_dir, clean, tmp
     entry.write_text(entry.read_text()[:100])
     report = batch.process_directory(archive_dir, out, SETTINGS, options())
     assert report.n_detected == 1
+    assert snapshot(out) == snapshot(clean[0])
+
+
+def test_a_cache_entry_from_before_beyond_rail_m_is_read_with_its_default_not_recomputed(archive_dir, clean,
+                                                                                           tmp_path):
+    out = warm_out(clean[0], tmp_path)
+    for entry in (out / batch.CACHE_DIR).rglob("*.json"):
+        record = json.loads(entry.read_text())
+        for d in record["detections"]:
+            assert d.pop("beyond_rail_m") == 0.0  # a rail search's
+        entry.write_text(json.dumps(record))
+    report = batch.process_directory(archive_dir, out, SETTINGS, options())
+    assert report.n_detected == 0
     assert snapshot(out) == snapshot(clean[0])
 
 

@@ -144,6 +144,9 @@ WORKER_DIED = {"error": "the worker process died while focusing it (crash or out
 
 
 _DETECTION_FIELDS = tuple(f.name for f in dataclasses.fields(Detection))
+# Detection fields added after records were first cached take their default where absent; the cache key's code
+# fingerprint keeps a run from reading records of older code (`--reuse-detections` copies rail searches' on).
+_REQUIRED_FIELDS = frozenset(_DETECTION_FIELDS) - {"beyond_rail_m"}
 
 
 def _number(v) -> bool:
@@ -175,10 +178,10 @@ def _record(file: str, sha: str, entry) -> PassRecord:
     if not isinstance(dets, list):
         raise ValueError("detections: not a list")
     for d in dets:
-        if (not isinstance(d, dict) or set(d) != set(_DETECTION_FIELDS)
+        if (not isinstance(d, dict) or not _REQUIRED_FIELDS <= set(d) <= set(_DETECTION_FIELDS)
                 or not all(_number(v) for v in d.values())):
             raise ValueError(f"detections: {d!r:.80}")
-    detections = tuple(Detection(**{k: float(d[k]) for k in _DETECTION_FIELDS}) for d in dets)
+    detections = tuple(Detection(**{k: float(v) for k, v in d.items()}) for d in dets)
     # Only the compared keys, under the shared key strings: a month's batch holds ~20,000 records.
     params = {k: tuple(params[k]) if isinstance(params[k], list) else params[k] for k in PARAMETER_KEYS}
     return PassRecord(file=file, sha256=sha, rig_id=sys.intern(h["rig_id"]), cycle=h["cycle"],

@@ -91,7 +91,7 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     for i, j in pairs:  # the two plates of a split peak (S2) carry their distance
         apart = math.hypot(found[i].x_m - found[j].x_m, found[i].rc_m - found[j].rc_m)
         found[i], found[j] = (dataclasses.replace(found[k], split_separation_m=apart) for k in (i, j))
-    return _in_range(_in_footprint(found, grid, footprint), settings)
+    return _in_range(_in_footprint(_beyond_rail(found, grid, footprint), grid, footprint), settings)
 
 
 def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings = DetectionSettings(),
@@ -131,7 +131,7 @@ def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings =
         r = products.r_axis_m[0] + b * dr
         t_n = u / grid.speed_m_s
         out.append(_detection(grid, t_n, r - grid.sin_squint * u, u, r, abs(val), floor))
-    return _in_range(out, settings)
+    return _in_range(_beyond_rail(out, grid, footprint), settings)
 
 
 def search_footprint(scan: ScanPass, settings: DetectionSettings) -> geo.BeamFootprint | None:
@@ -173,6 +173,17 @@ def _cancel(cells: list[cancel.Cell], model: cancel.CancellationModel, settings:
             peaks.detection_threshold(0.0, floor, settings), settings.neighbour_cancellation_tol_m,
             settings.neighbour_gain_degree, deadline)
     return modelled + cells[n:], len(modelled), pairs
+
+
+def _beyond_rail(found: list[Detection], grid: nlcs.FocusGrid, footprint: geo.BeamFootprint | None
+                 ) -> list[Detection]:
+    """With a search beyond the rail, each detection with how far past the rail's nearer end the antenna was
+    when it crossed the beam centre, v (|t_n| - half track) (`Detection.beyond_rail_m`, eq. L3); the rail
+    search's unchanged."""
+    if footprint is None:
+        return found
+    return [dataclasses.replace(d, beyond_rail_m=grid.speed_m_s * max(0.0, abs(d.t_n_s) - grid.half_track_s))
+            for d in found]
 
 
 def _beyond_rail_by_backprojection(scan: ScanPass, grid: nlcs.FocusGrid, t_n_s: np.ndarray, r0_m: np.ndarray
