@@ -165,6 +165,19 @@ def test_a_cache_entry_from_before_beyond_rail_m_is_read_with_its_default_not_re
     assert snapshot(out) == snapshot(clean[0])
 
 
+@pytest.mark.parametrize("beyond", [-0.5, float("nan")])
+def test_a_cache_entry_with_a_negative_or_nan_beyond_rail_m_is_recomputed(archive_dir, clean, tmp_path,
+                                                                          beyond):
+    out = warm_out(clean[0], tmp_path)
+    entry = min((out / batch.CACHE_DIR).rglob("*.json"))
+    record = json.loads(entry.read_text())
+    record["detections"][0]["beyond_rail_m"] = beyond
+    entry.write_text(json.dumps(record))
+    report = batch.process_directory(archive_dir, out, SETTINGS, options())
+    assert report.n_detected == 1
+    assert snapshot(out) == snapshot(clean[0])
+
+
 def test_an_output_directory_inside_the_input_tree_is_not_read_as_input(archive_dir, clean, tmp_path):
     src = copy_archive(archive_dir, tmp_path)
     out = src / "results"

@@ -179,7 +179,8 @@ def _record(file: str, sha: str, entry) -> PassRecord:
         raise ValueError("detections: not a list")
     for d in dets:
         if (not isinstance(d, dict) or not _REQUIRED_FIELDS <= set(d) <= set(_DETECTION_FIELDS)
-                or not all(_number(v) for v in d.values())):
+                or not all(_number(v) for v in d.values())
+                or not (_finite(d.get("beyond_rail_m", 0.0)) and d.get("beyond_rail_m", 0.0) >= 0)):
             raise ValueError(f"detections: {d!r:.80}")
     detections = tuple(Detection(**{k: float(v) for k, v in d.items()}) for d in dets)
     # Only the compared keys, under the shared key strings: a month's batch holds ~20,000 records.
