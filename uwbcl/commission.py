@@ -34,7 +34,9 @@ COLUMNS = ("file", "x_m", "rc_m", "t_n_s", "r0_m", "image_azimuth_m", "image_ran
            # appended: the carrier phase the association compares between cycles (eq. R5), and its sigma
            "phase_rad", "phase_sigma_rad",
            # appended: a plate of a split peak (eq. S2): the distance to the other (nan: not split)
-           "split_separation_m")
+           "split_separation_m",
+           # appended: how far past the rail's end it was found (eq. L3; 0 on the rail)
+           "beyond_rail_m")
 
 
 # ----------------------------------------------------------------------------------- point-response measures
@@ -173,7 +175,7 @@ class FocusedPass:
     def rows(self) -> list[dict]:
         return [{"file": self.file, **{k: getattr(d, k) for k in COLUMNS[1:9]},
                  **dataclasses.asdict(r), "phase_rad": d.phase_rad, "phase_sigma_rad": d.phase_sigma_rad,
-                 "split_separation_m": d.split_separation_m}
+                 "split_separation_m": d.split_separation_m, "beyond_rail_m": d.beyond_rail_m}
                 for d, r in zip(self.detections, self.responses)]
 
 
