@@ -158,12 +158,11 @@ def random_scenario(seed: int, cycles: int, web_range_m: tuple[float, float] | N
                     web_m=round(r.uniform(*web_range_m), 3) if web_range_m else 0.9, aligned=aligned)
     if not acquisition:
         return scenario
-    acq = random_acquisition(random.Random(f"{seed}-acquisition"))
-    acq["sample_rate_hz"] = round(acq["sample_rate_hz"] * bandwidth, -6)
-    return dataclasses.replace(scenario, **acq)
+    acquired = random_acquisition(random.Random(f"{seed}-acquisition"), bandwidth)
+    return dataclasses.replace(scenario, **acquired)
 
 
-def random_acquisition(r: random.Random) -> dict:
+def random_acquisition(r: random.Random, bandwidth_hz: float) -> dict:
     """The writer's choices the archive format leaves free (`--random-acquisition`): a rail 1.5-4 m long,
     a PRF of 10-50 Hz and a track spacing of 4-25 mm (the carriage speed follows), a complex sampling rate of
     1.5-3 times the -10 dB bandwidth, a range window 0.2-1.5 m beyond the scatterers seen, an antenna aperture
@@ -173,7 +172,7 @@ def random_acquisition(r: random.Random) -> dict:
     prf = r.choice([10.0, 20.0, 40.0, 50.0])
     return {"rail_m": round(r.uniform(1.5, 4.0), 2), "prf_hz": prf,
             "speed_m_s": round(min(0.5, max(0.05, prf * r.uniform(0.004, 0.025))), 3),
-            "sample_rate_hz": r.uniform(1.5, 3.0),  # times the -10 dB bandwidth (random_scenario)
+            "sample_rate_hz": round(r.uniform(1.5, 3.0) * bandwidth_hz, -6),
             "window_margin_m": round(r.uniform(0.2, 1.5), 2),
             "aperture_m": r.choice([0.05, 0.08, 0.10, 0.14, 0.20]),
             "reference_z": r.choice(["rows", "zero", "rail"])}
@@ -244,7 +243,7 @@ def pass_echo(s: Scenario, rng, scat_m: np.ndarray, amp: np.ndarray, height_m: f
     horiz = np.linalg.norm(rel[:, :, :2], axis=2)
     sin_off = np.clip((bore[0] * rel[:, :, 1] - bore[1] * rel[:, :, 0]) / horiz, -1, 1)
     front = (rel[:, :, :2] @ bore[:2]) > 0
-    # elevation: cos
+    # the real aperture's two-way pattern, times cos(elevation)
     gain = np.where(front, np.sinc(s.aperture_m * sin_off / lam) ** 2, 0.0) * (horiz / rng_m)
     a = amp[None, :] * gain / rng_m**2
     seen = a.max(axis=0) > 0.02 * a.max()
