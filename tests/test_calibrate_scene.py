@@ -28,7 +28,7 @@ import math
 import numpy as np
 import pytest
 
-from uwbcl import archive, calibrate, cli, config, locate, pipeline
+from uwbcl import archive, calibrate, cli, config, detect, locate, pipeline
 from uwbcl import geometry as geo
 from uwbcl.importers import synthetic
 from uwbcl.records import ConfigError, Detection, DetectionSettings, ProcessingSettings
@@ -129,10 +129,25 @@ def test_without_calibration_focus_says_the_pass_is_uncalibrated(scene, capsys):
 
 def test_a_rail_search_misses_the_reflectors_beyond_the_rail_ends(scene):
     scan = pipeline.shift_range_delay(archive.read_pass(scene["archive"]), DELAY_S)
-    settings = ProcessingSettings(backend="numpy", detection=DetectionSettings(min_range_m=2.2, cfar_db=10.0))
+    settings = ProcessingSettings(backend="numpy", detection=DetectionSettings(min_range_m=2.2, cfar_db=10.0,
+                                                                               search="rail"))
     found = pipeline.detect_pass(scan, settings)
     assert not any(abs(d.x_m - x) < 0.05 for d in found for x in REFLECTORS_M[:, 0])
     assert all(d.beyond_rail_m == 0.0 and locate.look_sigma_factor(d) == 1.0 for d in found)
+
+
+def test_the_default_search_looks_past_a_short_rails_ends_and_only_along_a_long_one(scene):
+    scan = pipeline.shift_range_delay(archive.read_pass(scene["archive"]), DELAY_S)
+    track_m = float(np.ptp(scan.pulse_position_m))
+    auto = DetectionSettings(min_range_m=2.2, cfar_db=10.0)
+    assert auto.search == "auto" and track_m < auto.short_track_m
+    found = pipeline.detect_pass(scan, ProcessingSettings(backend="numpy", detection=auto))
+    for x, _, _ in REFLECTORS_M:
+        assert any(abs(d.x_m - x) < 0.01 and d.beyond_rail_m > 0.3 for d in found)
+    assert detect.search_footprint(scan, auto) == detect.search_footprint(
+        scan, dataclasses.replace(auto, search="footprint"))
+    # the same pass counted as long: the rail search
+    assert detect.search_footprint(scan, dataclasses.replace(auto, short_track_m=track_m)) is None
 
 
 # ----------------------------------------------------------------------------------- the delay's rules
@@ -160,10 +175,12 @@ def test_the_radar_table_and_the_new_detection_keys_are_read_and_checked():
     assert (settings.range_delay_s, settings.detection.search, settings.detection.cancel_time_budget_s) == (
         2.3e-9, "footprint", 2.0)
     assert config.SiteConfig().processing_settings().range_delay_s is None
-    assert DetectionSettings().search == "rail" and DetectionSettings().cancel_time_budget_s == 0.0
+    assert DetectionSettings().search == "auto" and DetectionSettings().cancel_time_budget_s == 0.0
     for bad, key in (({"detection": {"search": "everywhere"}}, "detection.search"),
                      ({"detection": {"search": 1}}, "detection.search"),
                      ({"detection": {"cancel_time_budget_s": -1.0}}, "detection.cancel_time_budget_s"),
+                     ({"detection": {"short_track_m": -1.0}}, "detection.short_track_m"),
+                     ({"detection": {"short_track_m": float("nan")}}, "detection.short_track_m"),
                      ({"radar": {"range_delay_s": 2.3}}, "radar.range_delay_s"),
                      ({"radar": {"range_delay": 2.3e-9}}, "radar.range_delay")):
         with pytest.raises(ConfigError) as err:

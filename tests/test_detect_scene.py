@@ -138,12 +138,21 @@ def test_the_range_bin_medians_equal_numpys_median_over_each_bins_valid_pixels()
     valid = rng.random(mag.shape) > 0.2
     rc = np.linspace(2.0, 3.0, 30)[None, :] + np.linspace(0.0, 0.2, 40)[:, None]
     level = peaks.range_bin_medians(mag, valid, rc, 0.05)
-    bins = np.floor((rc - rc[valid].min()) / 0.05).astype(int)
+    bins = np.floor((rc - np.floor(rc[valid].min() / 0.05) * 0.05) / 0.05).astype(int)
     for b in np.unique(bins[valid]):
         here = bins == b
         assert np.allclose(level[here], np.median(mag[here & valid]))
     by_column = peaks.range_bin_medians(mag, valid, None, 0.05)
     assert np.allclose(by_column[0], [np.median(mag[valid[:, j], j]) for j in range(30)])
+    # a footprint search's level: each bin's rail pixels where it has any, else all its valid ones
+    rail = np.zeros(mag.shape, dtype=bool)
+    rail[10:30] = True
+    rail[:, 25:] = False
+    on_rail = peaks.range_bin_medians(mag, valid, rc, 0.05, rail)
+    for b in np.unique(bins[valid]):
+        here, where = bins == b, (bins == b) & valid & rail
+        want = np.median(mag[where]) if where.any() else np.median(mag[here & valid])
+        assert np.allclose(on_rail[here], want)
 
 
 def test_the_cfar_threshold_removes_a_constant_range_stripe_of_an_image_but_not_a_point_on_it():

@@ -219,6 +219,7 @@ _RANGES = {
     "detection.synthesis_tol_m": (_positive, "finite and > 0"),
     "detection.cross_height_x_tol_m": (_positive, "finite and > 0"),
     "detection.cross_height_rc_tol_m": (_positive, "finite and > 0"),
+    "detection.short_track_m": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0 (0: never short)"),
     "detection.cross_height_wall_tol_m": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0 (0: off)"),
     **{f"limits.{f.name}": (lambda v: v >= 1, ">= 1") for f in dataclasses.fields(ReadLimits)},
 }

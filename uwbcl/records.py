@@ -13,7 +13,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-SEARCH_REGIONS = ("rail", "footprint", "main_lobe")
+SEARCH_REGIONS = ("auto", "rail", "footprint", "main_lobe")
 ALGORITHMS = ("nlcs", "bp")
 BACKGROUND_MODES = ("none", "mean")  # DetectionSettings.background
 BACKENDS = ("opencl", "numpy")  # the OpenCL engine, and the float64 numpy reference it is checked against
@@ -93,8 +93,11 @@ class DetectionSettings:
     background: str = "none"
     # Where peaks are sought along track (docs/method.md section 4): "rail", the rail's extent at the
     # processing squint; "footprint", the beam's -3 dB footprint over the ranges of the window (reflectors
-    # beyond the rail ends); "main_lobe", out to the beam's first nulls.
-    search: str = "rail"
+    # beyond the rail ends); "main_lobe", out to the beam's first nulls; "auto", "footprint" on a pass whose
+    # track is shorter than short_track_m and "rail" otherwise (a short rail shares too few plates between
+    # cycles: docs/method.md section 6.1).
+    search: str = "auto"
+    short_track_m: float = 2.8
     # Wall-clock budget of neighbour cancellation per pass (s, 0: none): the strongest targets are modelled
     # first, and once a pass has used the budget the remaining ones keep their first refinement.
     cancel_time_budget_s: float = 0.0

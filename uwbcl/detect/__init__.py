@@ -137,13 +137,18 @@ def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings =
 def search_footprint(scan: ScanPass, settings: DetectionSettings) -> geo.BeamFootprint | None:
     """The beam footprint `settings.search` asks for (docs/method.md section 4): None for "rail", else the
     pass's footprint to the beam's -3 dB edges ("footprint") or first nulls ("main_lobe"), from the rail's
-    extent about the aperture centre, the rotation table angle and the beam the focusing processes (C6b)."""
-    if settings.search == "rail":
-        return None
-    edge = {"footprint": "3db", "main_lobe": "null"}.get(settings.search)
-    if edge is None:
-        raise ValueError(f"unknown detection search region {settings.search!r} (rail|footprint|main_lobe)")
+    extent about the aperture centre, the rotation table angle and the beam the focusing processes (C6b).
+    "auto" is "footprint" on a track (the pulses' extent) shorter than `settings.short_track_m`, else
+    "rail"."""
     x = scan.pulse_position_m - scan.aperture_centre_m
+    search = settings.search
+    if search == "auto":
+        search = "footprint" if float(x.max() - x.min()) < settings.short_track_m else "rail"
+    if search == "rail":
+        return None
+    edge = {"footprint": "3db", "main_lobe": "null"}.get(search)
+    if edge is None:
+        raise ValueError(f"unknown detection search region {search!r} (auto|rail|footprint|main_lobe)")
     return geo.pass_footprint(float(x.min()), float(x.max()),
                               scan.geometry.rotation_table_angle_rad, nlcs.beam_aperture_m(scan),
                               scan.radar.wavelength_m, edge)

@@ -7,6 +7,8 @@ interest in R_c, that is the largest pixel of its separation ellipse (`Detection
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy import ndimage
 
@@ -63,7 +65,8 @@ def local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float]
     threshold = detection_threshold(peak_max, floor, s)
     candidates = valid & (mag > threshold)
     if s.cfar_db > 0:
-        candidates &= mag > range_bin_medians(mag, valid, rc_m, pixel_m[1]) * 10 ** (s.cfar_db / 20)
+        level = range_bin_medians(mag, valid, rc_m, pixel_m[1], None if floor_mask is valid else floor_mask)
+        candidates &= mag > level * 10 ** (s.cfar_db / 20)
     na, nr = (int(s.separation_m / pixel_m[0]), int(s.range_separation_m / pixel_m[1]))
     a, r = np.ogrid[-na:na + 1, -nr:nr + 1]
     footprint = (a * pixel_m[0] / s.separation_m) ** 2 + (r * pixel_m[1] / s.range_separation_m) ** 2 <= 1.0
@@ -90,22 +93,36 @@ def detection_threshold(peak_max: float, floor: float, s: DetectionSettings) -> 
     return max(peak_max * 10 ** (s.relative_floor_db / 20), floor * 10 ** (s.min_snr_db / 20))
 
 
-def range_bin_medians(mag: np.ndarray, valid: np.ndarray, rc_m: np.ndarray | None, bin_m: float
-                      ) -> np.ndarray:
+def range_bin_medians(mag: np.ndarray, valid: np.ndarray, rc_m: np.ndarray | None, bin_m: float,
+                      level_mask: np.ndarray | None = None) -> np.ndarray:
     """Each pixel's clutter level for the adaptive threshold (`DetectionSettings.cfar_db`): the median of
     `mag` over the valid pixels of its range bin, shape of `mag`.
 
     The bins are `bin_m` wide in closest-approach range `rc_m` (a squinted image draws an echo at a constant
     delay, such as the antenna's coupling, along a line of constant R_c, not along a column); without
-    `rc_m`, the image's columns. A pixel whose bin holds no valid pixel gets 0.
+    `rc_m`, the image's columns. A pixel whose bin holds no valid pixel gets 0. With `level_mask` (a footprint
+    search's rail pixels) a bin's median is over its pixels in `level_mask` where it has any: past the rail a
+    constant-delay stripe fades, and a median taken there too would let the stripe through on the rail.
     """
     if rc_m is None:
         bins = np.broadcast_to(np.arange(mag.shape[1])[None, :], mag.shape)
-    else:
-        lowest = rc_m[valid].min() if valid.any() else 0.0
+    else:  # bins on a fixed lattice in R_c, so a wider search draws the same bins as the rail's
+        lowest = math.floor(rc_m[valid].min() / bin_m) * bin_m if valid.any() else 0.0
         bins = np.floor((rc_m - lowest) / bin_m).astype(np.int64)
-    values, b = mag[valid], bins[valid]
-    n_bins = int(b.max()) + 1 if b.size else 1
+    b_valid = bins[valid]
+    n_bins = int(b_valid.max()) + 1 if b_valid.size else 1
+    medians = _bin_medians(mag[valid], b_valid, n_bins)
+    if level_mask is not None:
+        level = level_mask & valid
+        on_level = _bin_medians(mag[level], bins[level], n_bins)
+        has_level = np.bincount(bins[level], minlength=n_bins) > 0
+        medians = np.where(has_level, on_level, medians)
+    inside = (bins >= 0) & (bins < n_bins)
+    return np.where(inside, medians[np.clip(bins, 0, n_bins - 1)], 0.0)
+
+
+def _bin_medians(values: np.ndarray, b: np.ndarray, n_bins: int) -> np.ndarray:
+    """The median of `values` in each bin `b` (0 .. n_bins - 1; 0 for an empty bin), shape (n_bins,)."""
     counts = np.bincount(b, minlength=n_bins)
     ordered = values[np.lexsort((values, b))]  # by bin, then by magnitude within it
     starts = np.cumsum(counts) - counts
@@ -113,8 +130,7 @@ def range_bin_medians(mag: np.ndarray, valid: np.ndarray, rc_m: np.ndarray | Non
     medians = np.zeros(n_bins)
     lo, hi = starts[has] + (counts[has] - 1) // 2, starts[has] + counts[has] // 2
     medians[has] = 0.5 * (ordered[lo] + ordered[hi])
-    inside = (bins >= 0) & (bins < n_bins)
-    return np.where(inside, medians[np.clip(bins, 0, n_bins - 1)], 0.0)
+    return medians
 
 
 def range_of_interest(rc_m: np.ndarray, s: DetectionSettings) -> np.ndarray:
