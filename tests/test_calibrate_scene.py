@@ -141,13 +141,15 @@ def test_the_default_search_looks_past_a_short_rails_ends_and_only_along_a_long_
     track_m = float(np.ptp(scan.pulse_position_m))
     auto = DetectionSettings(min_range_m=2.2, cfar_db=10.0)
     assert auto.search == "auto" and track_m < auto.short_track_m
+    assert detect.pass_search(scan, auto) == "footprint"
     found = pipeline.detect_pass(scan, ProcessingSettings(backend="numpy", detection=auto))
     for x, _, _ in REFLECTORS_M:
         assert any(abs(d.x_m - x) < 0.01 and d.beyond_rail_m > 0.3 for d in found)
     assert detect.search_footprint(scan, auto) == detect.search_footprint(
         scan, dataclasses.replace(auto, search="footprint"))
     # the same pass counted as long: the rail search
-    assert detect.search_footprint(scan, dataclasses.replace(auto, short_track_m=track_m)) is None
+    long = dataclasses.replace(auto, short_track_m=track_m)
+    assert detect.pass_search(scan, long) == "rail" and detect.search_footprint(scan, long) is None
 
 
 # ----------------------------------------------------------------------------------- the delay's rules

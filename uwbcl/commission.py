@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import archive, pipeline
+from . import archive, detect, pipeline
 from . import geometry as geo
 from .atomic import write_csv_atomic
 from .focus import nlcs
@@ -201,7 +201,8 @@ def focus_one(path: Path, png: Path, settings: ProcessingSettings, label: str) -
                               scan.radar.wavelength_m, "3db")
     edges = beam.u_edges_m(rg, products.grid.sin_squint)
     plot_pass(png, image, az, rg, detections, rail,
-              f"{label}: {settings.algorithm}, {len(detections)} detections", footprint_u_m=edges)
+              f"{label}: {settings.algorithm}, {detect.pass_search(scan, settings.detection)} search, "
+              f"{len(detections)} detections", footprint_u_m=edges)
     return FocusedPass(label, scan.n_pulses, scan.samples_per_pulse, detections, responses, png,
                        delay_note(scan.range_delay_s, settings.range_delay_s))
 

@@ -134,21 +134,27 @@ def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings =
     return _in_range(_beyond_rail(out, grid, footprint), settings)
 
 
+def pass_search(scan: ScanPass, settings: DetectionSettings) -> str:
+    """The search region of one pass: `settings.search`, with "auto" taken as "footprint" on a track (the
+    extent of the pulse positions, m) shorter than `settings.short_track_m` and "rail" otherwise."""
+    if settings.search != "auto":
+        return settings.search
+    x = scan.pulse_position_m
+    return "footprint" if float(x.max() - x.min()) < settings.short_track_m else "rail"
+
+
 def search_footprint(scan: ScanPass, settings: DetectionSettings) -> geo.BeamFootprint | None:
     """The beam footprint `settings.search` asks for (docs/method.md section 4): None for "rail", else the
     pass's footprint to the beam's -3 dB edges ("footprint") or first nulls ("main_lobe"), from the rail's
     extent about the aperture centre, the rotation table angle and the beam the focusing processes (C6b).
-    "auto" is "footprint" on a track (the pulses' extent) shorter than `settings.short_track_m`, else
-    "rail"."""
-    x = scan.pulse_position_m - scan.aperture_centre_m
-    search = settings.search
-    if search == "auto":
-        search = "footprint" if float(x.max() - x.min()) < settings.short_track_m else "rail"
+    "auto" as `pass_search` resolves it."""
+    search = pass_search(scan, settings)
     if search == "rail":
         return None
     edge = {"footprint": "3db", "main_lobe": "null"}.get(search)
     if edge is None:
         raise ValueError(f"unknown detection search region {search!r} (auto|rail|footprint|main_lobe)")
+    x = scan.pulse_position_m - scan.aperture_centre_m
     return geo.pass_footprint(float(x.min()), float(x.max()),
                               scan.geometry.rotation_table_angle_rad, nlcs.beam_aperture_m(scan),
                               scan.radar.wavelength_m, edge)
