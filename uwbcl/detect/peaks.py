@@ -50,7 +50,7 @@ def local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float]
         the image's columns.
     floor_mask : ndarray of bool, shape (n_a, n_r), optional
         The pixels whose median is the noise level (default `valid`): a footprint search keeps the rail's,
-        where the aperture is whole, so its SNRs and floor are those of a rail search.
+        where the aperture is whole, so its SNRs, floor and adaptive levels are those of a rail search.
 
     Returns
     -------
