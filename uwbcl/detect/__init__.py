@@ -84,8 +84,8 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
         t_f[:n], r[:n], t_n[:n] = synthesis.locate(cells[:n], model, settings.synthesis_passes,
                                                    settings.synthesis_tol_m, settings.neighbour_gain_degree)
     r0 = r - grid.speed_m_s * grid.sin_squint * t_n  # eq. (19), C12: r_LC = r_LRCM - v sin(theta_q) t_nc
-    if footprint is not None and scan is not None:
-        t_n, r0 = _beyond_rail_by_backprojection(scan, grid, t_n, r0)
+    if footprint is not None and scan is not None:  # a split pair keeps its joint fit (S2)
+        t_n, r0 = _beyond_rail_by_backprojection(scan, grid, t_n, r0, {k for pair in pairs for k in pair})
     found = [_detection(grid, float(t_n[i]), float(r0[i]), grid.speed_m_s * float(t_f[i]), float(r[i]),
                         abs(val), floor) for i, (_, _, val) in enumerate(cells)]
     for i, j in pairs:  # the two plates of a split peak (S2) carry their distance
@@ -197,13 +197,14 @@ def _beyond_rail(found: list[Detection], grid: nlcs.FocusGrid, footprint: geo.Be
             for d in found]
 
 
-def _beyond_rail_by_backprojection(scan: ScanPass, grid: nlcs.FocusGrid, t_n_s: np.ndarray, r0_m: np.ndarray
-                                   ) -> tuple[np.ndarray, np.ndarray]:
+def _beyond_rail_by_backprojection(scan: ScanPass, grid: nlcs.FocusGrid, t_n_s: np.ndarray, r0_m: np.ndarray,
+                                   split: set[int] = frozenset()) -> tuple[np.ndarray, np.ndarray]:
     """(t_n, r0) of NLCS detections beyond the rail's ends placed again on the backprojection sum (a
     subscene per detection: one processing squint focuses them poorly there, docs/method.md section 4),
-    started from the NLCS estimate on a BP_SUBSCENE_CELL_M lattice; the others unchanged."""
-    beyond = np.flatnonzero(np.abs(t_n_s) > grid.half_track_s)
-    if beyond.size == 0:
+    started from the NLCS estimate on a BP_SUBSCENE_CELL_M lattice; the others unchanged. The plates of a
+    split peak (indices `split`) keep their joint fit: each alone would climb to the pair's one BP peak."""
+    beyond = [i for i in np.flatnonzero(np.abs(t_n_s) > grid.half_track_s) if i not in split]
+    if not beyond:
         return t_n_s, r0_m
     t_n_s, r0_m = t_n_s.copy(), r0_m.copy()
     rc = bp.range_compress(scan, grid)
