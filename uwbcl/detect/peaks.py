@@ -59,13 +59,13 @@ def local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float]
     floor : float
         The median magnitude over `floor_mask` (0 where it is empty): the noise level of the SNR.
     """
-    floor_mask = valid if floor_mask is None else floor_mask
-    floor = np.median(mag[floor_mask]) if floor_mask.any() else 0.0
+    on_floor = valid if floor_mask is None else floor_mask
+    floor = np.median(mag[on_floor]) if on_floor.any() else 0.0
     peak_max = mag[valid].max() if valid.any() else 0.0
     threshold = detection_threshold(peak_max, floor, s)
     candidates = valid & (mag > threshold)
     if s.cfar_db > 0:
-        level = range_bin_medians(mag, valid, rc_m, pixel_m[1], None if floor_mask is valid else floor_mask)
+        level = range_bin_medians(mag, valid, rc_m, pixel_m[1], floor_mask)
         candidates &= mag > level * 10 ** (s.cfar_db / 20)
     na, nr = (int(s.separation_m / pixel_m[0]), int(s.range_separation_m / pixel_m[1]))
     a, r = np.ogrid[-na:na + 1, -nr:nr + 1]
