@@ -206,6 +206,23 @@ def test_a_lone_targets_range_compressed_echo_is_its_modelled_echo_times_the_bea
     assert np.linalg.norm(residual) < 1e-3 * np.linalg.norm(rc.data)  # measured 2.9e-5
 
 
+@pytest.mark.parametrize("offset_m", [(0.03, 0.0, 0.0), (0.0, 0.03, 0.0), (0.05, 0.05, 0.0), (0.07, 0.1, 0.0)])
+def test_two_peaks_fitted_to_pure_noise_get_gains_no_larger_than_their_matched_amplitudes(offset_m):
+    """The gain fit's ridge (eq. N1): without it, two noise peaks a few cells apart fitted opposite gains
+    10-40 times their matched amplitudes, and each, refined without the other's model, became a strong
+    ghost."""
+    scan = _stacked_pass(STACKED[1:])
+    grid = nlcs.focus_grid(scan)
+    rc = bp.range_compress(scan, grid)
+    rng = np.random.default_rng(1)
+    noise = (rng.standard_normal(rc.data.shape) + 1j * rng.standard_normal(rc.data.shape)) / math.sqrt(2)
+    echoes = [_echo_at(rc, grid, STACKED[1], 0.25), _echo_at(rc, grid, STACKED[1] + np.array(offset_m), 0.25)]
+    gains = cancel.fit_pulse_gains(noise, rc.x_rel_m, echoes, degree=8)
+    band = echoes[0][1] | echoes[1][1]
+    matched = max(abs(np.vdot(e, noise)) / np.vdot(e, e).real for e, _ in echoes)
+    assert np.sqrt(np.mean(np.abs(gains[:, band]) ** 2, axis=1)).max() <= matched  # measured <= 0.6 x
+
+
 def _focus_and_detect(scan, algorithm: str, passes=(0, 1)) -> list[np.ndarray]:
     """(x, R_c) of the detections by increasing R_c (the plates share one x), with each number of
     neighbour-cancellation passes (one focus)."""
