@@ -1,6 +1,7 @@
 """Detection among a real scene's coupling and clutter (issue 13 item 4): the region of interest in R_c, the
-CFAR-like threshold over each R_c bin's median, and the bound on neighbour cancellation. Their defaults are
-no-ops: the simulated paper scenarios give the same detections as before.
+CFAR-like threshold over each R_c bin's median, and the bound on neighbour cancellation. The range bounds and
+the bound on cancellation are off by default; the CFAR threshold is on (12 dB) and leaves the simulated paper
+scenarios' detections as they were without it.
 
 Measured on the PulsON-like pass below (numpy): NLCS reports the two reflectors (R_c 2.404, 2.405 m; truth
 2.405) and the coupling at R_c 1.91 m (3 detections); BP the reflectors and four coupling peaks along
@@ -60,25 +61,28 @@ def _the_reflectors_are_the_two_strongest(found) -> None:
 
 
 @pytest.mark.parametrize("algorithm", ["nlcs", "bp"])
-def test_the_coupling_is_detected_by_default_and_gone_with_a_minimum_range_past_it(pulson_pass, algorithm):
-    default = _detect(pulson_pass, algorithm)
-    assert _coupling(default)
-    _the_reflectors_are_the_two_strongest(default)
-    gated = _detect(pulson_pass, algorithm, min_range_m=2.2)
+def test_the_coupling_is_detected_without_the_cfar_threshold_and_gone_with_a_minimum_range_past_it(
+    pulson_pass, algorithm
+):
+    plain = _detect(pulson_pass, algorithm, cfar_db=0.0)
+    assert _coupling(plain)
+    _the_reflectors_are_the_two_strongest(plain)
+    gated = _detect(pulson_pass, algorithm, min_range_m=2.2, cfar_db=0.0)
     assert len(gated) == 2 and all(d.rc_m >= 2.2 for d in gated)
     _the_reflectors_are_the_two_strongest(gated)
 
 
 def test_a_maximum_range_short_of_the_reflectors_leaves_only_what_lies_nearer(pulson_pass):
-    found = _detect(pulson_pass, "nlcs", max_range_m=2.2)
+    found = _detect(pulson_pass, "nlcs", max_range_m=2.2, cfar_db=0.0)
     assert found and all(d.rc_m <= 2.2 for d in found)
 
 
 @pytest.mark.parametrize("algorithm", ["nlcs", "bp"])
+@pytest.mark.parametrize("cfar_db", [10.0, DetectionSettings().cfar_db])
 def test_the_cfar_threshold_removes_the_constant_range_coupling_stripe_and_keeps_the_reflectors(
-    pulson_pass, algorithm
+    pulson_pass, algorithm, cfar_db
 ):
-    found = _detect(pulson_pass, algorithm, cfar_db=10.0)
+    found = _detect(pulson_pass, algorithm, cfar_db=cfar_db)
     assert not _coupling(found) and len(found) == 2
     _the_reflectors_are_the_two_strongest(found)
 
@@ -94,9 +98,9 @@ def test_the_cancellation_bound_models_only_the_strongest_peaks_and_leaves_the_o
         return original(cells, *args)
 
     monkeypatch.setattr(cancel, "cancel_neighbours_with_residual", counting)
-    everything = _detect(pulson_pass, "bp")
-    bounded = _detect(pulson_pass, "bp", cancel_max_targets=2)
-    uncancelled = _detect(pulson_pass, "bp", neighbour_cancellation_passes=0)
+    everything = _detect(pulson_pass, "bp", cfar_db=0.0)  # the coupling's peaks too
+    bounded = _detect(pulson_pass, "bp", cancel_max_targets=2, cfar_db=0.0)
+    uncancelled = _detect(pulson_pass, "bp", neighbour_cancellation_passes=0, cfar_db=0.0)
     assert modelled == [len(everything), 2] and len(everything) >= 4
     assert len(bounded) == len(everything)
     assert bounded[2:] == uncancelled[2:]
@@ -121,7 +125,7 @@ def test_the_new_detection_keys_are_read_from_the_site_file_and_their_ranges_che
     assert (d.min_range_m, d.max_range_m, d.cfar_db, d.cancel_max_targets) == (2.2, 6.0, 10.0, 8)
     defaults = DetectionSettings()
     assert (defaults.min_range_m, defaults.max_range_m, defaults.cfar_db, defaults.cancel_max_targets) == (
-        0.0, 0.0, 0.0, 0)
+        0.0, 0.0, 12.0, 0)
     for bad, key in (({"min_range_m": -1.0}, "detection.min_range_m"),
                      ({"min_range_m": 3.0, "max_range_m": 2.0}, "detection.max_range_m"),
                      ({"max_range_m": -2.0}, "detection.max_range_m"),
@@ -162,7 +166,7 @@ def test_the_cfar_threshold_removes_a_constant_range_stripe_of_an_image_but_not_
     mag[100, 40] = 90.0  # a point target elsewhere
     mag[150, 20] = 400.0  # and one on the stripe, far above it
     valid = np.ones(mag.shape, dtype=bool)
-    s = DetectionSettings(relative_floor_db=-30.0, separation_m=0.02, range_separation_m=0.02)
+    s = DetectionSettings(relative_floor_db=-30.0, separation_m=0.02, range_separation_m=0.02, cfar_db=0.0)
     plain, _ = peaks.local_peaks(mag, valid, (0.01, 0.01), s)
     assert (plain[:, 1] == 20).sum() > 3
     cfar, _ = peaks.local_peaks(mag, valid, (0.01, 0.01), DetectionSettings(

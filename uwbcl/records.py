@@ -83,8 +83,10 @@ class DetectionSettings:
     min_range_m: float = 0.0
     max_range_m: float = 0.0
     # Adaptive (CFAR-like) threshold (dB, 0: off): a peak must also exceed the median magnitude of its range
-    # bin over the searched azimuth by this much, which removes stationary-in-range clutter (a stripe).
-    cfar_db: float = 0.0
+    # bin over the searched azimuth by this much, which removes stationary-in-range clutter (a stripe), and
+    # noise peaks where the image's level is above its global median (the rib's ranges, whose clutter the
+    # noise-only ranges beyond it outnumber: +2-5 dB at SNR 5 dB). As min_snr_db, locally.
+    cfar_db: float = 12.0
     # Neighbour cancellation models only this many of the strongest peaks (0: all); the weaker ones keep their
     # first refinement, so a clutter-filled pass cannot cost minutes.
     cancel_max_targets: int = 0
