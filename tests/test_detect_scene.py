@@ -172,3 +172,19 @@ def test_the_cfar_threshold_removes_a_constant_range_stripe_of_an_image_but_not_
     cfar, _ = peaks.local_peaks(mag, valid, (0.01, 0.01), DetectionSettings(
         relative_floor_db=-30.0, separation_m=0.02, range_separation_m=0.02, cfar_db=6.0))
     assert sorted(map(tuple, cfar)) == [(100, 40), (150, 20)]
+
+
+def test_the_default_cfar_threshold_keeps_noise_peaks_out_where_the_noise_is_above_the_images_median():
+    """The image's ranges differ in level (the rib's clutter adds to the noise; the ranges beyond it hold
+    noise alone and outnumber them): against the global median, min_snr_db lets the rib's noise peaks
+    through, and the default cfar_db (the same test per R_c bin) keeps them out but not a plate among them."""
+    rng = np.random.default_rng(7)
+    mag = rng.rayleigh(size=(400, 80))
+    mag[:, :20] *= 10 ** (4.0 / 20)  # the rib's ranges, 4 dB up (measured +2 to +4.6 dB at SNR 5 dB)
+    mag[200, 10] = 25.0  # a plate there, ~24 dB over the global median
+    valid = np.ones(mag.shape, dtype=bool)
+    geometry = dict(relative_floor_db=-40.0, separation_m=0.02, range_separation_m=0.02)
+    plain, _ = peaks.local_peaks(mag, valid, (0.01, 0.01), DetectionSettings(cfar_db=0.0, **geometry))
+    assert (plain[:, 1] < 20).sum() >= 10  # noise peaks at the rib's ranges
+    default, _ = peaks.local_peaks(mag, valid, (0.01, 0.01), DetectionSettings(**geometry))
+    assert sorted(map(tuple, default)) == [(200, 10)]
