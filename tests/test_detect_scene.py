@@ -157,6 +157,11 @@ def test_the_range_bin_medians_equal_numpys_median_over_each_bins_valid_pixels()
         here, where = bins == b, (bins == b) & valid & rail
         want = np.median(mag[where]) if where.any() else np.median(mag[here & valid])
         assert np.allclose(on_rail[here], want)
+    # computed only where asked: the same values there, with and without the rail's level
+    at = valid & (mag > 2.5)
+    for mask in (None, rail):
+        assert np.array_equal(peaks.range_bin_medians(mag, valid, rc, 0.05, mask, at=at)[at],
+                              peaks.range_bin_medians(mag, valid, rc, 0.05, mask)[at])
 
 
 def test_the_cfar_threshold_removes_a_constant_range_stripe_of_an_image_but_not_a_point_on_it():

@@ -65,7 +65,7 @@ def local_peaks(mag: np.ndarray, valid: np.ndarray, pixel_m: tuple[float, float]
     threshold = detection_threshold(peak_max, floor, s)
     candidates = valid & (mag > threshold)
     if s.cfar_db > 0:
-        level = range_bin_medians(mag, valid, rc_m, pixel_m[1], floor_mask)
+        level = range_bin_medians(mag, valid, rc_m, pixel_m[1], floor_mask, at=candidates)
         candidates &= mag > level * 10 ** (s.cfar_db / 20)
     na, nr = (int(s.separation_m / pixel_m[0]), int(s.range_separation_m / pixel_m[1]))
     a, r = np.ogrid[-na:na + 1, -nr:nr + 1]
@@ -94,7 +94,7 @@ def detection_threshold(peak_max: float, floor: float, s: DetectionSettings) -> 
 
 
 def range_bin_medians(mag: np.ndarray, valid: np.ndarray, rc_m: np.ndarray | None, bin_m: float,
-                      level_mask: np.ndarray | None = None) -> np.ndarray:
+                      level_mask: np.ndarray | None = None, at: np.ndarray | None = None) -> np.ndarray:
     """Each pixel's clutter level for the adaptive threshold (`DetectionSettings.cfar_db`): the median of
     `mag` over the valid pixels of its range bin, shape of `mag`.
 
@@ -103,6 +103,9 @@ def range_bin_medians(mag: np.ndarray, valid: np.ndarray, rc_m: np.ndarray | Non
     `rc_m`, the image's columns. A pixel whose bin holds no valid pixel gets 0. With `level_mask` (a footprint
     search's rail pixels) a bin's median is over its pixels in `level_mask` where it has any: past the rail a
     constant-delay stripe fades, and a median taken there too would let the stripe through on the rail.
+    With `at` (bool, shape of `mag`) only the bins of those pixels are computed (the same values; the others
+    get 0): the threshold needs the level only where a pixel is already over the floors, and sorting every
+    bin was ~7 ms of a paper pass's ~200 ms of detection.
     """
     if rc_m is None:
         bins = np.broadcast_to(np.arange(mag.shape[1])[None, :], mag.shape)
@@ -111,6 +114,11 @@ def range_bin_medians(mag: np.ndarray, valid: np.ndarray, rc_m: np.ndarray | Non
         bins = np.floor((rc_m - lowest) / bin_m).astype(np.int64)
     b_valid = bins[valid]
     n_bins = int(b_valid.max()) + 1 if b_valid.size else 1
+    if at is not None:  # only the bins holding a pixel of `at`
+        wanted = np.zeros(n_bins + 1, dtype=bool)
+        wanted[np.clip(bins[at], -1, n_bins)] = True  # -1 and n_bins: outside every bin
+        valid = valid & wanted[np.clip(bins, -1, n_bins)]
+        b_valid = bins[valid]
     medians = _bin_medians(mag[valid], b_valid, n_bins)
     if level_mask is not None:
         level = level_mask & valid
