@@ -114,10 +114,10 @@ def range_bin_medians(mag: np.ndarray, valid: np.ndarray, rc_m: np.ndarray | Non
         bins = np.floor((rc_m - lowest) / bin_m).astype(np.int64)
     b_valid = bins[valid]
     n_bins = int(b_valid.max()) + 1 if b_valid.size else 1
-    if at is not None:  # only the bins holding a pixel of `at`
-        wanted = np.zeros(n_bins + 1, dtype=bool)
-        wanted[np.clip(bins[at], -1, n_bins)] = True  # -1 and n_bins: outside every bin
-        valid = valid & wanted[np.clip(bins, -1, n_bins)]
+    if at is not None:  # only the bins holding a valid pixel of `at`
+        wanted = np.zeros(n_bins, dtype=bool)
+        wanted[bins[at & valid]] = True
+        valid = valid & wanted[np.clip(bins, 0, n_bins - 1)]  # the clip only meets invalid pixels
         b_valid = bins[valid]
     medians = _bin_medians(mag[valid], b_valid, n_bins)
     if level_mask is not None:
