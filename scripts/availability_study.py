@@ -121,6 +121,11 @@ SCENARIOS = [
     Scenario("dense-3h", squint_deg=35.0, rib_m=2.0, heights_m=(0.2, 0.45, 0.7), snr_db=10.0, grid_m=1.0,
              rows_z_m=(0.5, 1.1, 1.7), missing=0.2, side=+1, carrier_hz=4.0e9, bandwidth_hz=1.4e9, int16=True,
              seed=4, missed=(10,)),
+    # The same grid in bolting rings (each column's plates within a few cm in x), as mines bolt: a column's
+    # plates lie within a range cell of each other at some heights (eq. L1).
+    Scenario("dense-3h-columns", squint_deg=35.0, rib_m=2.0, heights_m=(0.2, 0.45, 0.7), snr_db=10.0,
+             grid_m=1.0, rows_z_m=(0.5, 1.1, 1.7), missing=0.2, side=+1, carrier_hz=4.0e9, bandwidth_hz=1.4e9,
+             int16=True, seed=6, missed=(10,), aligned=True),
     Scenario("four-heights-snr10", squint_deg=20.0, rib_m=3.5, heights_m=(0.15, 0.35, 0.55, 0.75),
              snr_db=10.0, wobble=0.15, grid_m=1.5, seed=5, missed=(7, 8)),
 ]
@@ -129,6 +134,8 @@ VARIANTS = {  # name: (parent, heights to keep or None, web-depth prior?)
     "dense-3h-noprior": ("dense-3h", None, False),
     "base-noprior": ("base", None, False),
     "four-heights-2h": ("four-heights-snr10", (0.15, 0.75), True),
+    "dense-2h-columns": ("dense-3h-columns", (0.2, 0.7), True),
+    "dense-3h-columns-noprior": ("dense-3h-columns", None, False),
 }
 QUICK = ["base", "dense-3h", "dense-2h", "dense-3h-noprior"]
 ACQUISITION = ("prf_hz", "speed_m_s", "rail_m", "sample_rate_hz", "window_margin_m", "aperture_m",
