@@ -6,7 +6,7 @@ over N cycles: a rib of bolt plates in 2-3 rows on a 1.0-1.5 m grid with plates 
 roughness, weak rib clutter, an antenna pattern of the real aperture, the rail run in both directions with a
 wobbling carriage speed (positions logged per pulse), receiver noise at a given SNR, cycles missed (no files,
 or one height only), with and without a web-depth prior. Then `uwbcl process --backend numpy` per scenario
-and, against the truth, per scenario:
+(`--backend opencl`: the engine `uwbcl process` runs by default) and, against the truth, per scenario:
 
   ok %        rows with status ok / rows written (missed cycles write no row: the next one bridges them)
   RMS, max    error of the ok rows in retreat and creep (mm), over each row's own span from_cycle -> cycle
@@ -341,11 +341,11 @@ def generate(s: Scenario, cycles: int, root: Path) -> Path:
 
 # ----------------------------------------------------------------------------------------------- process
 def run_process(arch: Path, out: Path, s: Scenario, heights, prior: bool, jobs: int, reuse: Path | None,
-                config: Path | None) -> float:
+                config: Path | None, backend: str = "numpy") -> float:
     out.mkdir(parents=True, exist_ok=True)
     if reuse is not None:
-        copy_detections(reuse, out, config)
-    cmd = [sys.executable, "-m", "uwbcl.cli", "process", str(arch), "--out", str(out), "--backend", "numpy",
+        copy_detections(reuse, out, config, backend)
+    cmd = [sys.executable, "-m", "uwbcl.cli", "process", str(arch), "--out", str(out), "--backend", backend,
            "--jobs", str(jobs), "--no-progress"]
     if prior:
         cmd += ["--web-depth", str(s.web_m)]
@@ -361,10 +361,10 @@ def run_process(arch: Path, out: Path, s: Scenario, heights, prior: bool, jobs: 
     return time.perf_counter() - t
 
 
-def share_cache(src_out: Path, out: Path) -> None:
+def share_cache(src_out: Path, out: Path, backend: str = "numpy") -> None:
     """A variant reprocessing its parent's archives: the parent's detections under the same (current) cache
     key are exactly what `uwbcl process` would compute again."""
-    settings = config.override(config.SiteConfig(), backend="numpy").processing_settings()
+    settings = config.override(config.SiteConfig(), backend=backend).processing_settings()
     key = batch.settings_key(settings)
     src, dst = src_out / batch.CACHE_DIR / key, out / batch.CACHE_DIR / key
     if src.is_dir() and not dst.is_dir():
@@ -377,12 +377,12 @@ def newest_run(root: Path) -> Path | None:
     return max(runs, key=lambda p: ((p / batch.CACHE_DIR).stat().st_mtime, p.name), default=None)
 
 
-def copy_detections(src_out: Path, out: Path, site: Path | None = None) -> None:
+def copy_detections(src_out: Path, out: Path, site: Path | None = None, backend: str = "numpy") -> None:
     """Detections cached by an earlier run (any code version) -> the cache key of the current code and of the
     settings `uwbcl process` runs with (the site file `site`, when given: its detection settings key the
     cache too)."""
     cfg = config.load_config(site) if site is not None else config.SiteConfig()
-    settings = config.override(cfg, backend="numpy").processing_settings()
+    settings = config.override(cfg, backend=backend).processing_settings()
     dst = out / batch.CACHE_DIR / batch.settings_key(settings)
     if dst.is_dir():
         return
@@ -525,6 +525,9 @@ def main(argv=None) -> int:
     ap.add_argument("--reuse-detections", action="store_true",
                     help="reuse the detections of the previous run in WORK (association changes only)")
     ap.add_argument("--config", type=Path, default=None, help="site configuration passed to uwbcl process")
+    ap.add_argument("--backend", choices=("numpy", "opencl"), default="numpy",
+                    help="uwbcl process's backend (default numpy, the float64 reference; opencl is what "
+                         "`uwbcl process` runs by default)")
     ap.add_argument("--tag", default="out", help="output directory name per scenario (default: out)")
     ap.add_argument("--json", type=Path, default=None, help="write the results here")
     ap.add_argument("--random", type=int, default=0, metavar="N",
@@ -557,8 +560,8 @@ def main(argv=None) -> int:
         if args.reuse_detections:
             reuse = newest_run(args.work / name) or newest_run(args.work / parent)
         if name != parent:
-            share_cache(args.work / parent / args.tag, out)
-        secs = run_process(arch, out, s, heights, prior, args.jobs, reuse, args.config)
+            share_cache(args.work / parent / args.tag, out, args.backend)
+        secs = run_process(arch, out, s, heights, prior, args.jobs, reuse, args.config, args.backend)
         results[name] = score(out, rig_m)
         print(f"  {name}: processed in {secs:.0f} s", flush=True)
     print(table(results))
@@ -584,8 +587,8 @@ def run_random(args) -> int:
             out = root / (args.tag if prior else f"{args.tag}-noprior")
             reuse = newest_run(root) if args.reuse_detections else None
             if not prior:
-                share_cache(root / args.tag, out)
-            run_process(arch, out, s, None, prior, args.jobs, reuse, args.config)
+                share_cache(root / args.tag, out, args.backend)
+            run_process(arch, out, s, None, prior, args.jobs, reuse, args.config, args.backend)
             results[name], snr_db[name] = score(out, rig_m), s.snr_db
         print(f"  {s.name}: squint {s.squint_deg:.0f} deg, rib {s.rib_m:.1f} m, {len(s.heights_m)} heights, "
               f"{s.snr_db:.0f} dB, wobble {100 * s.wobble:.0f} %, "
