@@ -82,3 +82,15 @@ def test_the_registration_studys_coherence_is_one_for_the_same_image_at_any_phas
     assert reg.coherence(image, np.zeros_like(image)) == 0.0
     names = set(reg.candidates(np.array([0.9, 0.0, 0.0]), 1.2))
     assert {"true", "alias -1 grid", "alias +1 grid"} <= names
+
+
+def test_the_columned_dense_scenario_is_dense_3h_in_bolting_rings_and_every_variant_has_a_parent():
+    study = load()
+    by_name = {s.name: s for s in study.SCENARIOS}
+    dense, columns = by_name["dense-3h"], by_name["dense-3h-columns"]
+    assert columns.aligned and not dense.aligned
+    assert {**vars(dense), "name": None, "seed": None, "aligned": None} == \
+        {**vars(columns), "name": None, "seed": None, "aligned": None}
+    for parent, heights, _ in study.VARIANTS.values():
+        assert parent in by_name
+        assert heights is None or set(heights) < set(by_name[parent].heights_m)
