@@ -523,7 +523,8 @@ def main(argv=None) -> int:
     ap.add_argument("--only", nargs="+", help="scenario names (with --random: r<seed>)")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--reuse-detections", action="store_true",
-                    help="reuse the detections of the previous run in WORK (association changes only)")
+                    help="reuse the detections of the previous run in WORK (association changes only), "
+                         "whichever backend computed them")
     ap.add_argument("--config", type=Path, default=None, help="site configuration passed to uwbcl process")
     ap.add_argument("--backend", choices=("numpy", "opencl"), default="numpy",
                     help="uwbcl process's backend (default numpy, the float64 reference; opencl is what "
