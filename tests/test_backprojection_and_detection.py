@@ -206,7 +206,8 @@ def test_a_lone_targets_range_compressed_echo_is_its_modelled_echo_times_the_bea
     assert np.linalg.norm(residual) < 1e-3 * np.linalg.norm(rc.data)  # measured 2.9e-5
 
 
-@pytest.mark.parametrize("offset_m", [(0.03, 0.0, 0.0), (0.0, 0.03, 0.0), (0.05, 0.05, 0.0), (0.07, 0.1, 0)])
+@pytest.mark.parametrize("offset_m", [(0.03, 0.0, 0.0), (0.0, 0.03, 0.0), (0.05, 0.05, 0.0),
+                                      (0.07, 0.1, 0.0)])
 def test_two_peaks_fitted_to_pure_noise_get_gains_no_larger_than_their_matched_amplitudes(offset_m):
     """The gain fit's ridge (eq. N1): without it, two noise peaks a few cells apart fitted opposite gains
     10-40 times their matched amplitudes, and each, refined without the other's model, became a strong
