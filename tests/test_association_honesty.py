@@ -198,21 +198,41 @@ def test_a_plate_whose_passes_do_not_meet_at_one_point_is_as_uncertain_as_its_mi
 
 def test_a_row_of_plates_a_metre_above_is_told_apart_by_the_rigs_vertical_step_prior():
     """Eq. M2v: three plates seen again 0.9 m back, and a second row 0.7 m above that lines up just as well.
-    The data alone cannot choose; the rig's vertical step prior (a few centimetres) can, and the margin
-    against "no plate in common" is the data's alone."""
+    The data alone cannot choose the row, only the retreat and the creep, which both rows give (M3a: the
+    vertical is then unknown, its bound the row's offset); the rig's vertical step prior (a few centimetres)
+    chooses the row, and the margin against "no plate in common" is the data's alone."""
     before = np.array([[1.0, -2.4, 0.6], [2.3, -2.4, 0.6], [3.5, -2.4, 0.6]])
     after = np.concatenate([before - (0.9, 0.0, 0.0), before - (0.9, 0.0, -0.7)])
     args = ([plate(p) for p in before], [plate(q) for q in after])
     kw = {"before_cov_m2": covs(before), "after_cov_m2": covs(after)}
     blind = estimate_advance(*args, AssociationSettings(), **kw)
-    assert blind.status == "ambiguous" and blind.margin < 1.0
+    assert blind.status == "ok", blind
+    np.testing.assert_allclose(blind.advance_m[:2], (0.9, 0.0), atol=1e-3)
+    assert blind.bound_m[2] >= 0.7 and blind.vertical_data_m[1] >= 0.7 and max(blind.bound_m[:2]) < 0.003
     d = estimate_advance(*args, AssociationSettings(vertical_prior_m=(0.0, 0.02)), **kw)
     assert d.status == "ok", d
+    assert d.bound_m[2] < 0.1  # the row is known: centimetres, not the row offset
     np.testing.assert_allclose(d.advance_m, (0.9, 0.0, 0.0), atol=1e-3)
     seen = after[:3]  # the right row alone
     data_only = estimate_advance([plate(p) for p in before], [plate(q) for q in seen], AssociationSettings(),
                                  before_cov_m2=covs(before), after_cov_m2=covs(seen))
     assert d.margin <= data_only.margin + 1e-9
+
+
+@pytest.mark.parametrize(("ring_x_m", "status"), [(0.005, "ok"), (0.03, "ambiguous")])
+def test_a_row_above_that_the_data_cannot_rule_out_is_harmless_only_where_it_gives_the_same_retreat(
+        ring_x_m, status):
+    """Eq. M3a: in bolting rings the row above is offset in x by the ring's scatter. Where that is within
+    max_bound_m the row is ok and its retreat bound holds the whole offset; where it is more, the retreat
+    itself is in doubt and the row is ambiguous."""
+    before = np.array([[1.0, -2.4, 0.6], [2.3, -2.4, 0.6], [3.5, -2.4, 0.6]])
+    after = np.concatenate([before - (0.9, 0.0, 0.0), before - (0.9 + ring_x_m, 0.0, -0.7)])
+    d = estimate_advance([plate(p) for p in before], [plate(q) for q in after], AssociationSettings(),
+                         before_cov_m2=covs(before), after_cov_m2=covs(after))
+    assert d.status == status, d
+    if status == "ok":
+        assert d.bound_m[0] >= ring_x_m and d.bound_m[0] <= AssociationSettings().max_bound_m
+        assert abs(d.advance_m[0] - 0.9) <= 3 * d.bound_m[0]
 
 
 # Eq. M2b: plates before, and after the cycle the same plates moved 0.6 m forward in the radar frame (the face

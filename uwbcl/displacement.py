@@ -471,6 +471,26 @@ def _pair_terms(before: list[Located], after: list[Located], tol: np.ndarray, be
     return p, q, diff, cov, gain, have_cov
 
 
+def _competitors(best: _Hypothesis, rivals: list[_Hypothesis], settings: AssociationSettings
+                 ) -> tuple[float, np.ndarray]:
+    """The association margin and the competitors' term of the bound M3 (3,) m^2 (eq. M3a).
+
+    The competitors are the distinct translations and "no plate in common" (score 0; the vertical penalty M2v
+    and the rib evidence M7 are not counted against it, offset NULL_OFFSET_M). One the data cannot rule out
+    (lead < min_margin) whose retreat and creep are within max_bound_m of the best's is immaterial: it adds
+    its whole offset to the bound (a plate matched to the row above in a bolting ring: the vertical is
+    unknown, the retreat and creep are not), and it is no rival for the margin. The margin is the lead over
+    the closest material competitor; the closest competitor ruled out adds exp(-lead) offset^2.
+    """
+    comps = [(best.score - h.score, np.abs(h.shift - best.shift)) for h in rivals]
+    comps.append((best.score - best.vertical - best.rib, NULL_OFFSET_M))
+    immaterial = [m < settings.min_margin and max(o[0], o[1]) <= settings.max_bound_m for m, o in comps]
+    rest = [c for c, skip in zip(comps, immaterial) if not skip]
+    var = sum((o**2 for (_, o), skip in zip(comps, immaterial) if skip), np.zeros(3))
+    margin, offset = min(rest or [(min(m for m, _ in comps), np.zeros(3))], key=lambda c: c[0])
+    return float(margin), var + np.exp(-min(margin, 700.0)) * offset**2
+
+
 def translation_scores(before: list[Located], after: list[Located], settings: AssociationSettings, *,
                        before_cov_m2: np.ndarray, after_cov_m2: np.ndarray) -> list[tuple[np.ndarray, float]]:
     """Every distinct translation two cycles' plates support and its data log-likelihood ratio (eq. M1, no
@@ -510,7 +530,8 @@ def estimate_advance(before: list[Located], after: list[Located],
       ok              unique (margin >= min_margin over every distinct competitor and over "no plate in
                       common"), consistent, >= min_confident_targets plates, bound <= max_bound_m;
       low_confidence  unique and consistent, but fewer plates or a bound above max_bound_m (not chained);
-      ambiguous       a competitor (another translation, or no match at all) is within min_margin;
+      ambiguous       a material competitor (another translation with another retreat or creep, or no
+                      match at all) is within min_margin;
       prior_conflict  the best translation lies outside the prior window (or moves the face backwards, M2b)
                       without leading by DATA_BEATS_PRIOR x min_margin: the prior or the data is wrong;
       inconsistent    the matched plates disagree beyond their location precision and two plates cannot say
@@ -518,8 +539,9 @@ def estimate_advance(before: list[Located], after: list[Located],
       too_few_targets no plate pair matches: no estimate (NaN).
     The bound (eq. M3): sqrt(f^2 diag(Sigma_GLS) + exp(-margin) offset^2), f^2 = max(1, chi2 / dof) (with
     covariances) or chi2 / dof (without), 1 for one plate (no redundancy: an outlying single plate is not
-    caught, see docs/method.md section 6.1); offset = the competitor's translation minus the best's
-    (NULL_OFFSET_M against "no plate in common").
+    caught, see docs/method.md section 6.1); offset = the closest material competitor's translation minus the
+    best's (NULL_OFFSET_M against "no plate in common"), plus the whole offset^2 of every immaterial one
+    (eq. M3a, `_competitors`: unresolved, but with the best's retreat and creep).
     """
     tol = np.asarray(settings.tolerance_m, dtype=float)
     nan3 = np.full(3, np.nan)
@@ -534,13 +556,7 @@ def estimate_advance(before: list[Located], after: list[Located],
         return none
     best = hyps[0]
     runner_up = hyps[1] if len(hyps) > 1 else None
-    # The competitor: the best distinct translation, or "no plate in common" (score 0; the vertical penalty
-    # M2v and the rib evidence M7 are not counted against it), whichever is closer.
-    null_margin = best.score - best.vertical - best.rib
-    if runner_up is not None and best.score - runner_up.score < null_margin:
-        margin, offset = best.score - runner_up.score, np.abs(runner_up.shift - best.shift)
-    else:
-        margin, offset = null_margin, NULL_OFFSET_M
+    margin, competitor_var = _competitors(best, hyps[1:], settings)
 
     # The reported estimate: every plate within the tolerance box of the best translation, leave-one-out
     # rejection beyond outlier_chi2, GLS (so two plates that disagree are seen, not silently dropped).
@@ -559,7 +575,7 @@ def estimate_advance(before: list[Located], after: list[Located],
     else:
         scale2 = chi2_fit / dof if dof > 0 else 1.0
     cov_adv = scale2 * gls_cov
-    vertical_data = np.array([advance[2], np.sqrt(cov_adv[2, 2])])
+    vertical_data = np.array([advance[2], np.sqrt(cov_adv[2, 2] + competitor_var[2])])
     vertical_prior = _vertical_prior(settings)
     if vertical_prior is not None and settings.weighted and have_cov:
         conditioned = vertical_conditioned(advance, cov_adv, *vertical_prior)
@@ -574,7 +590,7 @@ def estimate_advance(before: list[Located], after: list[Located],
     if settings.carrier_phase and settings.weighted and have_cov:
         advance, cov_adv, looks_used, phase_check = _with_phases(
             advance, cov_adv, phase_looks(before, after, pairs), phase_tested_only)
-    bound = np.sqrt(np.diag(cov_adv) + np.exp(-min(margin, 700.0)) * offset**2)  # eq. M3
+    bound = np.sqrt(np.diag(cov_adv) + competitor_var)  # eqs. M3, M3a
 
     if not best.inside and margin < DATA_BEATS_PRIOR * settings.min_margin:
         status = "prior_conflict"
