@@ -89,6 +89,10 @@ class Scenario:
     # the rows' plates in columns (one bolting ring per column, a few cm apart along the rib) instead of each
     # row spaced on its own
     aligned: bool = False
+    # the spread of the plates' positions along the rib: each column's plates about their column (a bolting
+    # ring), m; and each plate spacing about grid_m, as a fraction (0, 0: an exact grid, every row in line)
+    ring_scatter_m: float = 0.03
+    grid_jitter: float = 0.15
     # How the passes are acquired and written: choices the archive format leaves to the writer.
     prf_hz: float = 20.0
     speed_m_s: float = 0.25  # nominal carriage speed (the track spacing is speed / PRF)
@@ -103,7 +107,8 @@ class Scenario:
     def key(self, cycles: int) -> dict:
         key = {**dataclasses.asdict(self), "cycles": cycles, "generator": 1}
         defaults = Scenario(self.name)
-        for name in ("aligned", *ACQUISITION):  # the scenarios from before these fields keep their archives
+        # the scenarios from before these fields keep their archives
+        for name in ("aligned", "ring_scatter_m", "grid_jitter", *ACQUISITION):
             if getattr(self, name) == getattr(defaults, name):
                 del key[name]
         return key
@@ -126,6 +131,12 @@ SCENARIOS = [
     Scenario("dense-3h-columns", squint_deg=35.0, rib_m=2.0, heights_m=(0.2, 0.45, 0.7), snr_db=10.0,
              grid_m=1.0, rows_z_m=(0.5, 1.1, 1.7), missing=0.2, side=+1, carrier_hz=4.0e9, bandwidth_hz=1.4e9,
              int16=True, seed=6, missed=(10,), aligned=True),
+    # And as an exact grid: every column at k x 1.0 m, its plates in line (a generator's regular grid). The
+    # row above then gives the right retreat exactly (eq. M3a), and a column further fits as well but for
+    # the missing plates and the field of view's ends.
+    Scenario("dense-3h-regular", squint_deg=35.0, rib_m=2.0, heights_m=(0.2, 0.45, 0.7), snr_db=10.0,
+             grid_m=1.0, rows_z_m=(0.5, 1.1, 1.7), missing=0.2, side=+1, carrier_hz=4.0e9, bandwidth_hz=1.4e9,
+             int16=True, seed=7, missed=(10,), aligned=True, ring_scatter_m=0.0, grid_jitter=0.0),
     Scenario("four-heights-snr10", squint_deg=20.0, rib_m=3.5, heights_m=(0.15, 0.35, 0.55, 0.75),
              snr_db=10.0, wobble=0.15, grid_m=1.5, seed=5, missed=(7, 8)),
 ]
@@ -136,6 +147,8 @@ VARIANTS = {  # name: (parent, heights to keep or None, web-depth prior?)
     "four-heights-2h": ("four-heights-snr10", (0.15, 0.75), True),
     "dense-2h-columns": ("dense-3h-columns", (0.2, 0.7), True),
     "dense-3h-columns-noprior": ("dense-3h-columns", None, False),
+    "dense-2h-regular": ("dense-3h-regular", (0.2, 0.7), True),
+    "dense-3h-regular-noprior": ("dense-3h-regular", None, False),
 }
 QUICK = ["base", "dense-3h", "dense-2h", "dense-3h-noprior"]
 ACQUISITION = ("prf_hz", "speed_m_s", "rail_m", "sample_rate_hz", "window_margin_m", "aperture_m",
@@ -199,11 +212,12 @@ def scene(s: Scenario, cycles: int):
     if s.aligned:
         columns = [-10.0 + rng.uniform(0, s.grid_m)]
         while columns[-1] < x_end:
-            columns.append(columns[-1] + s.grid_m * rng.uniform(0.85, 1.15))
+            columns.append(columns[-1] + s.grid_m * rng.uniform(1.0 - s.grid_jitter, 1.0 + s.grid_jitter))
         for x in columns:
             for z in s.rows_z_m:
                 if rng.uniform() >= s.missing:
-                    plates.append((x + rng.normal(0, 0.03), rng.normal(0, 0.02), z + rng.normal(0, 0.04)))
+                    plates.append((x + rng.normal(0, s.ring_scatter_m), rng.normal(0, 0.02),
+                                   z + rng.normal(0, 0.04)))
                     amps.append(rng.uniform(0.6, 1.0))
     else:
         for z in s.rows_z_m:
@@ -212,7 +226,7 @@ def scene(s: Scenario, cycles: int):
                 if rng.uniform() >= s.missing:
                     plates.append((x, rng.normal(0, 0.02), z + rng.normal(0, 0.04)))
                     amps.append(rng.uniform(0.6, 1.0))
-                x += s.grid_m * rng.uniform(0.85, 1.15)
+                x += s.grid_m * rng.uniform(1.0 - s.grid_jitter, 1.0 + s.grid_jitter)
     n_clutter = int(8 * (x_end + 10))
     clutter = np.column_stack([rng.uniform(-10, x_end, n_clutter), rng.normal(0, 0.03, n_clutter),
                                rng.uniform(0.0, 2.2, n_clutter)])

@@ -84,13 +84,22 @@ def test_the_registration_studys_coherence_is_one_for_the_same_image_at_any_phas
     assert {"true", "alias -1 grid", "alias +1 grid"} <= names
 
 
-def test_the_columned_dense_scenario_is_dense_3h_in_bolting_rings_and_every_variant_has_a_parent():
+def test_the_columned_and_regular_dense_scenarios_are_dense_3h_in_rings_and_every_variant_has_a_parent():
     study = load()
     by_name = {s.name: s for s in study.SCENARIOS}
     dense, columns = by_name["dense-3h"], by_name["dense-3h-columns"]
     assert columns.aligned and not dense.aligned
     assert {**vars(dense), "name": None, "seed": None, "aligned": None} == \
         {**vars(columns), "name": None, "seed": None, "aligned": None}
+    regular = by_name["dense-3h-regular"]
+    assert regular.aligned and regular.ring_scatter_m == 0.0 and regular.grid_jitter == 0.0
+    assert {**vars(columns), "name": None, "seed": None, "ring_scatter_m": None, "grid_jitter": None} == \
+        {**vars(regular), "name": None, "seed": None, "ring_scatter_m": None, "grid_jitter": None}
+    # an exact grid: every plate of a column at the same x, columns grid_m apart
+    plates = np.array(study.scene(regular, 6)[0])
+    gaps = np.diff(np.unique(np.round(plates[:, 0], 9)))
+    np.testing.assert_allclose(gaps / regular.grid_m, np.round(gaps / regular.grid_m), atol=1e-9)
+    assert len(gaps) > 10 and np.all(gaps > 0.5)
     for parent, heights, _ in study.VARIANTS.values():
         assert parent in by_name
         assert heights is None or set(heights) < set(by_name[parent].heights_m)
