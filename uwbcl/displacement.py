@@ -472,8 +472,9 @@ def _pair_terms(before: list[Located], after: list[Located], tol: np.ndarray, be
 
 
 def _competitors(best: _Hypothesis, rivals: list[_Hypothesis], settings: AssociationSettings
-                 ) -> tuple[float, np.ndarray]:
-    """The association margin and the competitors' term of the bound M3 (3,) m^2 (eq. M3a).
+                 ) -> tuple[float, np.ndarray, np.ndarray]:
+    """The association margin and the competitors' terms of the bound M3, (3,) m^2 each (eq. M3a): the
+    immaterial competitors' (what the vertical model must not learn from) and the closest material one's.
 
     The competitors are the distinct translations and "no plate in common" (score 0; the vertical penalty M2v
     and the rib evidence M7 are not counted against it, offset NULL_OFFSET_M). One the data cannot rule out
@@ -488,7 +489,7 @@ def _competitors(best: _Hypothesis, rivals: list[_Hypothesis], settings: Associa
     rest = [c for c, skip in zip(comps, immaterial) if not skip]
     var = sum((o**2 for (_, o), skip in zip(comps, immaterial) if skip), np.zeros(3))
     margin, offset = min(rest or [(min(m for m, _ in comps), np.zeros(3))], key=lambda c: c[0])
-    return float(margin), var + np.exp(-min(margin, 700.0)) * offset**2
+    return float(margin), var, np.exp(-min(margin, 700.0)) * offset**2
 
 
 def translation_scores(before: list[Located], after: list[Located], settings: AssociationSettings, *,
@@ -556,7 +557,7 @@ def estimate_advance(before: list[Located], after: list[Located],
         return none
     best = hyps[0]
     runner_up = hyps[1] if len(hyps) > 1 else None
-    margin, competitor_var = _competitors(best, hyps[1:], settings)
+    margin, unknown_var, rival_var = _competitors(best, hyps[1:], settings)
 
     # The reported estimate: every plate within the tolerance box of the best translation, leave-one-out
     # rejection beyond outlier_chi2, GLS (so two plates that disagree are seen, not silently dropped).
@@ -575,7 +576,7 @@ def estimate_advance(before: list[Located], after: list[Located],
     else:
         scale2 = chi2_fit / dof if dof > 0 else 1.0
     cov_adv = scale2 * gls_cov
-    vertical_data = np.array([advance[2], np.sqrt(cov_adv[2, 2] + competitor_var[2])])
+    vertical_data = np.array([advance[2], np.sqrt(cov_adv[2, 2] + unknown_var[2])])
     vertical_prior = _vertical_prior(settings)
     if vertical_prior is not None and settings.weighted and have_cov:
         conditioned = vertical_conditioned(advance, cov_adv, *vertical_prior)
@@ -590,7 +591,7 @@ def estimate_advance(before: list[Located], after: list[Located],
     if settings.carrier_phase and settings.weighted and have_cov:
         advance, cov_adv, looks_used, phase_check = _with_phases(
             advance, cov_adv, phase_looks(before, after, pairs), phase_tested_only)
-    bound = np.sqrt(np.diag(cov_adv) + competitor_var)  # eqs. M3, M3a
+    bound = np.sqrt(np.diag(cov_adv) + unknown_var + rival_var)  # eqs. M3, M3a
 
     if not best.inside and margin < DATA_BEATS_PRIOR * settings.min_margin:
         status = "prior_conflict"
