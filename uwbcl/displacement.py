@@ -5,7 +5,8 @@ look alike, so the correspondence is chosen by likelihood (docs/method.md sectio
 proposes a translation, each proposal is refined by generalised least squares over the plates it matches
 within their 3-D location covariances, and scored by the log-likelihood ratio of its matches against chance
 alignments plus the log prior of the translation (web depth, or the motion model of the previous cycles); the
-lead of the best over its best distinct competitor (or over "no plate in common") is the association margin.
+lead of the best over its best material competitor (another retreat or creep, or "no plate in common";
+eq. M3a) is the association margin.
 retreat = Delta P.x, creep = Delta P.y, vertical = Delta P.z.
 """
 
@@ -486,9 +487,11 @@ def _competitors(best: _Hypothesis, rivals: list[_Hypothesis], settings: Associa
     comps = [(best.score - h.score, np.abs(h.shift - best.shift)) for h in rivals]
     comps.append((best.score - best.vertical - best.rib, NULL_OFFSET_M))
     immaterial = [m < settings.min_margin and max(o[0], o[1]) <= settings.max_bound_m for m, o in comps]
-    rest = [c for c, skip in zip(comps, immaterial) if not skip]
     var = sum((o**2 for (_, o), skip in zip(comps, immaterial) if skip), np.zeros(3))
-    margin, offset = min(rest or [(min(m for m, _ in comps), np.zeros(3))], key=lambda c: c[0])
+    # "no plate in common" is material unless max_bound_m reaches a plate spacing
+    material = ([c for c, skip in zip(comps, immaterial) if not skip]
+                or [(min(m for m, _ in comps), np.zeros(3))])
+    margin, offset = min(material, key=lambda c: c[0])
     return float(margin), var, np.exp(-min(margin, 700.0)) * offset**2
 
 
@@ -528,7 +531,7 @@ def estimate_advance(before: list[Located], after: list[Located],
     Returns
     -------
     Displacement. Status:
-      ok              unique (margin >= min_margin over every distinct competitor and over "no plate in
+      ok              unique (margin >= min_margin over every material competitor and over "no plate in
                       common"), consistent, >= min_confident_targets plates, bound <= max_bound_m;
       low_confidence  unique and consistent, but fewer plates or a bound above max_bound_m (not chained);
       ambiguous       a material competitor (another translation with another retreat or creep, or no
