@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from uwbcl import chain, config
-from uwbcl.displacement import estimate_advance, location_covariance_m2
+from uwbcl.displacement import COVERAGE, estimate_advance, location_covariance_m2
 from uwbcl.locate import locate_target
 from uwbcl.records import AssociationSettings, CycleResult, Located
 
@@ -219,20 +219,23 @@ def test_a_row_of_plates_a_metre_above_is_told_apart_by_the_rigs_vertical_step_p
     assert d.margin <= data_only.margin + 1e-9
 
 
-@pytest.mark.parametrize(("ring_x_m", "status"), [(0.005, "ok"), (0.03, "ambiguous")])
+@pytest.mark.parametrize(("ring_x_m", "status"),
+                         [(0.005, "ok"), (0.02, "ok"), (0.029, "low_confidence"), (0.05, "ambiguous")])
 def test_a_row_above_that_the_data_cannot_rule_out_is_harmless_only_where_it_gives_the_same_retreat(
         ring_x_m, status):
     """Eq. M3a: in bolting rings the row above is offset in x by the ring's scatter. Where that is within
-    max_bound_m the row is ok and its retreat bound holds the whole offset; where it is more, the retreat
-    itself is in doubt and the row is ambiguous."""
+    COVERAGE x max_bound_m its offset / COVERAGE enters the retreat bound, so the row's error is within
+    COVERAGE x its bound whichever row is right: ok while that bound is within max_bound_m, low_confidence
+    beyond; where the offset is more, the retreat itself is in doubt and the row is ambiguous."""
     before = np.array([[1.0, -2.4, 0.6], [2.3, -2.4, 0.6], [3.5, -2.4, 0.6]])
     after = np.concatenate([before - (0.9, 0.0, 0.0), before - (0.9 + ring_x_m, 0.0, -0.7)])
     d = estimate_advance([plate(p) for p in before], [plate(q) for q in after], AssociationSettings(),
                          before_cov_m2=covs(before), after_cov_m2=covs(after))
     assert d.status == status, d
-    if status == "ok":
-        assert d.bound_m[0] >= ring_x_m and d.bound_m[0] <= AssociationSettings().max_bound_m
-        assert abs(d.advance_m[0] - 0.9) <= 3 * d.bound_m[0]
+    if status != "ambiguous":
+        assert d.bound_m[0] >= ring_x_m / COVERAGE and d.bound_m[2] >= 0.7  # the vertical: the whole offset
+        assert abs(d.advance_m[0] - 0.9) <= COVERAGE * d.bound_m[0]
+        assert abs(d.advance_m[0] - 0.9 - ring_x_m) <= COVERAGE * d.bound_m[0]  # had the other row been right
 
 
 # Eq. M2b: plates before, and after the cycle the same plates moved 0.6 m forward in the radar frame (the face

@@ -44,6 +44,11 @@ PRIOR_OUTLIER_PROBABILITY = 1e-4
 DATA_BEATS_PRIOR = 2.0
 # Offset of a wrong match when the competitor is "no plate in common": about a plate spacing (x, y, z), m.
 NULL_OFFSET_M = np.array([1.0, 0.1, 0.6])
+# The coverage the bound is calibrated to (docs/method.md section 6.1: |error| <= 3 x bound). A competitor
+# whose retreat and creep lie within COVERAGE x max_bound_m of the best's is immaterial (eq. M3a): it adds
+# (offset / COVERAGE)^2 to the retreat and creep bound, so whichever of the two is right, the row's error is
+# within COVERAGE x its bound.
+COVERAGE = 3.0
 # The rib registration (eq. M7) is asked only when the plates leave the best's lead over the runner-up below
 # RIB_REACH x min_margin, and scores the translations within that of the best, at most RIB_CANDIDATES.
 RIB_REACH = 2.0
@@ -479,15 +484,19 @@ def _competitors(best: _Hypothesis, rivals: list[_Hypothesis], settings: Associa
 
     The competitors are the distinct translations and "no plate in common" (score 0; the vertical penalty M2v
     and the rib evidence M7 are not counted against it, offset NULL_OFFSET_M). One the data cannot rule out
-    (lead < min_margin) whose retreat and creep are within max_bound_m of the best's is immaterial: it adds
-    its whole offset to the bound (a plate matched to the row above in a bolting ring: the vertical is
-    unknown, the retreat and creep are not), and it is no rival for the margin. The margin is the lead over
-    the closest material competitor; the closest competitor ruled out adds exp(-lead) offset^2.
+    (lead < min_margin) whose retreat and creep are within COVERAGE x max_bound_m of the best's is
+    immaterial (a plate matched to the row above in a bolting ring: the vertical is unknown, the retreat and
+    creep are not): it adds (offset / COVERAGE)^2 to the retreat and creep bound, so the row's error is within
+    COVERAGE x its bound whichever of the two is right, and its whole vertical offset^2 to the vertical; it is
+    no rival for the margin. The margin is the lead over the closest material competitor; the closest
+    competitor ruled out adds exp(-lead) offset^2.
     """
     comps = [(best.score - h.score, np.abs(h.shift - best.shift)) for h in rivals]
     comps.append((best.score - best.vertical - best.rib, NULL_OFFSET_M))
-    immaterial = [m < settings.min_margin and max(o[0], o[1]) <= settings.max_bound_m for m, o in comps]
-    var = sum((o**2 for (_, o), skip in zip(comps, immaterial) if skip), np.zeros(3))
+    immaterial = [m < settings.min_margin and max(o[0], o[1]) <= COVERAGE * settings.max_bound_m
+                  for m, o in comps]
+    per_axis = np.array([COVERAGE, COVERAGE, 1.0])  # the vertical bound holds the whole offset
+    var = sum(((o / per_axis) ** 2 for (_, o), skip in zip(comps, immaterial) if skip), np.zeros(3))
     # "no plate in common" is material unless max_bound_m reaches a plate spacing
     material = ([c for c, skip in zip(comps, immaterial) if not skip]
                 or [(min(m for m, _ in comps), np.zeros(3))])
@@ -544,8 +553,9 @@ def estimate_advance(before: list[Located], after: list[Located],
     The bound (eq. M3): sqrt(f^2 diag(Sigma_GLS) + exp(-margin) offset^2), f^2 = max(1, chi2 / dof) (with
     covariances) or chi2 / dof (without), 1 for one plate (no redundancy: an outlying single plate is not
     caught, see docs/method.md section 6.1); offset = the closest material competitor's translation minus the
-    best's (NULL_OFFSET_M against "no plate in common"), plus the whole offset^2 of every immaterial one
-    (eq. M3a, `_competitors`: unresolved, but with the best's retreat and creep).
+    best's (NULL_OFFSET_M against "no plate in common"), plus (offset / COVERAGE)^2 in retreat and creep and
+    the whole vertical offset^2 of every immaterial one (eq. M3a, `_competitors`: unresolved, but with
+    the best's retreat and creep to within COVERAGE x max_bound_m).
     """
     tol = np.asarray(settings.tolerance_m, dtype=float)
     nan3 = np.full(3, np.nan)
