@@ -17,7 +17,7 @@ from typing import Protocol
 
 import numpy as np
 
-from .displacement import estimate_advance, fit_chi2, location_covariance_m2, translation_scores
+from .displacement import COVERAGE, estimate_advance, fit_chi2, location_covariance_m2, translation_scores
 from .locate import locate_plates, look_sigma_factor, misfit_scale
 from .records import (
     TRUSTED_STATUSES,
@@ -421,7 +421,7 @@ class RigChain:
         if d_bc.status != "ok":
             return None
         misclosure = d_ab.advance_m + d_bc.advance_m - d_ac.advance_m
-        limit = 3.0 * np.sqrt(d_ab.bound_m**2 + d_bc.bound_m**2 + d_ac.bound_m**2)
+        limit = COVERAGE * np.sqrt(d_ab.bound_m**2 + d_bc.bound_m**2 + d_ac.bound_m**2)
         return d_ab if bool(np.all(np.abs(misclosure) <= limit)) else None
 
     def _resolve_through(self, a: CycleResult, b: CycleResult, c: CycleResult, d_bc: Displacement

@@ -49,6 +49,7 @@ NULL_OFFSET_M = np.array([1.0, 0.1, 0.6])
 # (offset / COVERAGE)^2 to the retreat and creep bound, so whichever of the two is right, the row's error is
 # within COVERAGE x its bound.
 COVERAGE = 3.0
+_IMMATERIAL_SCALE = np.array([COVERAGE, COVERAGE, 1.0])  # the vertical bound holds the whole offset (M3a)
 # The rib registration (eq. M7) is asked only when the plates leave the best's lead over the runner-up below
 # RIB_REACH x min_margin, and scores the translations within that of the best, at most RIB_CANDIDATES.
 RIB_REACH = 2.0
@@ -495,8 +496,7 @@ def _competitors(best: _Hypothesis, rivals: list[_Hypothesis], settings: Associa
     comps.append((best.score - best.vertical - best.rib, NULL_OFFSET_M))
     immaterial = [m < settings.min_margin and max(o[0], o[1]) <= COVERAGE * settings.max_bound_m
                   for m, o in comps]
-    per_axis = np.array([COVERAGE, COVERAGE, 1.0])  # the vertical bound holds the whole offset
-    var = sum(((o / per_axis) ** 2 for (_, o), skip in zip(comps, immaterial) if skip), np.zeros(3))
+    var = sum(((o / _IMMATERIAL_SCALE) ** 2 for (_, o), skip in zip(comps, immaterial) if skip), np.zeros(3))
     # "no plate in common" is material unless max_bound_m reaches a plate spacing
     material = ([c for c, skip in zip(comps, immaterial) if not skip]
                 or [(min(m for m, _ in comps), np.zeros(3))])
