@@ -19,6 +19,10 @@ or one height only), with and without a web-depth prior. Then `uwbcl process --b
     python scripts/availability_study.py --work /tmp/avail --reuse-detections  # association only (see below)
     python scripts/availability_study.py --work /tmp/avail-random --random 30  # 30 drawn scenarios, 6 cycles
 
+`--replicas N` also runs N more realisations of each named scenario (the same parameters, other seeds: plate
+layout, motion and noise) and prints, per scenario, the spread of the cumulative drift, the largest excursion
+of a random walk that one realisation estimates poorly.
+
 `--random N` draws N scenarios from the issue's ranges instead (`random_scenario`: squint, rib, heights, SNR,
 wobble, grid, rows, missing plates, rib side, radar, int16, a missed cycle), each run with and without a
 web-depth prior over a short history (6 cycles: a user's first night), and prints the pooled rows per SNR
@@ -151,6 +155,8 @@ VARIANTS = {  # name: (parent, heights to keep or None, web-depth prior?)
     "dense-3h-regular-noprior": ("dense-3h-regular", None, False),
 }
 QUICK = ["base", "dense-3h", "dense-2h", "dense-3h-noprior"]
+REPLICA_SEED_STEP = 1000  # `--replicas`: realisation k of a scenario has seed + k x this
+DRIFT_LIMIT_MM = 10.0  # issue 14: cumulative drift over 40 cycles
 ACQUISITION = ("prf_hz", "speed_m_s", "rail_m", "sample_rate_hz", "window_margin_m", "aperture_m",
                "reference_z", "rail_offset_m", "echo_scale")
 RADARS = ((4.3e9, 1.7e9), (4.0e9, 1.4e9), (3.95e9, 1.2e9))  # (carrier, -10 dB bandwidth) of random scenarios
@@ -505,6 +511,37 @@ def table(results: dict) -> str:
     return "\n".join(lines)
 
 
+def replica(s: Scenario, k: int) -> Scenario:
+    """Realisation k of a scenario: k = 0 is itself; k > 0 the same parameters with seed
+    s.seed + REPLICA_SEED_STEP k (another plate layout, motion and noise), named after that seed."""
+    if k == 0:
+        return s
+    seed = s.seed + REPLICA_SEED_STEP * k
+    return dataclasses.replace(s, name=f"{s.name}-seed{seed}", seed=seed)
+
+
+def replica_name(name: str, seed: int, k: int) -> str:
+    """The output label of realisation k of scenario or variant `name` (its parent's seed `seed`)."""
+    return name if k == 0 else f"{name}-seed{seed}"
+
+
+def replica_summary(results: dict, names: list[str], replicas: int) -> str:
+    """Per scenario over its 1 + `replicas` realisations: the cumulative drift's median and largest (retreat /
+    creep, mm), how many realisations drift more than DRIFT_LIMIT_MM on either axis, and the pooled ok %. The
+    drift is the largest excursion of a random walk (one per realisation): one realisation says little."""
+    lines = [f"{'scenario':26s} {'n':>2s} {'drift median x/y mm':>20s} {'largest x/y mm':>15s} "
+             f"{'> ' + str(DRIFT_LIMIT_MM) + ' mm':>8s} {'ok%':>6s}"]
+    for name in names:
+        runs = [r for label, r in results.items() if label == name or label.startswith(name + "-seed")]
+        drift = np.array([r["drift_mm"] for r in runs]).reshape(-1, 2)
+        med, big = np.median(drift, axis=0), np.max(drift, axis=0)
+        over = int(np.sum(np.any(drift > DRIFT_LIMIT_MM, axis=1)))
+        ok_pct = 100.0 * sum(r["ok"] for r in runs) / max(sum(r["rows"] for r in runs), 1)
+        lines.append(f"{name:26s} {len(runs):2d} {med[0]:9.1f}/{med[1]:<10.1f} {big[0]:7.1f}/{big[1]:<7.1f} "
+                     f"{over:8d} {ok_pct:6.1f}")
+    return "\n".join(lines)
+
+
 def summary(results: dict, snr_db: dict) -> str:
     """Pooled over scenarios, per SNR class and with / without a prior: rows, % ok, ok rows beyond 3 x their
     bound, gross errors, RMS of the ok rows (retreat / creep, mm), and the withheld rows whose cycle shares
@@ -545,6 +582,9 @@ def main(argv=None) -> int:
                          "`uwbcl process` runs by default)")
     ap.add_argument("--tag", default="out", help="output directory name per scenario (default: out)")
     ap.add_argument("--json", type=Path, default=None, help="write the results here")
+    ap.add_argument("--replicas", type=int, default=0, metavar="N",
+                    help="also run N more realisations of each named scenario (`replica`: the same "
+                         "parameters, another seed) and print the spread of their drift")
     ap.add_argument("--random", type=int, default=0, metavar="N",
                     help="instead: N scenarios drawn from the issue's ranges (`random_scenario`), each "
                          "with and without a prior (default 6 cycles each)")
@@ -566,20 +606,23 @@ def main(argv=None) -> int:
     results = {}
     for name in names:
         parent, heights, prior = VARIANTS.get(name, (name, None, True))
-        s = by_name[parent]
-        root = args.work / parent
-        arch = generate(s, cycles, root)
-        rig_m = np.array(json.loads((root / "truth.json").read_text())["rig_m"])
-        out = args.work / name / args.tag
-        reuse = None
-        if args.reuse_detections:
-            reuse = newest_run(args.work / name) or newest_run(args.work / parent)
-        if name != parent:
-            share_cache(args.work / parent / args.tag, out, args.backend)
-        secs = run_process(arch, out, s, heights, prior, args.jobs, reuse, args.config, args.backend)
-        results[name] = score(out, rig_m)
-        print(f"  {name}: processed in {secs:.0f} s", flush=True)
+        for k in range(args.replicas + 1):
+            s = replica(by_name[parent], k)
+            root, label = args.work / s.name, replica_name(name, s.seed, k)
+            arch = generate(s, cycles, root)
+            rig_m = np.array(json.loads((root / "truth.json").read_text())["rig_m"])
+            out = args.work / label / args.tag
+            reuse = None
+            if args.reuse_detections:
+                reuse = newest_run(args.work / label) or newest_run(root)
+            if name != parent:
+                share_cache(root / args.tag, out, args.backend)
+            secs = run_process(arch, out, s, heights, prior, args.jobs, reuse, args.config, args.backend)
+            results[label] = score(out, rig_m)
+            print(f"  {label}: processed in {secs:.0f} s", flush=True)
     print(table(results))
+    if args.replicas:
+        print(replica_summary(results, names, args.replicas))
     if args.json:
         args.json.write_text(json.dumps(results, indent=1) + "\n")
     return 0

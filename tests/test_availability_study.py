@@ -103,3 +103,30 @@ def test_the_columned_and_regular_dense_scenarios_are_dense_3h_in_rings_and_ever
     for parent, heights, _ in study.VARIANTS.values():
         assert parent in by_name
         assert heights is None or set(heights) < set(by_name[parent].heights_m)
+
+
+def test_a_replica_is_the_same_scenario_with_another_seed_and_its_drift_spread_counts_every_realisation():
+    study = load()
+    s = {x.name: x for x in study.SCENARIOS}["dense-3h-regular"]
+    assert study.replica(s, 0) is s
+    r2 = study.replica(s, 2)
+    assert r2.seed == s.seed + 2 * study.REPLICA_SEED_STEP and r2.name == f"dense-3h-regular-seed{r2.seed}"
+    assert {**vars(r2), "name": None, "seed": None} == {**vars(s), "name": None, "seed": None}
+    # another layout and motion, not the same one renamed
+    plates, _, _, _, truth = study.scene(s, 6)
+    plates2, _, _, _, truth2 = study.scene(r2, 6)
+    assert plates.shape != plates2.shape or not np.allclose(plates, plates2)
+    assert not np.allclose(truth.rig_m, truth2.rig_m)
+    # a variant's realisations are labelled by their parent's seed; the summary pools all of one name, and
+    # not a longer name that starts like it
+    assert study.replica_name("dense-2h-regular", r2.seed, 2) == f"dense-2h-regular-seed{r2.seed}"
+    assert study.replica_name("dense-2h-regular", s.seed, 0) == "dense-2h-regular"
+
+    def run(drift, ok=9, rows=10):
+        return {"drift_mm": drift, "ok": ok, "rows": rows}
+
+    results = {"a": run([4.0, 1.0]), "a-seed1007": run([12.0, 2.0]), "a-seed2007": run([6.0, 10.5], ok=10),
+               "a-b": run([50.0, 50.0])}
+    line = study.replica_summary(results, ["a"], 2).splitlines()[1].split()
+    assert line[:2] == ["a", "3"]
+    assert line[2] == "6.0/2.0" and line[3] == "12.0/10.5" and line[4] == "2" and line[5] == "93.3"
