@@ -12,7 +12,7 @@ from test_association_honesty import HEIGHTS, PRIOR, noisy_cycles, plate
 
 from uwbcl import chain, outputs
 from uwbcl.acquisition import live
-from uwbcl.records import AssociationSettings, CycleResult, ProcessingSettings
+from uwbcl.records import AssociationSettings, CycleResult, Displacement, ProcessingSettings
 
 BLIND = AssociationSettings()  # no web-depth prior
 
@@ -158,6 +158,37 @@ def test_an_untrusted_row_after_the_anchor_is_reissued_once_the_next_cycles_give
     previous = next(r for r in rc.rows if r.cycle.cycle == 6)
     expected = previous.cumulative_m + seven.displacement.advance_m
     np.testing.assert_allclose(seven.cumulative_m, expected, atol=1e-12)
+
+
+def _attempt(status: str, retreat_m: float) -> Displacement:
+    return Displacement(np.array([retreat_m, 0.0, 0.0]), np.zeros(3), 1, 0.0, status, [(0, 0)],
+                        bound_m=np.full(3, 0.02), margin=9.0)
+
+
+def test_a_withheld_row_shows_the_more_informative_of_its_attempts_from_the_anchor_and_the_cycle_before(
+        monkeypatch):
+    """Cycle 2 is withheld from the anchor 1; cycle 3 across the gap from 1 is a translation outside the prior
+    (prior_conflict, 0.15 m: a wrong match), from 2 a unique match whose bound is too wide (low_confidence,
+    0.93 m). The row shows the attempt from 2; an inconsistent attempt from the anchor (a bridge in reserve)
+    and ties keep the anchor's (docs/outputs.md section 3; seen on draw 1900's r1914)."""
+    cycles, _ = noisy_cycles(4, seed=0)
+
+    def run(attempts):
+        monkeypatch.setattr(chain.RigChain, "_measure", lambda self, a, b, prior=None: attempts.get(
+            (a.cycle, b.cycle), _attempt("ambiguous", 0.9 * (b.cycle - a.cycle))))
+        rows = chain.rig_series(cycles, dataclasses.replace(PRIOR, second_look=False))
+        return {r.cycle.cycle: (r.reference.cycle, r.displacement.status, r.displacement.retreat_m)
+                for r in rows}
+
+    ok = {(0, 1): _attempt("ok", 0.9), (1, 2): _attempt("low_confidence", 0.9)}
+    rows = run({**ok, (1, 3): _attempt("prior_conflict", 0.15), (2, 3): _attempt("low_confidence", 0.93)})
+    assert rows[3] == (2, "low_confidence", 0.93) and rows[2] == (1, "low_confidence", 0.9)
+    rows = run({**ok, (1, 3): _attempt("inconsistent", 1.8), (2, 3): _attempt("low_confidence", 0.93)})
+    assert rows[3] == (1, "inconsistent", 1.8)
+    rows = run({**ok, (1, 3): _attempt("ambiguous", 1.8), (2, 3): _attempt("ambiguous", 0.93)})
+    assert rows[3] == (1, "ambiguous", 1.8)
+    rows = run({**ok, (1, 3): _attempt("low_confidence", 1.8), (2, 3): _attempt("prior_conflict", 0.93)})
+    assert rows[3] == (1, "low_confidence", 1.8)
 
 
 def test_a_cycle_whose_anchor_saw_one_plate_is_measured_from_the_chains_earlier_cycle():

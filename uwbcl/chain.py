@@ -20,6 +20,8 @@ import numpy as np
 from .displacement import COVERAGE, estimate_advance, fit_chi2, location_covariance_m2, translation_scores
 from .locate import locate_plates, look_sigma_factor, misfit_scale
 from .records import (
+    CHAINABLE_STATUSES,
+    STATUSES,
     TRUSTED_STATUSES,
     AssociationSettings,
     CycleResult,
@@ -153,6 +155,18 @@ def plate_covariances(cycle: CycleResult, range_sigma_m: float) -> np.ndarray:
                                          np.max(sigma) * MISSED_HEIGHT_SIGMA_FACTOR)
         out.append(cov * misfit_scale(p, range_sigma_m))
     return np.array(out).reshape(-1, 3, 3)
+
+
+def withheld_attempt(anchor: CycleResult, d: Displacement, last: SeriesRow | None, d_last: Displacement | None
+                     ) -> tuple[CycleResult, Displacement]:
+    """What a withheld row shows: the attempt across the gap from the anchor (`d`), or the one from the
+    untrusted cycle just before (`d_last`, None when not measured) where its status is the more informative
+    (earlier in STATUSES: a unique match whose bound is too wide says more than a translation outside the
+    prior). A chainable `d` (inconsistent: a bridge in reserve, §3 of docs/outputs.md) stays, as do ties."""
+    if (d_last is not None and last is not None and d.status not in CHAINABLE_STATUSES
+            and STATUSES.index(d_last.status) < STATUSES.index(d.status)):
+        return last.cycle, d_last
+    return anchor, d
 
 
 def trusted(d: Displacement) -> bool:
@@ -682,6 +696,7 @@ class RigChain:
         if earlier is not None:
             return earlier
         last = self.rows[-1] if self.rows else None
+        d3 = None
         if last is not None and last.cycle.cycle != anchor.cycle and last.cycle.plates:
             d3 = self._measure(last.cycle, cur)
             d_ab = (self._resolve_through(anchor, last.cycle, cur, d3)
@@ -705,7 +720,8 @@ class RigChain:
                 self._rejoin = (anchor, self._anchor_cum, self._anchor_var, self._chain - 1, last.cycle)
                 self._restart(last.cycle)
                 return self._extend(cur, last.cycle, d3, np.zeros(3), np.zeros(3))
-        row = self._append(SeriesRow(cur, anchor, d, np.full(3, np.nan), self._chain))
+        row = self._append(SeriesRow(cur, *withheld_attempt(anchor, d, last, d3), np.full(3, np.nan),
+                                     self._chain))
         if d.status == "inconsistent" and self._reserve is None:
             self._reserve = (len(self.rows) - 1, cur, self._anchor_cum + d.advance_m,
                              self._anchor_var + d.bound_m**2)
