@@ -169,8 +169,9 @@ def test_a_withheld_row_shows_the_more_informative_of_its_attempts_from_the_anch
         monkeypatch):
     """Cycle 2 is withheld from the anchor 1; cycle 3 across the gap from 1 is a translation outside the prior
     (prior_conflict, 0.15 m: a wrong match), from 2 a unique match whose bound is too wide (low_confidence,
-    0.93 m). The row shows the attempt from 2; an inconsistent attempt from the anchor (a bridge in reserve)
-    and ties keep the anchor's (docs/outputs.md section 3; seen on draw 1900's r1914)."""
+    0.93 m). The row shows the attempt from 2; an inconsistent attempt (from the anchor: the bridge in
+    reserve; from 2: not one) and ties keep the anchor's (docs/outputs.md section 3; seen on draw 1900's
+    r1914)."""
     cycles, _ = noisy_cycles(4, seed=0)
 
     def run(attempts):
@@ -189,6 +190,9 @@ def test_a_withheld_row_shows_the_more_informative_of_its_attempts_from_the_anch
     assert rows[3] == (1, "ambiguous", 1.8)
     rows = run({**ok, (1, 3): _attempt("low_confidence", 1.8), (2, 3): _attempt("prior_conflict", 0.93)})
     assert rows[3] == (1, "low_confidence", 1.8)
+    # an inconsistent row is the bridge held in reserve: one from the cycle before is not shown as one
+    rows = run({**ok, (1, 3): _attempt("too_few_targets", np.nan), (2, 3): _attempt("inconsistent", 0.93)})
+    assert rows[3][:2] == (1, "too_few_targets")
 
 
 def test_a_cycle_whose_anchor_saw_one_plate_is_measured_from_the_chains_earlier_cycle():

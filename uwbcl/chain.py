@@ -162,8 +162,10 @@ def withheld_attempt(anchor: CycleResult, d: Displacement, last: SeriesRow | Non
     """What a withheld row shows: the attempt across the gap from the anchor (`d`), or the one from the
     untrusted cycle just before (`d_last`, None when not measured) where its status is the more informative
     (earlier in STATUSES: a unique match whose bound is too wide says more than a translation outside the
-    prior). A chainable `d` (inconsistent: a bridge in reserve, §3 of docs/outputs.md) stays, as do ties."""
+    prior). A chainable `d` (inconsistent: a bridge in reserve, §3 of docs/outputs.md) stays, as do ties; a
+    chainable `d_last` is not shown (a row that reads inconsistent is the one held in reserve)."""
     if (d_last is not None and last is not None and d.status not in CHAINABLE_STATUSES
+            and d_last.status not in CHAINABLE_STATUSES
             and STATUSES.index(d_last.status) < STATUSES.index(d.status)):
         return last.cycle, d_last
     return anchor, d
@@ -180,7 +182,9 @@ class RigChain:
     Each cycle is measured from the last cycle in the chain (the anchor), with the prior of `prior` (motion
     model or web depth, scaled by the cycles spanned). A trusted match (ok) extends the chain. An untrusted
     one leaves the row flagged with a NaN cumulative and the next cycle is measured from the anchor again,
-    bridging the gap, so a cycle matched to the wrong plates never enters the cumulative values. An
+    bridging the gap, so a cycle matched to the wrong plates never enters the cumulative values; if that one
+    is withheld too, its row shows the more informative of that attempt and the one from the untrusted cycle
+    before it (`withheld_attempt`). An
     "inconsistent" match (unique plates that disagree by centimetres) is held in reserve: if the next cycle
     cannot be bridged from the anchor but matches the inconsistent cycle, the chain runs through it (and the
     reserve row gets its cumulative value). If the next cycle cannot be bridged but matches the untrusted
