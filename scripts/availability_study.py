@@ -525,10 +525,11 @@ def replica_name(name: str, seed: int, k: int) -> str:
     return name if k == 0 else f"{name}-seed{seed}"
 
 
-def replica_summary(results: dict, names: list[str], replicas: int) -> str:
-    """Per scenario over its 1 + `replicas` realisations: the cumulative drift's median and largest (retreat /
-    creep, mm), how many realisations drift more than DRIFT_LIMIT_MM on either axis, and the pooled ok %. The
-    drift is the largest excursion of a random walk (one per realisation): one realisation says little."""
+def replica_summary(results: dict, names: list[str]) -> str:
+    """Per scenario over its realisations (`replica_name`: itself and its -seed labels): the cumulative
+    drift's median and largest (retreat / creep, mm), how many realisations drift more than DRIFT_LIMIT_MM on
+    either axis, and the pooled ok %. The drift is the largest excursion of a random walk (one per
+    realisation): one realisation says little."""
     lines = [f"{'scenario':26s} {'n':>2s} {'drift median x/y mm':>20s} {'largest x/y mm':>15s} "
              f"{'> ' + str(DRIFT_LIMIT_MM) + ' mm':>8s} {'ok%':>6s}"]
     for name in names:
@@ -622,7 +623,7 @@ def main(argv=None) -> int:
             print(f"  {label}: processed in {secs:.0f} s", flush=True)
     print(table(results))
     if args.replicas:
-        print(replica_summary(results, names, args.replicas))
+        print(replica_summary(results, names))
     if args.json:
         args.json.write_text(json.dumps(results, indent=1) + "\n")
     return 0

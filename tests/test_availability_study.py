@@ -127,6 +127,6 @@ def test_a_replica_is_the_same_scenario_with_another_seed_and_its_drift_spread_c
 
     results = {"a": run([4.0, 1.0]), "a-seed1007": run([12.0, 2.0]), "a-seed2007": run([6.0, 10.5], ok=10),
                "a-b": run([50.0, 50.0])}
-    line = study.replica_summary(results, ["a"], 2).splitlines()[1].split()
+    line = study.replica_summary(results, ["a"]).splitlines()[1].split()
     assert line[:2] == ["a", "3"]
     assert line[2] == "6.0/2.0" and line[3] == "12.0/10.5" and line[4] == "2" and line[5] == "93.3"
