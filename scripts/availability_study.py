@@ -43,6 +43,9 @@ the focuser and detector, which this study does not change, so a changed associa
 instead of refocusing every pass.
 A "-2h" / "-noprior" variant reprocesses its parent's archives with the extra heights excluded (`--heights`)
 or without `--web-depth`: the same data, one thing changed.
+`--look-errors` also prints how far the located plates' looks (each pass's x and R_c) lie from the truth, by
+kind: clean, split from a peak that held two (eq. S2), shared with a neighbour and kept (eq. L1); the
+measurement behind eqs. S3 and L3.
 
 Measured results: docs/method.md section 6.1.
 """
@@ -66,7 +69,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from uwbcl import batch, config
+from uwbcl import batch, chain, config
+from uwbcl.records import Detection
 
 C_M_S = 299_792_458.0
 
@@ -495,6 +499,67 @@ def score(out: Path, rig_m: np.ndarray) -> dict:
     }
 
 
+LOOK_KINDS = ("clean", "split", "shared")
+
+
+def look_kind(plate, height_m: float, det: Detection) -> str:
+    """A located plate's look: "split" from a peak that held two (eq. S2), "shared" with a neighbour (eq. L1)
+    and kept in the fit, else "clean"."""
+    if not math.isnan(det.split_separation_m):
+        return "split"
+    return "shared" if height_m in plate.shared_heights_m else "clean"
+
+
+def look_errors(s: Scenario, out: Path, cycles: int, site: Path | None = None
+                ) -> list[tuple[str, float, float]]:
+    """(kind, x error m, R_c error m) of every look of every plate that the run `out` located, from its
+    detection cache and `chain.locate_cycle` with the run's settings, against the nearest true plate (in x
+    and in R_c at the look's rail height): the measurement behind eqs. S3 and L3 and the kept shared looks of
+    docs/method.md section 6.1 (`--look-errors`)."""
+    cfg = config.load_config(site) if site is not None else config.SiteConfig()
+    settings = cfg.processing_settings()
+    plates, *_, truth = scene(s, cycles)
+    by_cycle: dict[int, dict[float, list[Detection]]] = {}
+    for f in sorted((out / batch.CACHE_DIR).glob("*/*.json")):
+        entry = json.loads(f.read_text())
+        h = entry["header"]
+        dets = [Detection(**{k: float(v) for k, v in d.items()}) for d in entry["detections"]]
+        by_cycle.setdefault(int(h["cycle"]), {})[float(h["height_m"])] = dets
+    errors = []
+    for c, by_height in sorted(by_cycle.items()):
+        if len(by_height) < 2 or c >= len(truth.rig_m):
+            continue
+        cyc = chain.locate_cycle("rig", c, "", by_height, s.side, settings.detection,
+                                 settings.association.range_sigma_m)
+        p_true = plates - truth.rig_m[c]
+        for plate in cyc.plates:
+            for h, d in plate.looks:
+                rc = np.hypot(p_true[:, 1], p_true[:, 2] - h)
+                k = int(np.argmin(np.hypot(p_true[:, 0] - d.x_m, rc - d.rc_m)))
+                errors.append((look_kind(plate, h, d), d.x_m - p_true[k, 0], d.rc_m - rc[k]))
+    return errors
+
+
+LOOK_ERROR_CUT_M = 0.06  # errors beyond this are another plate's or clutter's peak, not a look's precision
+
+
+def look_error_table(errors: list[tuple[str, float, float]]) -> str:
+    """Per look kind: count, sigma from the median |error| (1.4826 x), RMS of the errors under
+    LOOK_ERROR_CUT_M, the 90th percentile (mm, along track / in range)."""
+    cut_mm = 1e3 * LOOK_ERROR_CUT_M
+    lines = [f"{'look':8s} {'n':>6s}  sigma(MAD) x/R_c mm  RMS<{cut_mm:.0f}mm x/R_c   p90 x/R_c mm"]
+    for kind in LOOK_KINDS:
+        e = np.abs(np.array([(x, r) for k, x, r in errors if k == kind]).reshape(-1, 2)) * 1e3
+        if not len(e):
+            continue
+        mad = 1.4826 * np.median(e, axis=0)
+        rms = [math.sqrt(np.mean(a[a < cut_mm] ** 2)) if (a < cut_mm).any() else math.nan for a in e.T]
+        p90 = np.percentile(e, 90, axis=0)
+        lines.append(f"{kind:8s} {len(e):6d}  {mad[0]:8.1f}/{mad[1]:<8.1f}  {rms[0]:9.1f}/{rms[1]:<9.1f} "
+                     f"{p90[0]:6.1f}/{p90[1]:<6.1f}")
+    return "\n".join(lines)
+
+
 def table(results: dict) -> str:
     head = (f"{'scenario':22s} {'rows':>4s} {'ok%':>6s} {'RMS x/y mm':>11s} {'max x/y mm':>11s} "
             f"{'cover%':>6s} "
@@ -595,6 +660,9 @@ def main(argv=None) -> int:
     ap.add_argument("--random-acquisition", action="store_true",
                     help="with --random: also draw the writer's free choices (`random_acquisition`: rail, "
                          "PRF, speed, sampling rate, range window, antenna aperture, reference point)")
+    ap.add_argument("--look-errors", action="store_true",
+                    help="also print the errors of the located plates' looks against the truth, by kind "
+                         "(clean, split, shared and kept), pooled over the runs with a prior")
     ap.add_argument("--random-web", type=float, nargs=2, default=None, metavar=("LO_M", "HI_M"),
                     help="draw each random scenario's web (advance per cycle, m) uniformly in [LO, HI] "
                          "instead of 0.9 m; the prior runs are told each scenario's web")
@@ -604,7 +672,7 @@ def main(argv=None) -> int:
     cycles = args.cycles or (6 if args.quick else 41)
     names = args.only or (QUICK if args.quick else [s.name for s in SCENARIOS] + list(VARIANTS))
     by_name = {s.name: s for s in SCENARIOS}
-    results = {}
+    results, looks = {}, []
     for name in names:
         parent, heights, prior = VARIANTS.get(name, (name, None, True))
         for k in range(args.replicas + 1):
@@ -620,8 +688,12 @@ def main(argv=None) -> int:
                 share_cache(root / args.tag, out, args.backend)
             secs = run_process(arch, out, s, heights, prior, args.jobs, reuse, args.config, args.backend)
             results[label] = score(out, rig_m)
+            if args.look_errors and name == parent:  # a variant locates its parent's looks again
+                looks += look_errors(s, out, cycles, args.config)
             print(f"  {label}: processed in {secs:.0f} s", flush=True)
     print(table(results))
+    if args.look_errors:
+        print(look_error_table(looks))
     if args.replicas:
         print(replica_summary(results, names))
     if args.json:
@@ -632,7 +704,7 @@ def main(argv=None) -> int:
 def run_random(args) -> int:
     """`--random N`: short runs of independently drawn scenarios, as a user's first cycles would be."""
     cycles = args.cycles or 6
-    results, snr_db = {}, {}
+    results, snr_db, looks = {}, {}, []
     for seed in range(args.random_seed, args.random_seed + args.random):
         if args.only and f"r{seed}" not in args.only:  # the draw's other scenarios are skipped, not redrawn
             continue
@@ -649,6 +721,8 @@ def run_random(args) -> int:
                 share_cache(root / args.tag, out, args.backend)
             run_process(arch, out, s, None, prior, args.jobs, reuse, args.config, args.backend)
             results[name], snr_db[name] = score(out, rig_m), s.snr_db
+            if args.look_errors and prior:
+                looks += look_errors(s, out, cycles, args.config)
         print(f"  {s.name}: squint {s.squint_deg:.0f} deg, rib {s.rib_m:.1f} m, {len(s.heights_m)} heights, "
               f"{s.snr_db:.0f} dB, wobble {100 * s.wobble:.0f} %, "
               f"grid {s.grid_m:.2f} m x {len(s.rows_z_m)} rows, side {s.side:+d}, "
@@ -660,6 +734,8 @@ def run_random(args) -> int:
                  if args.random_acquisition else ""), flush=True)
     print(table(results))
     print(summary(results, snr_db))
+    if args.look_errors:
+        print(look_error_table(looks))
     if args.json:
         args.json.write_text(json.dumps(results, indent=1) + "\n")
     return 0

@@ -6,6 +6,7 @@ the coherence of two images is that of their complex values."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -130,3 +131,19 @@ def test_a_replica_is_the_same_scenario_with_another_seed_and_its_drift_spread_c
     line = study.replica_summary(results, ["a"]).splitlines()[1].split()
     assert line[:2] == ["a", "3"]
     assert line[2] == "6.0/2.0" and line[3] == "12.0/10.5" and line[4] == "2" and line[5] == "93.3"
+
+
+def test_a_looks_kind_and_the_pooled_table_of_look_errors_follow_the_located_plate():
+    from uwbcl.records import Detection, Located
+    study = load()
+    det = Detection(1.0, 2.0, 0.0, 2.0, 0.0, 2.0, 1.0, 30.0)
+    split = dataclasses.replace(det, rc_m=2.1, split_separation_m=0.08)
+    plate = Located(np.array([1.0, -2.0, 1.0]), 0.0, 3, 1.0, looks=((0.2, det), (0.45, split), (0.7, det)),
+                    shared_heights_m=(0.45, 0.7))
+    assert [study.look_kind(plate, h, d) for h, d in plate.looks] == ["clean", "split", "shared"]
+    errors = [("clean", 0.001, -0.002), ("clean", -0.003, 0.004), ("clean", 0.5, 0.5), ("shared", 0.01, 0.02)]
+    table = study.look_error_table(errors).splitlines()
+    assert len(table) == 3 and table[1].split()[:2] == ["clean", "3"] and table[2].split()[:2] == ["shared", "1"]
+    # the median |error| x 1.4826, and an RMS without the 0.5 m error (another plate's peak)
+    assert table[1].split()[2] == f"{1.4826 * 3:.1f}/{1.4826 * 4:<.1f}"
+    assert table[1].split()[3] == f"{np.sqrt((1 + 9) / 2):.1f}/{np.sqrt((4 + 16) / 2):.1f}"
