@@ -143,7 +143,8 @@ def test_a_looks_kind_and_the_pooled_table_of_look_errors_follow_the_located_pla
     assert [study.look_kind(plate, h, d) for h, d in plate.looks] == ["clean", "split", "shared"]
     errors = [("clean", 0.001, -0.002), ("clean", -0.003, 0.004), ("clean", 0.5, 0.5), ("shared", 0.01, 0.02)]
     table = study.look_error_table(errors).splitlines()
-    assert len(table) == 3 and table[1].split()[:2] == ["clean", "3"] and table[2].split()[:2] == ["shared", "1"]
+    assert len(table) == 3
+    assert table[1].split()[:2] == ["clean", "3"] and table[2].split()[:2] == ["shared", "1"]
     # the median |error| x 1.4826, and an RMS without the 0.5 m error (another plate's peak)
     assert table[1].split()[2] == f"{1.4826 * 3:.1f}/{1.4826 * 4:<.1f}"
     assert table[1].split()[3] == f"{np.sqrt((1 + 9) / 2):.1f}/{np.sqrt((4 + 16) / 2):.1f}"
