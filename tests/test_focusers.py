@@ -65,7 +65,7 @@ def test_every_stage_names_a_function_or_kernel_that_exists_in_each_backend():
 
 @pytest.mark.parametrize("focuser", [NUMPY_FOCUSER, SCIPY32_FOCUSER], ids=repr)
 def test_the_cpu_focusers_methods_call_the_functions_the_stage_table_names(focuser, monkeypatch):
-    column = "numpy" if isinstance(focuser, NumpyFocuser) else "scipy32"
+    column = "scipy32" if isinstance(focuser, Scipy32Focuser) else "numpy"
     args = {"nlcs_focus": (None,), "backprojection_focus": (None,), "nlcs_model_spectra": (None,) * 4,
             "calibration_spectra": (None,) * 3, "backproject_track_points": (None,) * 4}
     for stage in (s for s in STAGES if s.name in FOCUSER_METHODS):

@@ -23,8 +23,9 @@ import numpy as np
 import scipy.fft as sfft
 
 from ..model import ScanPass
-from . import backprojection, nlcs
 from . import coefficients as coef
+from . import nlcs
+from .reference import NumpyFocuser
 
 C = nlcs.C
 WORKERS = -1  # scipy.fft threads: all cores
@@ -209,13 +210,13 @@ def nlcs_model_spectra(products: nlcs.NlcsProducts, x_rel_m: np.ndarray, echoes,
     return nlcs.spectrum_rows_from_range_doppler(y, rows, grid)
 
 
-class Scipy32Focuser:
+class Scipy32Focuser(NumpyFocuser):
     """`Focuser` of the float32 scipy baseline: the NLCS image and the neighbour models by this module's
     chain.
 
-    Backprojection and the calibration targets have no float32 version here: they are the float64 reference's
-    (`backprojection.backprojection_focus`, `nlcs.calibration_spectra`), as they were before this class when
-    detection fell back to the reference for what the module lacked."""
+    Backprojection, its track points and the calibration targets have no float32 version here: they are the
+    float64 reference's (`NumpyFocuser`'s methods), as they were before this class when detection fell back to
+    the reference for what the module lacked."""
 
     def __repr__(self) -> str:
         return "Scipy32Focuser()"
@@ -225,28 +226,10 @@ class Scipy32Focuser:
         """`nlcs_focus_scipy32` (see `Focuser.nlcs_focus`)."""
         return nlcs_focus_scipy32(scan, ac_mode=ac_mode, grid=grid, compression=compression)
 
-    def backprojection_focus(self, scan: ScanPass, *, pixel_m: float = 0.01,
-                             grid: nlcs.FocusGrid | None = None, range_margin_m: float = 0.1,
-                             u_extent_m: tuple[float, float] | None = None
-                             ) -> backprojection.BackprojectionProducts:
-        """The float64 reference's `backprojection.backprojection_focus`."""
-        return backprojection.backprojection_focus(scan, pixel_m=pixel_m, grid=grid,
-                                                   range_margin_m=range_margin_m, u_extent_m=u_extent_m)
-
     def nlcs_model_spectra(self, products: nlcs.NlcsProducts, x_rel_m: np.ndarray, echoes,
                            rows: np.ndarray) -> np.ndarray:
         """This module's `nlcs_model_spectra` (see `Focuser.nlcs_model_spectra`)."""
         return nlcs_model_spectra(products, x_rel_m, echoes, rows)
-
-    def calibration_spectra(self, products: nlcs.NlcsProducts, r_m: np.ndarray, t_n_s: np.ndarray
-                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The float64 reference's `nlcs.calibration_spectra`."""
-        return nlcs.calibration_spectra(products, r_m, t_n_s)
-
-    def backproject_track_points(self, rc: backprojection.RangeCompressed, grid: nlcs.FocusGrid, x_rel_m,
-                                 rc_m, counts: bool = False):
-        """The float64 reference's `backprojection.backproject_track_points`."""
-        return backprojection.backproject_track_points(rc, grid, x_rel_m, rc_m, counts=counts)
 
 
 SCIPY32_FOCUSER = Scipy32Focuser()
