@@ -513,14 +513,16 @@ def look_kind(plate, height_m: float, det: Detection) -> str:
 def look_errors(s: Scenario, out: Path, cycles: int, site: Path | None = None
                 ) -> list[tuple[str, float, float]]:
     """(kind, x error m, R_c error m) of every look of every plate that the run `out` located, from its
-    detection cache and `chain.locate_cycle` with the run's settings, against the nearest true plate (in x
-    and in R_c at the look's rail height): the measurement behind eqs. S3 and L3 and the kept shared looks of
-    docs/method.md section 6.1 (`--look-errors`)."""
+    detection cache (the key written last, as `newest_run` picks a run: the current detector's) and
+    `chain.locate_cycle` with the run's settings, against the nearest true plate (in x and in R_c at the
+    look's rail height): the measurement behind eqs. S3 and L3 and the kept shared looks of docs/method.md
+    section 6.1 (`--look-errors`)."""
     cfg = config.load_config(site) if site is not None else config.SiteConfig()
     settings = cfg.processing_settings()
     plates, *_, truth = scene(s, cycles)
+    keys = sorted((out / batch.CACHE_DIR).glob("*/"), key=lambda p: (p.stat().st_mtime, p.name))
     by_cycle: dict[int, dict[float, list[Detection]]] = {}
-    for f in sorted((out / batch.CACHE_DIR).glob("*/*.json")):
+    for f in sorted(keys[-1].glob("*.json")) if keys else ():
         entry = json.loads(f.read_text())
         h = entry["header"]
         dets = [Detection(**{k: float(v) for k, v in d.items()}) for d in entry["detections"]]
