@@ -69,8 +69,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from uwbcl import batch, chain, config
-from uwbcl.records import Detection
+from uwbcl import batch, config
+from uwbcl.archive import height_mm
+from uwbcl.records import Detection, PassRecord
 
 C_M_S = 299_792_458.0
 
@@ -513,26 +514,26 @@ def look_kind(plate, height_m: float, det: Detection) -> str:
 def look_errors(s: Scenario, out: Path, cycles: int, site: Path | None = None
                 ) -> list[tuple[str, float, float]]:
     """(kind, x error m, R_c error m) of every look of every plate that the run `out` located, from its
-    detection cache (the key written last, as `newest_run` picks a run: the current detector's) and
-    `chain.locate_cycle` with the run's settings, against the nearest true plate (in x and in R_c at the
-    look's rail height): the measurement behind eqs. S3 and L3 and the kept shared looks of docs/method.md
-    section 6.1 (`--look-errors`)."""
+    detection cache (the key written last, as `newest_run` picks a run: the current detector's) read and
+    located as `uwbcl process` does (`batch.PassCache`, `batch.locate_records`) with the run's settings,
+    against the nearest true plate (in x and in R_c at the look's rail height): the measurement behind eqs. S3
+    and L3 and the kept shared looks of docs/method.md section 6.1 (`--look-errors`)."""
     cfg = config.load_config(site) if site is not None else config.SiteConfig()
     settings = cfg.processing_settings()
     plates, *_, truth = scene(s, cycles)
     keys = sorted((out / batch.CACHE_DIR).glob("*/"), key=lambda p: (p.stat().st_mtime, p.name))
-    by_cycle: dict[int, dict[float, list[Detection]]] = {}
-    for f in sorted(keys[-1].glob("*.json")) if keys else ():
-        entry = json.loads(f.read_text())
-        h = entry["header"]
-        dets = [Detection(**{k: float(v) for k, v in d.items()}) for d in entry["detections"]]
-        by_cycle.setdefault(int(h["cycle"]), {})[float(h["height_m"])] = dets
+    cache = batch.PassCache(out, settings)
+    cache.dir = keys[-1] if keys else cache.dir
+    by_cycle: dict[int, dict[int, PassRecord]] = {}
+    for f in sorted(cache.dir.glob("*.json")) if keys else ():
+        rec = cache.get(f.name, f.stem)  # entries are named by their archive's sha256
+        if rec is not None:
+            by_cycle.setdefault(rec.cycle, {})[height_mm(rec.height_m)] = rec
     errors = []
-    for c, by_height in sorted(by_cycle.items()):
-        if len(by_height) < 2 or c >= len(truth.rig_m):
+    for c, recs in sorted(by_cycle.items()):
+        if len(recs) < 2 or c >= len(truth.rig_m):
             continue
-        cyc = chain.locate_cycle("rig", c, "", by_height, s.side, settings.detection,
-                                 settings.association.range_sigma_m)
+        cyc = batch.locate_records(recs, settings.detection, settings.association.range_sigma_m)
         p_true = plates - truth.rig_m[c]
         for plate in cyc.plates:
             for h, d in plate.looks:
