@@ -289,6 +289,27 @@ def test_passes_of_one_cycle_with_different_radar_parameters_are_not_combined(ar
     assert rows(out / "displacements.csv") == rows(clean[0] / "displacements.csv")[:1]
 
 
+def test_passes_of_one_cycle_may_each_have_their_own_reference_point_prf_and_measured_bandwidth(
+        archive_dir, clean, tmp_path):
+    # A writer may put T at each pass's own height, log the measured PRF and bandwidth: one rig set-up still.
+    src = copy_archive(archive_dir, tmp_path)
+    for path in _cycle_files(src, 2):
+        with h5py.File(path, "r+") as f:
+            ref = np.array(f["geometry"].attrs["reference_point_m"], dtype=float)
+            ref[2] = f["geometry"].attrs["height_m"]
+            f["geometry"].attrs["reference_point_m"] = ref
+            f["radar"].attrs["pulse_repetition_frequency_hz"] *= 1.0 + 0.003 * ref[2]
+    with h5py.File(_cycle_files(src, 2)[1], "r+") as f:
+        f["radar"].attrs["bandwidth_hz"] *= 1.004
+    report = _run(src, tmp_path / "out")
+    assert report.errors == []
+    assert [r["cycle"] for r in report.rows] == [r["cycle"] for r in clean[1].rows]
+    for got, want in zip(report.rows, clean[1].rows):
+        assert got["status"] == want["status"]
+        for key in ("retreat_m", "creep_m"):
+            assert float(got[key]) == pytest.approx(float(want[key]), abs=0.002)
+
+
 def test_a_majority_of_agreeing_passes_outvotes_the_odd_one(archive_dir, tmp_path):
     src = tmp_path / "in"
     shift.write_shift(src, shift.ShiftConfig(rigs=1, cycles=1, seed=5, heights_m=(0.2, 0.4, 0.6)))

@@ -59,6 +59,14 @@ CACHE_VERSION = 2  # bump when the cached record changes meaning
 LOCK_FILE = ".uwbcl.lock"
 PARAMETER_KEYS = ("carrier_frequency_hz", "bandwidth_hz", "sample_rate_hz", "pulse_repetition_frequency_hz",
                   "antenna_aperture_m", "rotation_table_angle_deg", "reference_point_m", "boresight_y_sign")
+# What the passes of one cycle must share to be one rig set-up (docs/archive-format.md section 3.1): the radar
+# within a relative tolerance (a writer may record measured values), the table angle within a tolerance, the
+# rib's side exactly. The PRF (nominal: time_s is authoritative) and the reference point (a per-pass
+# processing choice; its Z is often the pass's own height) may differ: each pass is focused on its own, and
+# its detections are in the radar frame whatever they were.
+CYCLE_RELATIVE_KEYS = ("carrier_frequency_hz", "bandwidth_hz", "sample_rate_hz", "antenna_aperture_m")
+CYCLE_RELATIVE_TOLERANCE = 0.01
+CYCLE_TABLE_ANGLE_TOLERANCE_DEG = 0.5
 
 
 # ----------------------------------------------------------------------------------------------- per pass
@@ -289,11 +297,14 @@ def worker_count(requested: int | None, settings: ProcessingSettings, pending: i
 
 # ----------------------------------------------------------------------------------------------- grouping
 def _params_differ(a: dict, b: dict) -> list[str]:
-    out = []
-    for k in PARAMETER_KEYS:
-        va, vb = np.atleast_1d(np.asarray(a[k], dtype=float)), np.atleast_1d(np.asarray(b[k], dtype=float))
-        if va.shape != vb.shape or not np.allclose(va, vb, rtol=1e-9, atol=1e-9):
-            out.append(k)
+    """The set-up fields in which two passes' parameters differ beyond the cycle's tolerances."""
+    out = [k for k in CYCLE_RELATIVE_KEYS
+           if abs(float(a[k]) - float(b[k])) > CYCLE_RELATIVE_TOLERANCE * max(abs(float(a[k])), abs(float(b[k])))]
+    if abs(float(a["rotation_table_angle_deg"]) - float(b["rotation_table_angle_deg"])) > \
+            CYCLE_TABLE_ANGLE_TOLERANCE_DEG:
+        out.append("rotation_table_angle_deg")
+    if int(a["boresight_y_sign"]) != int(b["boresight_y_sign"]):
+        out.append("boresight_y_sign")
     return out
 
 
@@ -328,7 +339,7 @@ def _one_per_height(recs: list[PassRecord], where: str, problems: list[Problem])
 
 def _agreeing_majority(kept: dict[int, PassRecord], where: str, problems: list[Problem]
                        ) -> dict[int, PassRecord] | None:
-    """The passes sharing the rig set-up (PARAMETER_KEYS) when a strict majority does, reporting the others;
+    """The passes sharing the rig set-up (`_params_differ`) when a strict majority does, reporting the others;
     None when no majority agrees."""
     groups: list[list[PassRecord]] = []
     for r in kept.values():

@@ -91,6 +91,8 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     for i, j in pairs:  # the two plates of a split peak (S2) carry their distance
         apart = math.hypot(found[i].x_m - found[j].x_m, found[i].rc_m - found[j].rc_m)
         found[i], found[j] = (dataclasses.replace(found[k], split_separation_m=apart) for k in (i, j))
+    # a peak the focus-position map does not reach has no place (NaN): it is not a detection
+    found = [d for d in found if math.isfinite(d.x_m) and math.isfinite(d.rc_m)]
     return _in_range(_in_footprint(_beyond_rail(found, grid, footprint), grid, footprint), settings)
 
 

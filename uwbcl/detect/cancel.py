@@ -182,14 +182,20 @@ def cancel_neighbours_with_residual(cells: list[Cell], model: CancellationModel,
         The data minus every model of the last pass (`model.residual`), the models made at the positions that
         pass started from; None when no pass ran.
     """
-    residual = None
+    residual, previous = None, cells
     for _ in range(passes):
         if time.monotonic() > deadline_s:
             log.warning("neighbour cancellation stopped by its time budget before a pass (%d targets)",
                         len(cells))
             break
         at = np.array([(a, b) for a, b, _ in cells])
-        models = fitted_models(model, *model.positions(at), degree)
+        u_m, r_m = model.positions(at)
+        lost = ~(np.isfinite(u_m) & np.isfinite(r_m))
+        if lost.any():  # a peak refined off the focus-position map (NaN there) keeps its previous place
+            cells = [p if off else c for c, p, off in zip(cells, previous, lost)]
+            at = np.array([(a, b) for a, b, _ in cells])
+            u_m, r_m = model.positions(at)
+        models = fitted_models(model, u_m, r_m, degree)
         residual = model.residual(models)
         refined: list[Cell] = []
         for i in range(len(at)):
@@ -200,7 +206,7 @@ def cancel_neighbours_with_residual(cells: list[Cell], model: CancellationModel,
             refined.append(model.refine_peak(at, i, residual, models))
         if len(refined) < len(cells):
             return refined + cells[len(refined):], residual
-        cells = refined
+        previous, cells = cells, refined
         moved = np.hypot((np.array([c[0] for c in cells]) - at[:, 0]) * model.cell_m[0],
                          (np.array([c[1] for c in cells]) - at[:, 1]) * model.cell_m[1])
         if moved.max() <= tol_m:

@@ -118,6 +118,10 @@ def split_merged(cells: list[cancel.Cell], residual: np.ndarray, model: cancel.N
                 _ellipses(peak, o, scale) >= SPLIT_MIN_SEPARATION for o in cells + candidates):
             candidates.append(peak)
             parents.append(i)
+    if candidates:  # a residual peak past where the focus-position map reaches cannot be placed or modelled
+        placed = _placed(model, candidates)
+        parents = [i for i, ok in zip(parents, placed) if ok]
+        candidates = [c for c, ok in zip(candidates, placed) if ok]
     if not candidates or time.monotonic() > deadline_s:
         return cells, []
     n = len(cells)
@@ -131,7 +135,8 @@ def split_merged(cells: list[cancel.Cell], residual: np.ndarray, model: cancel.N
         near = _ellipses(new, trial[i], scale) <= SPLIT_REACH  # farther, the two were never one peak
         strong = abs(new[2]) >= max(threshold, SPLIT_MIN_AMPLITUDE * abs(trial[i][2]))
         left = abs(_residual_peak(model, after, trial[i], scale)[2])
-        if strong and apart and near and left <= SPLIT_EXPLAINED * abs(found[i][2]):
+        if strong and apart and near and left <= SPLIT_EXPLAINED * abs(found[i][2]) \
+                and all(_placed(model, [new, trial[i]])):
             keep.append(k)
     if not keep:
         return cells, []
@@ -162,10 +167,19 @@ def _fit_pairs(cells: list[cancel.Cell], candidates: list[cancel.Cell], parents:
                 rho = float(step @ before / (before @ before))
                 if 0.0 < rho < SPLIT_MAX_RATE:
                     step = np.clip(step / (1.0 - rho), -np.tile(reach_cells, 2), np.tile(reach_cells, 2))
-            for j, (da, db) in zip(group, step.reshape(2, 2)):
-                trial[j] = (trial[j][0] + da, trial[j][1] + db, trial[j][2])
+            moved = [(trial[j][0] + da, trial[j][1] + db, trial[j][2])
+                     for j, (da, db) in zip(group, step.reshape(2, 2))]
+            if all(_placed(model, moved)):  # a step off the focus-position map is not taken
+                for j, c in zip(group, moved):
+                    trial[j] = c
     refined, residual = cancel.cancel_neighbours_with_residual(trial, model, 1, tol_m, degree, deadline_s)
     return refined, (residual if residual is not None else _models(trial, model, degree)[1])
+
+
+def _placed(model: cancel.NlcsModel, cells: list[cancel.Cell]) -> list[bool]:
+    """Whether each cell's peak has a position (`invert_focus_position` is NaN where its map does not reach)."""
+    u_m, r_m = model.positions(np.array([(a, b) for a, b, _ in cells], dtype=float))
+    return [bool(ok) for ok in np.isfinite(u_m) & np.isfinite(r_m)]
 
 
 def _models(cells: list[cancel.Cell], model: cancel.NlcsModel, degree: int, real: bool = False
