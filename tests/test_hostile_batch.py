@@ -362,6 +362,24 @@ def test_a_signal_stops_the_run_cleanly_and_no_worker_outlives_it(archive_dir, t
     assert not (out / "displacements.csv").exists()
 
 
+def test_sigterm_stops_a_single_process_run_too_and_no_output_is_published(archive_dir, tmp_path):
+    # --jobs 1 focuses in the main thread, inside the per-pass error handling: the stop must not be taken for
+    # a failed pass and the run carried on
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "uwbcl.cli", "process", str(archive_dir),
+                             "--out", str(out), "--backend", "numpy", "--jobs", "1", "--no-progress"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and proc.poll() is None and not list(out.glob(f"{batch.CACHE_DIR}/*/*")):
+        time.sleep(0.02)
+    assert proc.poll() is None, "the run ended before a pass was focused"
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err and "stopped by SIGTERM" in err and "focusing failed" not in err
+    assert not (out / "displacements.csv").exists() and not (out / "errors.csv").exists()
+
+
 def test_a_pass_whose_positions_are_off_by_orders_of_magnitude_is_refused_before_any_allocation(tmp_path):
     import dataclasses
     import resource
