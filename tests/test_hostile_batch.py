@@ -370,7 +370,8 @@ def test_sigterm_stops_a_single_process_run_too_and_no_output_is_published(archi
                              "--out", str(out), "--backend", "numpy", "--jobs", "1", "--no-progress"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and proc.poll() is None and not list(out.glob(f"{batch.CACHE_DIR}/*/*")):
+    cached = f"{batch.CACHE_DIR}/*/*"
+    while time.monotonic() < deadline and proc.poll() is None and not list(out.glob(cached)):
         time.sleep(0.02)
     assert proc.poll() is None, "the run ended before a pass was focused"
     proc.send_signal(signal.SIGTERM)

@@ -22,6 +22,7 @@ import functools
 import hashlib
 import json
 import logging
+import math
 import multiprocessing
 import os
 import signal
@@ -298,10 +299,10 @@ def worker_count(requested: int | None, settings: ProcessingSettings, pending: i
 # ----------------------------------------------------------------------------------------------- grouping
 def _params_differ(a: dict, b: dict) -> list[str]:
     """The set-up fields in which two passes' parameters differ beyond the cycle's tolerances."""
-    out = [k for k in CYCLE_RELATIVE_KEYS
-           if abs(float(a[k]) - float(b[k])) > CYCLE_RELATIVE_TOLERANCE * max(abs(float(a[k])), abs(float(b[k])))]
-    if abs(float(a["rotation_table_angle_deg"]) - float(b["rotation_table_angle_deg"])) > \
-            CYCLE_TABLE_ANGLE_TOLERANCE_DEG:
+    out = [k for k in CYCLE_RELATIVE_KEYS if not math.isclose(float(a[k]), float(b[k]),
+                                                              rel_tol=CYCLE_RELATIVE_TOLERANCE)]
+    angles = float(a["rotation_table_angle_deg"]), float(b["rotation_table_angle_deg"])
+    if abs(angles[0] - angles[1]) > CYCLE_TABLE_ANGLE_TOLERANCE_DEG:
         out.append("rotation_table_angle_deg")
     if int(a["boresight_y_sign"]) != int(b["boresight_y_sign"]):
         out.append("boresight_y_sign")
@@ -459,15 +460,17 @@ FUTURE_TOLERANCE_S = 86400.0  # a pass dated more than a day ahead of this machi
 
 
 # A rail height where at least this fraction (and this many) of a rig's located plates shared their peak with
-# a neighbour (eq. L1) gets a `shared_peaks` warning: a row of plates is level with it.
+# a neighbour (eq. L1) gets a `shared_peaks` warning: from it, the plates of a column are closer in R_c than
+# the detector separates.
 SHARED_PEAKS_WARN_FRACTION = 0.25
 SHARED_PEAKS_WARN_MIN = 4
 
 
 def shared_peak_warnings(cycles: list[CycleResult]) -> list[Problem]:
     """One `shared_peaks` warning per rig and rail height where many located plates shared their peak with a
-    neighbour's (eq. L1, `Located.shared_heights_m`): the rows are level with that height, and the plates
-    behind are lost there (docs/method.md section 5, choosing rail heights)."""
+    neighbour's (eq. L1, `Located.shared_heights_m`): seen from that height, two plates of a column are closer
+    in R_c than the detector separates (the height is at, between or not far enough below the rows for the
+    rib's distance), and one of them is lost there (docs/method.md section 5, choosing rail heights)."""
     counts: dict[tuple[str, int], list[int]] = defaultdict(lambda: [0, 0])  # -> [shared, plates seen there]
     for c in cycles:
         for p in c.plates:
@@ -477,8 +480,9 @@ def shared_peak_warnings(cycles: list[CycleResult]) -> list[Problem]:
                 counts[(c.rig_id, h)][1] += 1
     return [Problem(f"rig {rig}", "shared_peaks",
                     f"at rail height {h / 1000:.3f} m, {n_shared} of {n} located plates shared their peak "
-                    "with a neighbour's: a row of plates is level with this height (docs/method.md "
-                    "section 5, choosing rail heights)")
+                    "with a neighbour's: from this height the plates of a column are closer in range than "
+                    "the detector separates, so their peaks merge; a height further from the rows' "
+                    "mid-height separates them (docs/method.md section 5, choosing rail heights)")
             for (rig, h), (n_shared, n) in sorted(counts.items())
             if n_shared >= SHARED_PEAKS_WARN_MIN and n_shared >= SHARED_PEAKS_WARN_FRACTION * n]
 

@@ -286,9 +286,9 @@ def _directories_problem(in_dir: Path, out_dir: Path) -> str:
 
 
 class Interrupted(BaseException):
-    """SIGINT or SIGTERM during a run. A BaseException, as KeyboardInterrupt is: the handler raises it wherever
-    the main thread is, and a pass's `except Exception` (one pass's failure must not stop the night) must not
-    take a stop for a failed pass (with --jobs 1 the passes run in the main thread)."""
+    """SIGINT or SIGTERM during a run. A BaseException, as KeyboardInterrupt is: the handler raises it
+    wherever the main thread is, and a pass's `except Exception` (one pass's failure must not stop the night)
+    must not take a stop for a failed pass (with --jobs 1 the passes run in the main thread)."""
 
     def __init__(self, signum: int) -> None:
         super().__init__(signum)

@@ -177,7 +177,7 @@ def _fit_pairs(cells: list[cancel.Cell], candidates: list[cancel.Cell], parents:
 
 
 def _placed(model: cancel.NlcsModel, cells: list[cancel.Cell]) -> list[bool]:
-    """Whether each cell's peak has a position (`invert_focus_position` is NaN where its map does not reach)."""
+    """Whether each cell's peak has a position (`invert_focus_position`: NaN where its map does not reach)."""
     u_m, r_m = model.positions(np.array([(a, b) for a, b, _ in cells], dtype=float))
     return [bool(ok) for ok in np.isfinite(u_m) & np.isfinite(r_m)]
 
