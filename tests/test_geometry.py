@@ -142,3 +142,20 @@ def test_slant_doppler_band_contains_the_processing_squint_of_every_paper_pass(s
             s_q = math.sin(geo.slant_squint_rad(ref, 0.0, h))
             assert lo < s_q < hi
             assert -1.0 <= lo < hi <= 1.0
+
+
+def test_the_echos_doppler_centroid_says_plus_one_for_a_written_pass_and_minus_one_for_conjugated_data():
+    from uwbcl import shift
+
+    scan = next(iter(shift.simulate_shift(shift.ShiftConfig(rigs=1, cycles=1, seed=5, snr_db=5.0))))
+    args = (scan.pulse_position_m, scan.geometry.rotation_table_angle_deg, scan.radar.wavelength_m)
+    assert geo.doppler_step_ratio(scan.echo, *args) == pytest.approx(1.0, abs=0.3)
+    assert geo.doppler_step_ratio(np.conj(scan.echo), *args) == pytest.approx(-1.0, abs=0.3)
+    # the carriage run the other way round: the centroid follows the direction of travel
+    assert geo.doppler_step_ratio(scan.echo[::-1], scan.pulse_position_m[::-1], *args[1:]) == \
+        pytest.approx(1.0, abs=0.3)
+    # undecided: broadside (no centroid to measure), too few pulses, noise without a coherent signal
+    assert geo.doppler_step_ratio(scan.echo, args[0], 2.0, args[2]) is None
+    assert geo.doppler_step_ratio(scan.echo[:5], args[0][:5], *args[1:]) is None
+    noise = np.random.default_rng(1).normal(size=scan.echo.shape) * (1 + 0j)
+    assert geo.doppler_step_ratio(noise, *args) is None

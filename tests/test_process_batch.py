@@ -310,6 +310,23 @@ def test_passes_of_one_cycle_may_each_have_their_own_reference_point_prf_and_mea
             assert float(got[key]) == pytest.approx(float(want[key]), abs=0.002)
 
 
+def test_a_rig_whose_data_were_conjugated_is_warned_about_the_q_sign_and_a_clean_one_is_not(
+        archive_dir, clean, tmp_path):
+    assert not [w for w in clean[1].warnings if w.kind == "q_sign"]
+    src = copy_archive(archive_dir, tmp_path)
+    for path in pass_files(src):
+        with h5py.File(path, "r+") as f:
+            echo = f["echo"]
+            if echo.attrs["layout"] == "int16_iq":
+                echo[..., 1] = -echo[..., 1]
+            else:
+                echo[...] = np.conj(echo[...])
+    report = _run(src, tmp_path / "out")
+    (warning,) = [w for w in report.warnings if w.kind == "q_sign"]
+    assert "conjugated" in warning.reason and warning.file == pass_files(src)[0].relative_to(src).as_posix()
+    assert not [r for r in report.rows if r["status"] == "ok"]
+
+
 def test_a_majority_of_agreeing_passes_outvotes_the_odd_one(archive_dir, tmp_path):
     src = tmp_path / "in"
     shift.write_shift(src, shift.ShiftConfig(rigs=1, cycles=1, seed=5, heights_m=(0.2, 0.4, 0.6)))

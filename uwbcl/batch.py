@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__, archive, chain, outputs, pipeline, registration, threads
+from . import geometry as geo
 from .atomic import write_text_atomic
 from .records import (
     AssociationSettings,
@@ -487,6 +488,32 @@ def shared_peak_warnings(cycles: list[CycleResult]) -> list[Problem]:
             if n_shared >= SHARED_PEAKS_WARN_MIN and n_shared >= SHARED_PEAKS_WARN_FRACTION * n]
 
 
+def q_sign_warnings(records: list[PassRecord], in_dir: Path, settings: ProcessingSettings) -> list[Problem]:
+    """One `q_sign` warning per rig whose first pass (its earliest cycle, then file name) has its Doppler
+    centroid on the side opposite to the one its rotation-table angle and direction of travel give
+    (`geometry.doppler_step_ratio` below -0.5): the data are conjugated, or the angle's sign is wrong. Neither
+    shows anywhere else (conjugated data does not focus, docs/archive-format.md section 3); one pass read
+    again per rig."""
+    first: dict[str, PassRecord] = {}
+    for r in sorted(records, key=lambda r: (r.cycle, r.file)):
+        first.setdefault(r.rig_id, r)
+    out = []
+    for rig, rec in sorted(first.items()):
+        try:
+            scan = archive.read_pass(in_dir / rec.file, settings.limits)
+        except (archive.ArchiveError, OSError):
+            continue  # reported where it was first read
+        ratio = geo.doppler_step_ratio(scan.echo, scan.pulse_position_m,
+                                       scan.geometry.rotation_table_angle_deg, scan.radar.wavelength_m)
+        if ratio is not None and ratio < -0.5:
+            out.append(Problem(rec.file, "q_sign", (
+                f"rig {rig}: the echo's Doppler centroid is on the wrong side ({ratio:+.2f} x the "
+                "pulse-to-pulse phase step the rotation-table angle and the direction of travel "
+                "give): the data are probably conjugated (Q channel negated) or the angle's sign is "
+                "wrong (docs/archive-format.md sections 2 and 3)")))
+    return out
+
+
 def suspicious(records: list[PassRecord], now_s: float | None = None) -> list[Problem]:
     """Accepted input worth a warning: a pass id shared by different files, a start time in the future, a
     cycle that starts before an earlier-numbered cycle of the same rig (a clock or a counter went back)."""
@@ -711,7 +738,7 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
         records, pass_problems, focused = detect_all(files, in_dir, settings, cache, options, runner)
         problems += pass_problems
         n_detected = len(focused)
-        warnings += suspicious(records)
+        warnings += suspicious(records) + q_sign_warnings(records, in_dir, settings)
         for w in warnings:
             log.warning("%s: %s", w.file, w.reason)
         groups, group_problems = group_cycles(records, options)

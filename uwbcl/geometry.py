@@ -195,3 +195,35 @@ def pass_footprint(rail_lo_m: float, rail_hi_m: float, rotation_table_angle_rad:
     half = beam_edge_rad(aperture_m, wavelength_m, edge)
     return BeamFootprint(float(rail_lo_m), float(rail_hi_m), rotation_table_angle_rad - half,
                          rotation_table_angle_rad + half)
+
+
+# The Q-sign check: decided only where the squint gives a Doppler centroid to measure (|theta| at least this),
+# the centroid's phase step per pulse is unaliased with margin (at most this, rad), and the echo holds a
+# coherent signal (pulse-to-pulse correlation over its power at least this).
+DOPPLER_CHECK_MIN_SQUINT_DEG = 5.0
+DOPPLER_CHECK_MAX_STEP_RAD = 0.5 * math.pi
+DOPPLER_CHECK_MIN_COHERENCE = 0.02
+
+
+def doppler_step_ratio(echo: np.ndarray, positions_m: np.ndarray, rotation_table_angle_deg: float,
+                       wavelength_m: float) -> float | None:
+    """The echo's mean pulse-to-pulse phase step (its Doppler centroid, the pulse-pair estimator on the echo
+    less its mean over pulses: direct coupling and static clutter out) over the step the squint gives the
+    beam centre, 4 pi sin(theta) dx / lambda with dx the mean rail step: about +1 for a file written by the
+    conventions of docs/archive-format.md section 2, about -1 for conjugated data (the Q channel negated) or a
+    rotation-table angle of the wrong sign. None where it cannot say (see the DOPPLER_CHECK_* constants).
+
+    echo : (n_pulses, n_samples) complex baseband; positions_m : (n_pulses,) rail positions, monotonic."""
+    n = echo.shape[0]
+    if n < 8 or abs(rotation_table_angle_deg) < DOPPLER_CHECK_MIN_SQUINT_DEG:
+        return None
+    dx_m = (positions_m[-1] - positions_m[0]) / (n - 1)
+    expected = 4.0 * math.pi / wavelength_m * math.sin(math.radians(rotation_table_angle_deg)) * dx_m
+    if not 0.0 < abs(expected) <= DOPPLER_CHECK_MAX_STEP_RAD:
+        return None
+    e = echo - echo.mean(axis=0)
+    pairs = np.vdot(e[:-1], e[1:])  # sum of conj(s_k) s_k+1
+    power = float(np.vdot(e, e).real)
+    if not power > 0 or abs(pairs) < DOPPLER_CHECK_MIN_COHERENCE * power:
+        return None
+    return float(np.angle(pairs)) / expected
