@@ -153,6 +153,20 @@ def test_a_look_whose_fringe_the_plates_cannot_fix_is_not_used(noisy_pairs):
     assert carrier_phase_refinement(d.advance_m, np.full((3, 3), np.nan), looks) is None
 
 
+def test_the_phases_move_the_creep_with_the_retreat_as_their_x_coupling_says(noisy_pairs):
+    # eq. M8b: the retreat is held at the plates', so a retreat error the covariance does not hold (M3a's
+    # immaterial competitor) reaches the creep through the line of sight, about tan(squint) per metre
+    a, b = noisy_pairs[0]
+    d = advance(a, b, False)
+    looks = phase_looks(a.plates, b.plates, d.pairs)
+    cov = np.diag([0.002, 0.002, 0.005]) ** 2
+    base = carrier_phase_refinement(d.advance_m, cov, looks)
+    moved = carrier_phase_refinement(d.advance_m + np.array([0.0005, 0.0, 0.0]), cov, looks)
+    slope = (moved.advance_m[1:] - base.advance_m[1:]) / 0.0005
+    np.testing.assert_allclose(slope, base.x_coupling, atol=0.02)
+    assert abs(base.x_coupling[0]) == pytest.approx(math.tan(math.radians(SQUINT_DEG)), rel=0.25)
+
+
 def test_noise_free_cycles_are_refined_to_a_tenth_of_a_millimetre():
     a, b = two_cycles(0, snr_db=None)
     d = advance(a, b, True)

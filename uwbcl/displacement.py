@@ -189,6 +189,9 @@ class PhaseFit:
     cov_m2: np.ndarray
     looks: int
     consistent: bool
+    # (2,): d(creep, vertical) / d(retreat) of the refined estimate (the first column of K, eq. M8): a retreat
+    # error e_x the covariance does not hold moves the creep and vertical by x_coupling e_x (eq. M8b)
+    x_coupling: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(2))
 
     @property
     def redundancy(self) -> int:
@@ -226,7 +229,7 @@ def _refine(t0: np.ndarray, cov_m2: np.ndarray, looks) -> PhaseFit | None:
     precision is usually far better than their covariance says (in range the model is right). The fit is over
     (y, z) with x fixed, the prior on (y, z) conditioned on x; the covariance carries x's own uncertainty
     through each look's x term: error = K e0 + noise term, K = [[1, 0, 0], A^-1 L],
-    A = J_yz^T W J_yz + C^-1, L = [J_yz^T W J_x | C^-1], C = Sigma0_yz|x."""
+    A = J_yz^T W J_yz + C^-1, L = [-J_yz^T W J_x | C^-1], C = Sigma0_yz|x."""
     r, jac, reach = _phase_residuals(t0, looks)
     s2 = np.array([da.phase_sigma_rad**2 + db.phase_sigma_rad**2 for _, _, da, db in looks])
     s2 = s2 + PHASE_FLOOR_RAD**2
@@ -254,26 +257,28 @@ def _refine(t0: np.ndarray, cov_m2: np.ndarray, looks) -> PhaseFit | None:
     a_inv = np.linalg.inv(j_yz.T @ (w[:, None] * j_yz) + cond_info)
     gain = np.zeros((3, 3))
     gain[0, 0] = 1.0
-    gain[1:, :] = a_inv @ np.hstack([j_yz.T @ (w[:, None] * j_x), cond_info])
+    gain[1:, :] = a_inv @ np.hstack([-j_yz.T @ (w[:, None] * j_x), cond_info])  # t_x = t0_x enters r
     noise = np.zeros((3, 3))
     noise[1:, 1:] = a_inv @ (j_yz.T @ (w[:, None] * j_yz)) @ a_inv
     cov = gain @ cov_m2 @ gain.T + noise
-    return PhaseFit(t, max(1.0, chi2 / n) * cov, n, bool(chi2 <= chdtri(n, PHASE_TEST_PROBABILITY)))
+    return PhaseFit(t, max(1.0, chi2 / n) * cov, n, bool(chi2 <= chdtri(n, PHASE_TEST_PROBABILITY)),
+                    gain[1:, 0].copy())
 
 
 def _with_phases(advance_m: np.ndarray, cov_m2: np.ndarray, looks, tested_only: bool
-                 ) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """Eq. M8 in the estimate: (advance, covariance, looks used, check), refined where the fit is consistent
-    (and, with `tested_only`, could have failed: PHASE_TEST_REDUNDANCY spare looks); check +1 / -1 when the
-    fit could fail and passed / failed, else 0."""
+                 ) -> tuple[np.ndarray, np.ndarray, int, int, np.ndarray]:
+    """Eq. M8 in the estimate: (advance, covariance, looks used, check, x coupling), refined where the fit is
+    consistent (and, with `tested_only`, could have failed: PHASE_TEST_REDUNDANCY spare looks); check +1 / -1
+    when the fit could fail and passed / failed, else 0; the coupling `PhaseFit.x_coupling` (zeros when the
+    plates' estimate stands)."""
     fit = carrier_phase_refinement(advance_m, cov_m2, looks)
     if fit is None:
-        return advance_m, cov_m2, 0, 0
+        return advance_m, cov_m2, 0, 0, np.zeros(2)
     tested = fit.redundancy >= PHASE_TEST_REDUNDANCY
     check = (1 if fit.consistent else -1) if tested else 0
     if fit.consistent and (tested or not tested_only):
-        return fit.advance_m, fit.cov_m2, fit.looks, check
-    return advance_m, cov_m2, 0, check
+        return fit.advance_m, fit.cov_m2, fit.looks, check, fit.x_coupling
+    return advance_m, cov_m2, 0, check, np.zeros(2)
 
 
 def consistent_pairs(d: np.ndarray, cov: np.ndarray, chi2_max: float) -> tuple[np.ndarray, bool]:
@@ -602,9 +607,12 @@ def estimate_advance(before: list[Located], after: list[Located],
             consistent = False
     looks_used, phase_check = 0, 0
     if settings.carrier_phase and settings.weighted and have_cov:
-        advance, cov_adv, looks_used, phase_check = _with_phases(
+        advance, cov_adv, looks_used, phase_check, coupling = _with_phases(
             advance, cov_adv, phase_looks(before, after, pairs), phase_tested_only)
-    bound = np.sqrt(np.diag(cov_adv) + unknown_var + rival_var)  # eqs. M3, M3a
+        # M8b: the phases hold the line of sight, so the competitors' retreat terms move creep and vertical
+        unknown_var[1:] += coupling**2 * unknown_var[0]
+        rival_var[1:] += coupling**2 * rival_var[0]
+    bound = np.sqrt(np.diag(cov_adv) + unknown_var + rival_var)  # eqs. M3, M3a, M8b
 
     if not best.inside and margin < DATA_BEATS_PRIOR * settings.min_margin:
         status = "prior_conflict"
