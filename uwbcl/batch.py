@@ -61,7 +61,8 @@ CACHE_VERSION = 2  # bump when the cached record changes meaning
 LOCK_FILE = ".uwbcl.lock"
 PARAMETER_KEYS = ("carrier_frequency_hz", "bandwidth_hz", "sample_rate_hz", "pulse_repetition_frequency_hz",
                   "antenna_aperture_m", "rotation_table_angle_deg", "reference_point_m", "boresight_y_sign")
-# What the passes of one cycle must share to be one rig set-up (docs/archive-format.md section 3.1): the radar
+# What the passes of one cycle must share to be one rig set-up (docs/archive-format.md section 3, "The passes
+# of one cycle"): the radar
 # within a relative tolerance (a writer may record measured values), the table angle within a tolerance, the
 # rib's side exactly. The PRF (nominal: time_s is authoritative) and the reference point (a per-pass
 # processing choice; its Z is often the pass's own height) may differ: each pass is focused on its own, and
