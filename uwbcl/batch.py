@@ -62,11 +62,10 @@ LOCK_FILE = ".uwbcl.lock"
 PARAMETER_KEYS = ("carrier_frequency_hz", "bandwidth_hz", "sample_rate_hz", "pulse_repetition_frequency_hz",
                   "antenna_aperture_m", "rotation_table_angle_deg", "reference_point_m", "boresight_y_sign")
 # What the passes of one cycle must share to be one rig set-up (docs/archive-format.md section 3, "The passes
-# of one cycle"): the radar
-# within a relative tolerance (a writer may record measured values), the table angle within a tolerance, the
-# rib's side exactly. The PRF (nominal: time_s is authoritative) and the reference point (a per-pass
-# processing choice; its Z is often the pass's own height) may differ: each pass is focused on its own, and
-# its detections are in the radar frame whatever they were.
+# of one cycle"): the radar within a relative tolerance (a writer may record measured values), the table angle
+# within a tolerance, the rib's side exactly. The PRF (nominal: time_s is authoritative) and the reference
+# point (a per-pass processing choice; its Z is often the pass's own height) may differ: each pass is focused
+# on its own, and its detections are in the radar frame whatever they were.
 CYCLE_RELATIVE_KEYS = ("carrier_frequency_hz", "bandwidth_hz", "sample_rate_hz", "antenna_aperture_m")
 CYCLE_RELATIVE_TOLERANCE = 0.01
 CYCLE_TABLE_ANGLE_TOLERANCE_DEG = 0.5
