@@ -163,6 +163,17 @@ def test_focus_prints_one_summary_line_per_pass(single_pass, tmp_path, capsys):
     assert len(lines) == 2  # and the total
 
 
+def test_a_conjugated_pass_says_so_on_its_summary_line(single_pass, tmp_path, capsys):
+    import dataclasses
+
+    path, scan = single_pass
+    conj = archive.write_pass(tmp_path / "conj.h5", dataclasses.replace(scan, echo=np.conj(scan.echo)))
+    assert main(["focus", str(path), str(conj), "--out", str(tmp_path / "o"), "--backend", "numpy"]) == 0
+    clean, flipped = capsys.readouterr().out.splitlines()[:2]
+    assert "Doppler centroid on the wrong side" not in clean
+    assert flipped.startswith(str(conj)) and "Doppler centroid on the wrong side" in flipped
+
+
 def test_a_bad_archive_is_named_the_others_are_focused_and_the_exit_is_1(single_pass, tmp_path, capsys):
     path, _ = single_pass
     bad = tmp_path / "junk.h5"

@@ -503,9 +503,8 @@ def q_sign_warnings(records: list[PassRecord], in_dir: Path, settings: Processin
             scan = archive.read_pass(in_dir / rec.file, settings.limits)
         except (archive.ArchiveError, OSError):
             continue  # reported where it was first read
-        ratio = geo.doppler_step_ratio(scan.echo, scan.pulse_position_m,
-                                       scan.geometry.rotation_table_angle_deg, scan.radar.wavelength_m)
-        if ratio is not None and ratio < -0.5:
+        ratio = geo.doppler_wrong_side(scan)
+        if ratio is not None:
             out.append(Problem(rec.file, "q_sign", (
                 f"rig {rig}: the echo's Doppler centroid is on the wrong side ({ratio:+.2f} x the "
                 "pulse-to-pulse phase step the rotation-table angle and the direction of travel "

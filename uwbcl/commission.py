@@ -165,12 +165,14 @@ class FocusedPass:
     responses: list[PointResponse]
     png: Path
     delay: str = ""  # delay_note
+    doppler: str = ""  # doppler_note: empty unless the Doppler centroid is on the wrong side
 
     def summary(self) -> str:
         best = max((d.snr_db for d in self.detections), default=None)
         snr = f"strongest SNR {best:.1f} dB" if best is not None else "no SNR"
         return (f"{self.file}: {self.n_pulses} pulses x {self.n_samples} samples, "
-                f"{len(self.detections)} detections, {snr}" + (f"; {self.delay}" if self.delay else ""))
+                f"{len(self.detections)} detections, {snr}" + "".join(f"; {note}" for note in
+                                                                       (self.delay, self.doppler) if note))
 
     def rows(self) -> list[dict]:
         return [{"file": self.file, **{k: getattr(d, k) for k in COLUMNS[1:9]},
@@ -204,7 +206,17 @@ def focus_one(path: Path, png: Path, settings: ProcessingSettings, label: str) -
               f"{label}: {settings.algorithm}, {detect.pass_search(scan, settings.detection)} search, "
               f"{len(detections)} detections", footprint_u_m=edges)
     return FocusedPass(label, scan.n_pulses, scan.samples_per_pulse, detections, responses, png,
-                       delay_note(scan.range_delay_s, settings.range_delay_s))
+                       delay_note(scan.range_delay_s, settings.range_delay_s), doppler_note(scan))
+
+
+def doppler_note(scan) -> str:
+    """A warning for the summary line when the pass's Doppler centroid is on the wrong side
+    (`geometry.doppler_wrong_side`; the `q_sign` warning of `uwbcl process`)."""
+    ratio = geo.doppler_wrong_side(scan)
+    if ratio is None:
+        return ""
+    return (f"WARNING: Doppler centroid on the wrong side ({ratio:+.2f} x the squint's): conjugated data (Q "
+            "negated) or a rotation-table angle of the wrong sign (docs/archive-format.md section 3)")
 
 
 def delay_note(recorded_s: float, site_s: float | None) -> str:

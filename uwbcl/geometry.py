@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from .model import PassGeometry
+from .model import PassGeometry, ScanPass
 
 
 def slant_squint_rad(reference_point_m, aperture_centre_m: float, height_m: float) -> float:
@@ -203,6 +203,8 @@ def pass_footprint(rail_lo_m: float, rail_hi_m: float, rotation_table_angle_rad:
 DOPPLER_CHECK_MIN_SQUINT_DEG = 5.0
 DOPPLER_CHECK_MAX_STEP_RAD = 0.5 * math.pi
 DOPPLER_CHECK_MIN_COHERENCE = 0.02
+# A ratio below this says the centroid is on the wrong side (+1 expected, -1 for conjugated data).
+DOPPLER_WRONG_SIDE_RATIO = -0.5
 
 
 def doppler_step_ratio(echo: np.ndarray, positions_m: np.ndarray, rotation_table_angle_deg: float,
@@ -227,3 +229,11 @@ def doppler_step_ratio(echo: np.ndarray, positions_m: np.ndarray, rotation_table
     if not power > 0 or abs(pairs) < DOPPLER_CHECK_MIN_COHERENCE * power:
         return None
     return float(np.angle(pairs)) / expected
+
+
+def doppler_wrong_side(scan: ScanPass) -> float | None:
+    """`doppler_step_ratio` of a pass when it says the centroid is on the wrong side (conjugated data or a
+    rotation-table angle of the wrong sign), else None."""
+    ratio = doppler_step_ratio(scan.echo, scan.pulse_position_m, scan.geometry.rotation_table_angle_deg,
+                               scan.radar.wavelength_m)
+    return ratio if ratio is not None and ratio < DOPPLER_WRONG_SIDE_RATIO else None
