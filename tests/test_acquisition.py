@@ -18,6 +18,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -396,7 +397,36 @@ def test_live_processing_publishes_retreat_and_creep_in_the_result_registers(tmp
     assert result["RETREAT"] == pytest.approx(truth[0], abs=0.005)
     assert result["CREEP"] == pytest.approx(truth[1], abs=0.005)
     assert (tmp_path / "acquire-results.csv").read_text().count("\n") == 3  # header + 2 cycles
-    assert report.ok
+    assert report.ok and processor.q_sign_warning == ""
+
+
+def test_live_processing_warns_once_about_conjugated_data_as_process_does(monkeypatch, caplog):
+    from uwbcl import shift
+    from uwbcl.acquisition import live
+
+    scans = [s for s in shift.simulate_shift(shift.ShiftConfig(rigs=1, cycles=2, seed=5))]
+    conjugated = [dataclasses.replace(s, echo=np.conj(s.echo)) for s in scans]
+    located = []
+
+    def locate(passes, settings):
+        located.append(passes)
+        return SimpleNamespace(plates=[])
+
+    monkeypatch.setattr(live.pipeline, "locate_cycle", locate)
+    monkeypatch.setattr(live.chain.RigChain, "add", lambda self, cycle: None)
+    clean = live.LiveProcessor(live.processing_settings("numpy"))
+    wrong = live.LiveProcessor(live.processing_settings("numpy"))
+    try:
+        for proc, passes in ((clean, scans), (wrong, conjugated)):
+            for cycle in sorted({s.cycle for s in passes}):
+                proc._process(cycle, [s for s in passes if s.cycle == cycle], True, "")
+    finally:
+        clean.close()
+        wrong.close()
+    assert clean.q_sign_warning == "" and "conjugated" in wrong.q_sign_warning
+    assert [r.message for r in caplog.records if r.message.startswith("q_sign")] == \
+        [f"q_sign: cycle {min(s.cycle for s in scans)}: {wrong.q_sign_warning}"]  # once, not per cycle
+    assert len(located) == 4  # the warning withholds nothing: the cycles are still processed
 
 
 def test_sigint_mid_pass_stops_cleanly_without_a_partial_archive(tmp_path):

@@ -232,6 +232,7 @@ def test_the_live_processor_appends_the_reissued_rows_after_the_cycle_that_resol
     cycles, _ = noisy_cycles(10, seed=1)
     by_cycle = {c.cycle: c for c in cycles}
     monkeypatch.setattr(live.pipeline, "locate_cycle", lambda passes, settings: by_cycle[passes[0].cycle])
+    monkeypatch.setattr(live.geo, "doppler_wrong_side", lambda scan: None)  # the stand-ins have no echo
     # the passes are stand-ins without echoes: plates only (the rib registration needs the lowest pass's echo)
     plates_only = dataclasses.replace(BLIND, rib_registration=False)
     proc = live.LiveProcessor(ProcessingSettings(association=plates_only))

@@ -505,11 +505,7 @@ def q_sign_warnings(records: list[PassRecord], in_dir: Path, settings: Processin
             continue  # reported where it was first read
         ratio = geo.doppler_wrong_side(scan)
         if ratio is not None:
-            out.append(Problem(rec.file, "q_sign", (
-                f"rig {rig}: the echo's Doppler centroid is on the wrong side ({ratio:+.2f} x the "
-                "pulse-to-pulse phase step the rotation-table angle and the direction of travel "
-                "give): the data are probably conjugated (Q channel negated) or the angle's sign is "
-                "wrong (docs/archive-format.md sections 2 and 3)")))
+            out.append(Problem(rec.file, "q_sign", f"rig {rig}: {geo.doppler_wrong_side_reason(ratio)}"))
     return out
 
 

@@ -237,3 +237,11 @@ def doppler_wrong_side(scan: ScanPass) -> float | None:
     ratio = doppler_step_ratio(scan.echo, scan.pulse_position_m, scan.geometry.rotation_table_angle_deg,
                                scan.radar.wavelength_m)
     return ratio if ratio is not None and ratio < DOPPLER_WRONG_SIDE_RATIO else None
+
+
+def doppler_wrong_side_reason(ratio: float) -> str:
+    """The `q_sign` warning's text (`uwbcl process` and `uwbcl acquire --process`) for a ratio that
+    `doppler_wrong_side` returned."""
+    return (f"the echo's Doppler centroid is on the wrong side ({ratio:+.2f} x the pulse-to-pulse phase step "
+            "the rotation-table angle and the direction of travel give): the data are probably conjugated "
+            "(Q channel negated) or the angle's sign is wrong (docs/archive-format.md sections 2 and 3)")

@@ -19,6 +19,7 @@ import threading
 from pathlib import Path
 
 from .. import chain, pipeline, registration
+from .. import geometry as geo
 from ..archive import height_mm
 from ..atomic import write_csv_atomic
 from ..records import ProcessingSettings
@@ -79,6 +80,8 @@ class LiveProcessor:
         rib = (registration.RibRegistration(self._recent_pass, pipeline.association_focuser(settings))
                if settings.association.rib_registration else None)
         self._chain = chain.RigChain(settings.association, rib=rib)
+        self.q_sign_warning = ""  # set by the first complete cycle if its lowest pass fails the check
+        self._q_sign_checked = False
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._work, name="uwbcl-live-process", daemon=True)
         self._thread.start()
@@ -117,6 +120,7 @@ class LiveProcessor:
         if not complete or len({p.geometry.height_m for p in passes}) < 2:
             log.warning("cycle %d: incomplete (%d passes); no displacement", cycle, len(passes))
             return [self._row(cycle, start_time, None, R.ResultStatus.INCOMPLETE_CYCLE, "incomplete_cycle")]
+        self._check_q_sign(cycle, passes)
         located = pipeline.locate_cycle(passes, self.settings)
         log.info("cycle %d: %d plates located", cycle, len(located.plates))
         self._recent[cycle] = {height_mm(p.geometry.height_m):
@@ -127,6 +131,17 @@ class LiveProcessor:
         if row is None:
             return [self._row(cycle, start_time, None, None, "reference", located=len(located.plates))]
         return [self._series_row(r) for r in (row, *self._chain.revised)]
+
+    def _check_q_sign(self, cycle: int, passes) -> None:
+        """Once per session, on the first complete cycle's lowest pass: `uwbcl process`'s `q_sign` warning
+        (conjugated data or a rotation-table angle of the wrong sign; docs/outputs.md section 7)."""
+        if self._q_sign_checked:
+            return
+        self._q_sign_checked = True
+        ratio = geo.doppler_wrong_side(min(passes, key=lambda p: p.geometry.height_m))
+        if ratio is not None:
+            self.q_sign_warning = geo.doppler_wrong_side_reason(ratio)
+            log.warning("q_sign: cycle %d: %s", cycle, self.q_sign_warning)
 
     def _recent_pass(self, c, height_mm: int):
         return self._recent.get(c.cycle, {}).get(height_mm)
