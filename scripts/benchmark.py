@@ -436,9 +436,11 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="worker processes of the numpy and scipy32 legs in the batch, as `uwbcl process "
                         "--jobs N` runs them (batch's pool; each scipy32 worker's FFTs on one thread); "
                         "default: the cores here. 1: in this process, scipy.fft on all cores")
-    p.add_argument("--opencl-jobs", type=int, default=1,
+    p.add_argument("--opencl-jobs", type=int,
+                   default=batch.default_jobs(ProcessingSettings(backend="opencl")),
                    help="worker processes of the OpenCL leg in the batch, each with its own engine on the "
-                        "same device (default 1: this process; the engine runs on every core the runtime "
+                        "same device (default: as `uwbcl process --backend opencl` runs it, two workers "
+                        "where there are two cores; 1: this process, the engine on every core the runtime "
                         "is given)")
     p.add_argument("--fresh-kernel-cache", action="store_true",
                    help="point PoCL's and CUDA's kernel caches at an empty directory, for a true cold start")

@@ -728,17 +728,20 @@ def _dataset(f: h5py.File, name: str, path: Any) -> h5py.Dataset:
 
 
 def _raw_attr(obj: h5py.HLObject, name: str, path: Any) -> Any:
-    field = f"{obj.name}@{name}"
-    if name not in obj.attrs:
-        raise ArchiveError(path, field, "missing")
+    # The object's name (an HDF5 query) is looked up only for a message: a header reads ~30 attributes.
     try:
         n_elements = obj.attrs.get_id(name).shape
-        if n_elements and math.prod(n_elements) > _MAX_ATTRIBUTE_ELEMENTS:
-            raise ArchiveError(path, field,
-                               f"shape {n_elements} is far larger than any attribute of the format")
+    except KeyError:
+        raise ArchiveError(path, f"{obj.name}@{name}", "missing") from None
+    except (OSError, TypeError, ValueError) as e:
+        raise ArchiveError(path, f"{obj.name}@{name}", f"unreadable: {e}") from e
+    if n_elements and math.prod(n_elements) > _MAX_ATTRIBUTE_ELEMENTS:
+        raise ArchiveError(path, f"{obj.name}@{name}",
+                           f"shape {n_elements} is far larger than any attribute of the format")
+    try:
         return obj.attrs[name]
     except (OSError, TypeError, ValueError) as e:  # e.g. a datatype h5py cannot map to numpy
-        raise ArchiveError(path, field, f"unreadable: {e}") from e
+        raise ArchiveError(path, f"{obj.name}@{name}", f"unreadable: {e}") from e
 
 
 def _scalar(obj: h5py.HLObject, name: str, path: Any) -> np.ndarray:
