@@ -733,7 +733,8 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
         records, pass_problems, focused = detect_all(files, in_dir, settings, cache, options, runner)
         problems += pass_problems
         n_detected = len(focused)
-        warnings += suspicious(records) + q_sign_warnings(records, in_dir, settings)
+        q_sign = q_sign_warnings(records, in_dir, settings)
+        warnings += suspicious(records) + q_sign
         for w in warnings:
             log.warning("%s: %s", w.file, w.reason)
         groups, group_problems = group_cycles(records, options)
@@ -746,7 +747,9 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
             log.info("rig %s cycle %d: %d plates located from %d heights", rig, cycle, len(result.plates),
                      len(result.heights_m))
             cycles.append(result)
-        for w in shared_peak_warnings(cycles):
+        # a conjugated rig's peaks are those of unfocused data: its shared_peaks warning would mislead
+        conjugated = {r.rig_id for r in records if r.file in {w.file for w in q_sign}}
+        for w in shared_peak_warnings([c for c in cycles if c.rig_id not in conjugated]):
             log.warning("%s: %s", w.file, w.reason)
             warnings.append(w)
         rows_series = chain.series(cycles, settings.association, options.max_bridge_cycles,
