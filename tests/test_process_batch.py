@@ -327,7 +327,7 @@ def test_a_rig_whose_data_were_conjugated_is_warned_about_the_q_sign_and_a_clean
     report = _run(src, tmp_path / "out")
     (warning,) = [w for w in report.warnings if w.kind == "q_sign"]
     assert "conjugated" in warning.reason and warning.file == pass_files(src)[0].relative_to(src).as_posix()
-    assert not [w for w in report.warnings if w.kind == "shared_peaks"]  # unfocused peaks say nothing of heights
+    assert not [w for w in report.warnings if w.kind == "shared_peaks"]  # unfocused: says nothing of heights
     assert [w for w in _run(archive_dir, tmp_path / "clean").warnings if w.kind == "shared_peaks"]
     assert not [r for r in report.rows if r["status"] == "ok"]
 
