@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy import optimize
 
-from uwbcl import pipeline
+from uwbcl import detect, pipeline
 from uwbcl.detect import calibration, peaks, refine
 from uwbcl.focus import nlcs
 from uwbcl.records import DetectionSettings, ProcessingSettings
@@ -262,3 +262,35 @@ def test_detections_of_whole_passes_match_the_derivative_free_refinement(scenari
             # measured <= 2e-9 m (3.4e-8 m against the former, looser tolerances); the paper's errors are mm
             assert abs(d.x_m - e.x_m) < 1e-5 and abs(d.rc_m - e.rc_m) < 1e-5
             assert d.amplitude == pytest.approx(e.amplitude, rel=1e-9)
+
+
+# --------------------------------------------------------------------------------- one maximum, one target
+def test_points_within_the_tolerance_of_a_stronger_one_are_dropped_and_exempt_points_kept():
+    x, y = np.array([0.0, 0.001, 1.0, 1.0005, 3.0]), np.zeros(5)
+    strength = [1.0, 2.0, 5.0, 5.0, 1.0]
+    # 0 is within 2 mm of the stronger 1; 3 ties with 2 and the earlier stays; 4 is alone
+    assert detect.distinct_positions(x, y, strength, 0.002) == [1, 2, 4]
+    assert detect.distinct_positions(x, y, strength, 0.002, exempt={0, 3}) == [0, 1, 2, 3, 4]
+    assert detect.distinct_cells([(5.0, 7.0, 2j), (5.1, 7.1, 3.0 + 0j), (9.0, 7.0, 1.0 + 0j)]) == \
+        [(5.1, 7.1, 3.0 + 0j), (9.0, 7.0, 1.0 + 0j)]
+
+
+@pytest.mark.parametrize("algorithm", ["nlcs", "bp"])
+def test_two_pixel_peaks_of_one_response_give_one_detection(algorithm, monkeypatch):
+    """A broad or aliased response (a short aperture at long range, a track too coarse for the wavelength)
+    can hold two pixel maxima that refine to one sub-cell maximum: that is one target, not two copies (the
+    real P440 file imported with an absurd speed once gave one position nine times)."""
+    settings = ProcessingSettings(backend="numpy", algorithm=algorithm)
+    scan = PAPER_SIM1.simulate(seed=1)[0]
+    clean = pipeline.detect_pass(scan, settings)
+    find = peaks.nlcs_peaks if algorithm == "nlcs" else peaks.bp_peaks
+
+    def doubled(*args, **kwargs):  # every peak found again from the next pixel along azimuth
+        pixels, floor = find(*args, **kwargs)
+        return [p for i, j in pixels for p in ((i, j), (i + 1, j))], floor
+
+    monkeypatch.setattr(peaks, "nlcs_peaks" if algorithm == "nlcs" else "bp_peaks", doubled)
+    again = pipeline.detect_pass(scan, settings)
+    assert len(again) == len(clean) == 3
+    for d, e in zip(again, clean):
+        assert abs(d.x_m - e.x_m) < 1e-4 and abs(d.rc_m - e.rc_m) < 1e-4

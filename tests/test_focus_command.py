@@ -187,6 +187,30 @@ def test_a_bad_archive_is_named_the_others_are_focused_and_the_exit_is_1(single_
         assert {r["file"] for r in csv.DictReader(f)} == {str(path)}
 
 
+def test_a_raw_radar_recording_given_to_focus_is_pointed_to_import(single_pass, tmp_path, capsys):
+    raw = tmp_path / "scan_1.p440"
+    raw.write_bytes(bytes(range(256)) * 8)
+    assert main(["focus", str(raw), "--out", str(tmp_path / "o"), "--backend", "numpy"]) == 1
+    err = capsys.readouterr().err
+    assert str(raw) in err and "not an HDF5 file" in err and "uwbcl import" in err
+
+
+def test_detections_are_written_strongest_first_whatever_order_detection_gives(single_pass, tmp_path,
+                                                                               monkeypatch):
+    path, _ = single_pass
+    focus_pass = commission.pipeline.focus_pass
+
+    def weakest_first(scan, settings):
+        products, found = focus_pass(scan, settings)
+        return products, sorted(found, key=lambda d: d.amplitude)
+
+    monkeypatch.setattr(commission.pipeline, "focus_pass", weakest_first)
+    assert main(["focus", str(path), "--out", str(tmp_path / "o"), "--backend", "numpy"]) == 0
+    with open(tmp_path / "o" / "detections.csv", newline="") as f:
+        amplitudes = [float(r["amplitude"]) for r in csv.DictReader(f)]
+    assert len(amplitudes) == 3 and amplitudes == sorted(amplitudes, reverse=True)
+
+
 def test_usage_errors_exit_2(single_pass, tmp_path, capsys):
     path, _ = single_pass
     with pytest.raises(SystemExit) as exc:

@@ -452,7 +452,8 @@ def _open(path: str | os.PathLike[str]) -> Iterator[h5py.File]:
         # HDF5's messages are the only signal; fall back to a generic reason when they change.
         text = str(e)
         if "signature not found" in text:
-            reason = "not an HDF5 file"
+            reason = ("not an HDF5 file (a radar's own recording, e.g. a PulsON 440 .p440 scan file, is "
+                      "converted first: `uwbcl import`, docs/importing.md)")
         elif "truncated" in text:
             reason = "truncated HDF5 file"
         else:

@@ -194,6 +194,8 @@ def focus_one(path: Path, png: Path, settings: ProcessingSettings, label: str) -
     ValueError for a pass that cannot be read or focused)."""
     scan = archive.read_pass(path)
     products, detections = pipeline.focus_pass(scan, settings)
+    # strongest first (docs/outputs.md section 7): refinement and cancellation reorder the pixel peaks
+    detections = sorted(detections, key=lambda d: -d.amplitude)
     az, rg = image_axes(products)
     image = np.asarray(products.image)
     responses = [point_response(image, az, rg, d.image_azimuth_m, d.image_range_m) for d in detections]

@@ -31,8 +31,10 @@ from . import calibration, cancel, peaks, refine, split, synthesis
 
 # The lattice (m) of the backprojection refinement of NLCS detections beyond the rail ends (BP's pixel).
 BP_SUBSCENE_CELL_M = 0.01
+# Two peaks refined to within this many cells of each other climbed to one maximum: one target, kept once.
+SAME_PEAK_CELLS = 0.25
 
-__all__ = ["detect_bp", "detect_nlcs", "search_footprint"]
+__all__ = ["detect_bp", "detect_nlcs", "distinct_cells", "distinct_positions", "search_footprint"]
 
 
 def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = DetectionSettings(),
@@ -64,7 +66,7 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     grid = products.grid
     pixels, floor = peaks.nlcs_peaks(products, settings, footprint)
     rows, spectrum, interpolant = refine.nlcs_interpolant(products)
-    cells = [interpolant.maximise(float(i), float(j)) for i, j in pixels]
+    cells = distinct_cells([interpolant.maximise(float(i), float(j)) for i, j in pixels])
     if footprint is not None and cells:  # a peak past where the focus-position map reaches cannot be placed
         t_n = calibration.peak_track_times(products, [c[0] for c in cells], [c[1] for c in cells], focuser)[2]
         placed = np.isfinite(t_n)
@@ -88,6 +90,12 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
         t_n, r0 = _beyond_rail_by_backprojection(scan, grid, t_n, r0, {k for pair in pairs for k in pair})
     found = [_detection(grid, float(t_n[i]), float(r0[i]), grid.speed_m_s * float(t_f[i]), float(r[i]),
                         abs(val), floor) for i, (_, _, val) in enumerate(cells)]
+    if footprint is not None and scan is not None:  # two peaks past the rail may climb to one BP maximum
+        split = {k for pair in pairs for k in pair}
+        keep = distinct_positions(t_n * grid.speed_m_s, r0, [abs(c[2]) for c in cells],
+                                  SAME_PEAK_CELLS * BP_SUBSCENE_CELL_M, exempt=split)
+        found = [found[i] for i in keep]
+        pairs = [(keep.index(i), keep.index(j)) for i, j in pairs]
     for i, j in pairs:  # the two plates of a split peak (S2) carry their distance
         apart = math.hypot(found[i].x_m - found[j].x_m, found[i].rc_m - found[j].rc_m)
         found[i], found[j] = (dataclasses.replace(found[k], split_separation_m=apart) for k in (i, j))
@@ -123,8 +131,9 @@ def detect_bp(products: bp.BackprojectionProducts, settings: DetectionSettings =
     dr = products.r_axis_m[1] - products.r_axis_m[0]
     pixels, floor = peaks.bp_peaks(products, settings, footprint)
     value = refine.bp_evaluator(products, products.compressed)
-    cells = [refine.maximise_nelder_mead(value, float(i), float(j), step=refine.BP_SIMPLEX_STEP_CELLS)
-             for i, j in pixels]
+    step = refine.BP_SIMPLEX_STEP_CELLS
+    cells = distinct_cells([refine.maximise_nelder_mead(value, float(i), float(j), step=step)
+                            for i, j in pixels])
     if settings.neighbour_cancellation_passes > 0 and len(cells) > 1:
         cells = _cancel(cells, cancel.BackprojectionModel(products), settings)[0]
     out = []
@@ -197,6 +206,29 @@ def _beyond_rail(found: list[Detection], grid: nlcs.FocusGrid, footprint: geo.Be
         return found
     return [dataclasses.replace(d, beyond_rail_m=grid.speed_m_s * max(0.0, abs(d.t_n_s) - grid.half_track_s))
             for d in found]
+
+
+def distinct_cells(cells: list[cancel.Cell], tol_cells: float = SAME_PEAK_CELLS) -> list[cancel.Cell]:
+    """`cells` (fractional image indices and value) without those refined to within `tol_cells` of a
+    stronger one: two pixel peaks of one broad or aliased response climb to the same sub-cell maximum, and
+    the copy would be a second detection of the same target (and a singular pair in neighbour cancellation).
+    Order kept."""
+    keep = distinct_positions(np.array([c[0] for c in cells]), np.array([c[1] for c in cells]),
+                              [abs(c[2]) for c in cells], tol_cells)
+    return [cells[i] for i in keep]
+
+
+def distinct_positions(x: np.ndarray, y: np.ndarray, strength: list[float], tol: float,
+                       exempt: set[int] = frozenset()) -> list[int]:
+    """Indices (ascending) of the points (x, y) left when each point within `tol` (Euclidean, the units of x
+    and y) of a stronger one is dropped; ties keep the earlier; points in `exempt` are always kept and drop
+    nothing."""
+    order = sorted(range(len(strength)), key=lambda i: (-strength[i], i))
+    kept: list[int] = []
+    for i in order:
+        if i in exempt or all(j in exempt or math.hypot(x[i] - x[j], y[i] - y[j]) > tol for j in kept):
+            kept.append(i)
+    return sorted(kept)
 
 
 def _beyond_rail_by_backprojection(scan: ScanPass, grid: nlcs.FocusGrid, t_n_s: np.ndarray, r0_m: np.ndarray,
