@@ -326,13 +326,10 @@ def _prior_log(shift: np.ndarray, settings: AssociationSettings) -> tuple[float,
     so y discriminates nothing and only penalises. With the chain's vertical step prior the Gaussian's z is
     left to `_vertical_log` (its normalisation stays). Without a prior: 0, inside.
 
-    M2b: a backward move of the face (retreat < -max_backward_m) is outside, with or without a web depth, at
-    no cost in score: it never decides between translations (when the true one has no plates in common, the
-    look-alikes on either side of zero are equally wrong), it only keeps a backward best from being `ok`.
+    A backward move of the face is not a hypothesis at all (eq. M2b, `_hypotheses`).
     """
-    backward = bool(shift[0] < -settings.max_backward_m)
     if settings.prior_advance_m is None:
-        return 0.0, not backward
+        return 0.0, True
     mu = np.asarray(settings.prior_advance_m, dtype=float)
     window = np.asarray(settings.prior_window_m, dtype=float)
     sigma = window / 3.0
@@ -340,7 +337,7 @@ def _prior_log(shift: np.ndarray, settings: AssociationSettings) -> tuple[float,
     m2 = float(np.sum(((shift[axes] - mu[axes]) / sigma[axes]) ** 2))
     peak = BLIND_AREA_M2 / (2.0 * np.pi * sigma[0] * sigma[2])
     eps = PRIOR_OUTLIER_PROBABILITY
-    inside = bool(np.all(np.abs(shift - mu) <= window)) and not backward
+    inside = bool(np.all(np.abs(shift - mu) <= window))
     return float(np.log((1.0 - eps) * peak * np.exp(-0.5 * m2) + eps)), inside
 
 
@@ -393,6 +390,12 @@ def _hypotheses(diff: np.ndarray, cov: np.ndarray, gain: np.ndarray, settings: A
     likelihood over a chance plate (eq. M1). A proposal is refined twice: match one-to-one within the
     chi-square gate of (difference covariance + the translation's own), GLS over the matches. Its score is
     sum over its matches of (gain - chi2 / 2) (eq. M1) plus the log prior (eq. M2).
+
+    M2b: a translation that moves the face backwards (retreat < -max_backward_m; +X_r is the direction of the
+    face's advance, docs/archive-format.md section 2) is not proposed, with or without a web depth: it can be
+    neither the answer nor a competitor. On a regular bolt grid of spacing P larger than the web w, the
+    look-alike w - P is backwards and on a short rail it shares more plates than the truth (a 1.2 m grid, a
+    1.0 m web and a 1.8 m rail: -0.2 m won every cycle, by margins of 17-24).
     """
     gate = settings.outlier_chi2
     seen: set[tuple[tuple[int, int], ...]] = set()
@@ -413,6 +416,8 @@ def _hypotheses(diff: np.ndarray, cov: np.ndarray, gain: np.ndarray, settings: A
         if not pairs or key in seen:
             continue
         seen.add(key)
+        if shift[0] < -settings.max_backward_m:  # M2b
+            continue
         idx = tuple(np.array(pairs).T)
         data = float(np.sum(gain[idx] - 0.5 * _chi2(diff[idx], shift, cov[idx])))
         prior, inside = _prior_log(shift, settings)
@@ -550,8 +555,9 @@ def estimate_advance(before: list[Located], after: list[Located],
       low_confidence  unique and consistent, but fewer plates or a bound above max_bound_m (not chained);
       ambiguous       a material competitor (another translation with another retreat or creep, or no
                       match at all) is within min_margin;
-      prior_conflict  the best translation lies outside the prior window (or moves the face backwards, M2b)
-                      without leading by DATA_BEATS_PRIOR x min_margin: the prior or the data is wrong;
+      prior_conflict  the best translation lies outside the prior window without leading by
+                      DATA_BEATS_PRIOR x min_margin: the prior or the data is wrong (a translation that moves
+                      the face backwards is never proposed, M2b);
       inconsistent    the matched plates disagree beyond their location precision and two plates cannot say
                       which is wrong;
       too_few_targets no plate pair matches: no estimate (NaN).

@@ -125,10 +125,10 @@ class AssociationSettings:
     # docs/method.md); a displacement spanning g cycles gets g times the advance and sqrt(g) times the window
     # (independent per-cycle variations add up as a random walk).
     prior_window_m: tuple[float, float, float] = (0.4, 0.3, 0.5)
-    # The face does not move backwards: a translation whose retreat is below -max_backward_m lies outside
-    # the prior (eq. M2b, docs/method.md section 6), with or without a web depth, so it is not ok unless its
-    # plates lead by 2 x min_margin. The radar frame's +X_r is the direction of the face's advance, as
-    # web_depth_m > 0 says; a large value turns the rule off.
+    # The face does not move backwards: a translation whose retreat is below -max_backward_m is no
+    # hypothesis (eq. M2b, docs/method.md section 6), with or without a web depth: neither the answer nor a
+    # competitor. The radar frame's +X_r is the direction of the face's advance, as web_depth_m > 0 says; a
+    # large value turns the rule off.
     max_backward_m: float = 0.1
     min_targets: int = 1  # fewer matched plates: no estimate ("too_few_targets")
     min_confident_targets: int = 1  # fewer: the estimate is given but flagged "low_confidence"
