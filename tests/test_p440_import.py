@@ -436,7 +436,7 @@ def test_import_usage_errors_exit_2_and_a_bad_file_exits_1_naming_it(tmp_path, c
     assert (
         cli.main([*common, "--speed-m-s", "0.1", "--boresight-y-sign", "1", "--table-angle-deg", "95"]) == 2
     )
-    assert "rotation_table_angle_deg" in capsys.readouterr().err
+    assert "p440: --table-angle-deg: must be within (-90, 90)" in capsys.readouterr().err
     assert cli.main([*common, "--speed-m-s", "0.1"]) == 1
     err = capsys.readouterr().err
     assert f"{bad}: byte 32: message type" in err and "Traceback" not in err

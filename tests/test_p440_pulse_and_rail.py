@@ -92,8 +92,10 @@ def test_a_bad_pulse_option_is_refused_before_reading(tmp_path, bent_recording, 
     assert rc == 2 and "pulse_window" in capsys.readouterr().err
 
 
-def test_a_reference_window_outside_the_echo_is_reported(tmp_path, bent_recording, capsys):
+def test_a_reference_window_outside_the_echo_is_a_usage_error_naming_the_flag(tmp_path, bent_recording,
+                                                                              capsys):
     scan_file, positions, site = bent_recording
     rc = cli.main(["import", "p440", str(scan_file), "--out", str(tmp_path), "--positions", str(positions),
                    "--config", str(site), "--pulse", "measured", "--pulse-window-m", "40", "41"])
-    assert rc == 1 and "reference window" in capsys.readouterr().err
+    assert rc == 2
+    assert "--pulse-window-m: the pulse's reference window 40.0-41.0 m holds 0" in capsys.readouterr().err

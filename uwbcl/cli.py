@@ -7,6 +7,7 @@ import argparse
 import contextlib
 import json
 import logging
+import math
 import signal
 import sys
 from pathlib import Path
@@ -18,7 +19,7 @@ one_blas_thread()
 
 from . import __version__, archive, batch, config  # noqa: E402
 from .atomic import write_text_atomic  # noqa: E402
-from .importers import RecordingError, passes, registry  # noqa: E402
+from .importers import OptionError, RecordingError, passes, registry  # noqa: E402
 from .records import ALGORITHMS, BACKENDS, BatchError, ConfigError, OutputError  # noqa: E402
 from .scenarios import SCENARIOS  # noqa: E402
 
@@ -201,7 +202,6 @@ def _calibrate(args: argparse.Namespace) -> int:
     """`uwbcl calibrate ARCHIVE... --reflector X,Y,Z ...`: exit 2 on usage errors, 1 when an archive cannot be
     read or no reflector is found."""
     import dataclasses
-    import math
 
     from . import calibrate
 
@@ -349,18 +349,35 @@ def _devices(args: argparse.Namespace) -> int:
     return 0
 
 
-def _import_options(args: argparse.Namespace) -> passes.ImportOptions:
-    """[import] of --config, then the flags given; ConfigError for a bad value."""
-    values = {}
+# The flag of each import value (`ImportOptions` fields, and the track's): messages name what the user typed.
+_IMPORT_FLAGS = {
+    "height_m": "--height-m", "rotation_table_angle_deg": "--table-angle-deg",
+    "boresight_y_sign": "--boresight-y-sign", "reference_range_m": "--reference-range-m",
+    "reference_point_m": "--reference-point", "antenna_aperture_m": "--aperture-m",
+    "pulse_repetition_frequency_hz": "--prf-hz", "range_delay_s": "--range-delay-s", "rig_id": "--rig-id",
+    "cycle": "--cycle", "pass_start_time": "--pass-start-time", "carrier_frequency_hz": "--carrier-hz",
+    "decimation": "--decimation", "min_step_m": "--min-step-m", "keep_raw_rf": "--no-raw-rf",
+    "pulse": "--pulse", "pulse_window_start_m": "--pulse-window-m", "pulse_window_stop_m": "--pulse-window-m",
+    "speed_m_s": "--speed-m-s", "time_offset_s": "--time-offset-s",
+}
+
+
+def _import_options(args: argparse.Namespace) -> tuple[passes.ImportOptions, dict[str, str]]:
+    """[import] of --config, then the flags given; and where each value came from (key -> the flag, or the
+    site file's key), for messages. ConfigError for a bad value."""
+    values, origin = {}, {}
     if args.config:
         site = config.read_toml(args.config)
         values = passes.options_from_table(site.get("import", {}), args.config)
+        origin = {k: f"{args.config}: import.{k}" for k in values}
         if isinstance(site.get("radar"), dict):  # the calibrated delay (`uwbcl calibrate`), checked
             calibrated = config.parse_config({"radar": site["radar"]}, args.config).range_delay_s
             if calibrated is not None and values.setdefault("range_delay_s", calibrated) != calibrated:
                 raise ConfigError(args.config, "import.range_delay_s",
                                   f"{values['range_delay_s']!r} differs from radar.range_delay_s "
                                   f"({calibrated!r}); keep one")
+            if calibrated is not None and "range_delay_s" not in origin:
+                origin["range_delay_s"] = f"{args.config}: radar.range_delay_s"
     flags = {"height_m": args.height_m, "rotation_table_angle_deg": args.table_angle_deg,
              "boresight_y_sign": args.boresight_y_sign, "reference_range_m": args.reference_range_m,
              "reference_point_m": tuple(args.reference_point) if args.reference_point else None,
@@ -371,14 +388,28 @@ def _import_options(args: argparse.Namespace) -> passes.ImportOptions:
              "keep_raw_rf": False if args.no_raw_rf else None, "pulse": args.pulse,
              "pulse_window_start_m": args.pulse_window_m[0] if args.pulse_window_m else None,
              "pulse_window_stop_m": args.pulse_window_m[1] if args.pulse_window_m else None}
-    values.update({k: v for k, v in flags.items() if v is not None})
-    options = passes.ImportOptions(**values)
-    passes.check_options(options, args.config or "command line")
-    return options
+    given = {k: v for k, v in flags.items() if v is not None}
+    values.update(given)
+    origin.update({k: _IMPORT_FLAGS[k] for k in given})
+    return passes.ImportOptions(**values), origin
+
+
+def _check_import_flags(args: argparse.Namespace, options: passes.ImportOptions) -> None:
+    """OptionError for flags that contradict or lack each other, or a bad value (before the file is read)."""
+    passes.check_options(options)
+    if args.speed_m_s is not None:
+        if not (math.isfinite(args.speed_m_s) and args.speed_m_s != 0):
+            raise OptionError("speed_m_s", f"must be finite and non-zero, got {args.speed_m_s}")
+        if options.height_m is None:
+            raise OptionError("height_m", "required with --speed-m-s (a constant-speed track has no z_m to "
+                                          "take the rail height from)")
+    if args.time_offset_s is not None and not math.isfinite(args.time_offset_s):
+        raise OptionError("time_offset_s", f"must be finite, got {args.time_offset_s}")
 
 
 def _import(args: argparse.Namespace) -> int:
-    """`uwbcl import <radar> FILE --out DIR`: exit 2 on usage errors, 1 on a file that cannot be imported."""
+    """`uwbcl import <radar> FILE --out DIR`: exit 2 on usage errors (a bad flag value, also one that does not
+    fit the recording), 1 on a file that cannot be imported."""
     name = f"uwbcl import {args.reader}"
     if (args.positions is None) == (args.speed_m_s is None):
         print(f"{name}: give exactly one of --positions POS.csv and --speed-m-s V", file=sys.stderr)
@@ -386,12 +417,23 @@ def _import(args: argparse.Namespace) -> int:
     if args.time_offset_s is not None and args.positions is None:
         print(f"{name}: --time-offset-s needs --positions", file=sys.stderr)
         return 2
+    origin = {}
+
+    def usage(exc: OptionError) -> int:
+        print(f"{name}: {origin.get(exc.key, _IMPORT_FLAGS.get(exc.key, exc.key))}: {exc.reason}",
+              file=sys.stderr)
+        return 2
+
     try:
-        options = _import_options(args)
+        options, origin = _import_options(args)
+        _check_import_flags(args, options)
+    except OptionError as exc:
+        return usage(exc)
     except ConfigError as exc:
         print(f"{name}: {exc}", file=sys.stderr)
         return 2
-    source = Path(args.scan_file)
+    source, out = Path(args.scan_file), Path(args.out)
+    made = []  # the directories this import creates, removed again if it fails
     try:
         recording = registry.get_reader(args.reader).read(source)
         if args.positions:
@@ -400,15 +442,24 @@ def _import(args: argparse.Namespace) -> int:
         else:
             track = passes.constant_speed_track(recording, args.speed_m_s)
         result = passes.build_pass(recording, track, options, file_mtime_s=source.stat().st_mtime)
-        path = Path(args.out) / archive.default_relative_path(result.scan)
+        path = out / archive.default_relative_path(result.scan)
+        made = [d for d in (path.parent, *path.parent.parents) if not d.exists()]
         archive.write_pass(path, result.scan, overwrite=args.overwrite,
                            created_by=f"uwbcl {__version__} import {args.reader} {source.name}")
+    except OptionError as exc:
+        _remove_empty(made)
+        return usage(exc)
     except (RecordingError, archive.ArchiveError, ValueError) as exc:
+        _remove_empty(made)
         print(f"{name}: {exc}", file=sys.stderr)
         return 1
     except OSError as exc:
+        _remove_empty(made)
         print(f"{name}: {exc.filename or source}: {exc.strerror or exc}", file=sys.stderr)
         return 1
+    except BaseException:
+        _remove_empty(made)
+        raise
     band, scan = result.band, result.scan
     print(f"{source}: {recording.n_scans} complete scans read, {recording.n_dropped} incomplete dropped")
     if track.time_offset_s is not None:
@@ -420,11 +471,22 @@ def _import(args: argparse.Namespace) -> int:
     print(f"baseband: {scan.radar.sample_rate_hz / 1e9:.4g} GHz complex (RF / {result.decimation}), "
           f"{scan.samples_per_pulse} samples x {scan.n_pulses} pulses, x {scan.pulse_position_m[0]:+.3f} to "
           f"{scan.pulse_position_m[-1]:+.3f} m")
+    for note in result.notes:
+        print(note)
+    print(f"pass start: {scan.pass_start_time}" + ("" if options.pass_start_time else
+          " (the file's modification time minus the recording's length; --pass-start-time sets it)"))
     if options.range_delay_s == 0.0:
         print("warning: range_delay_s = 0 (uncalibrated): ranges include the radar's internal delay",
               file=sys.stderr)
     print(f"wrote 1 archive: {path}")
     return 0
+
+
+def _remove_empty(directories: list[Path]) -> None:
+    """Remove the directories a failed import created (deepest first), each only if still empty."""
+    for d in directories:
+        with contextlib.suppress(OSError):
+            d.rmdir()
 
 
 def _add_import_commands(sub) -> None:
@@ -447,11 +509,14 @@ def _add_import_commands(sub) -> None:
         r.add_argument("--boresight-y-sign", type=int, choices=(-1, 1), help="side of the rib, default -1")
         r.add_argument("--reference-point", type=float, nargs=3, metavar=("X", "Y", "Z"),
                        help="scene centre in the radar frame (default: on boresight at --reference-range-m)")
-        r.add_argument("--reference-range-m", type=float, help="default 3.0")
+        r.add_argument("--reference-range-m", type=float,
+                       help="default 3.0, or the middle of the recording's delay window if 3.0 lies outside")
         r.add_argument("--aperture-m", type=float, help="antenna aperture along the rail, default 0.14")
         r.add_argument("--prf-hz", type=float, help="nominal PRF (default: 1 / median scan interval)")
         r.add_argument("--range-delay-s", type=float,
-                       help="calibrated two-way antenna/cable delay, s (default 0: uncalibrated)")
+                       help="calibrated two-way antenna/cable delay in s, within +-1e-6 (default 0: "
+                            "uncalibrated); a negative value in exponent form needs '=': "
+                            "--range-delay-s=-1e-9")
         r.add_argument("--pulse", choices=("gaussian", "measured"),
                        help="the archive's pulse: the Gaussian of the -10 dB band (default) or measured from "
                             "the reference echo in --pulse-window-m (archive 1.2)")

@@ -16,6 +16,20 @@ from typing import Protocol
 
 import numpy as np
 
+from ..records import ConfigError
+
+
+class OptionError(ConfigError):
+    """An import value (an `ImportOptions` field, or ``speed_m_s`` / ``time_offset_s``) that no archive could
+    hold or that does not fit the recording: a usage error (exit 2). ``key`` is the field's name; the command
+    line renders it as the flag or the site file's key it came from."""
+
+    def __init__(self, key: str, reason: str) -> None:
+        super().__init__(None, key, reason)
+
+    def __reduce__(self):  # args hold (None, key, reason): rebuild from the two this takes
+        return (OptionError, (self.key, self.reason))
+
 
 class RecordingError(ValueError):
     """A radar recording that cannot be read: names the file, the byte offset of the bad record and why."""

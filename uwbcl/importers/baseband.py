@@ -32,7 +32,7 @@ import math
 import numpy as np
 
 from ..model import SPEED_OF_LIGHT_M_S, MeasuredPulse
-from . import RecordingError
+from . import OptionError, RecordingError
 
 DEFAULT_OVERSAMPLING = 2.4  # complex rate / -10 dB bandwidth (the paper: 4.0 GHz for 1.7 GHz)
 DEFAULT_TAPER = 0.2  # fraction of the kept band (each side) in the raised-cosine roll-off
@@ -120,9 +120,36 @@ def choose_decimation(
 ) -> int:
     """The largest integer D whose complex rate rf_rate / D is >= oversampling x the -10 dB bandwidth and
     keeps the whole -20 dB band inside the flat part of the kept band (|f - f_c| <= (1 - taper) rate / 2)."""
+    return max(1, math.floor(rf_rate_hz / required_rate_hz(band, oversampling, taper)))
+
+
+def required_rate_hz(band: Band, oversampling: float = DEFAULT_OVERSAMPLING,
+                     taper: float = DEFAULT_TAPER) -> float:
+    """The complex rate `choose_decimation` needs for ``band``: oversampling x the -10 dB bandwidth, and the
+    -20 dB band inside the flat part of the kept band."""
     half_20 = max(band.centre_hz - band.low_20db_hz, band.high_20db_hz - band.centre_hz)
-    need_hz = max(oversampling * band.bandwidth_hz, 2.0 * half_20 / (1.0 - taper))
-    return max(1, math.floor(rf_rate_hz / need_hz))
+    return max(oversampling * band.bandwidth_hz, 2.0 * half_20 / (1.0 - taper))
+
+
+def check_band(rf: np.ndarray, rf_rate_hz: float, band: Band, source: str = "",
+               oversampling: float = DEFAULT_OVERSAMPLING) -> None:
+    """RecordingError naming the file for a spectrum no pulse has: one so wide that the complex band it needs
+    (`required_rate_hz`, about its centre) does not fit between 0 and the RF Nyquist frequency. A corrupt
+    sample or a clipped spike does that (its spectrum is flat); the message gives the largest sample."""
+    need_hz = required_rate_hz(band, oversampling)
+    if band.centre_hz - need_hz / 2 > 0 and band.centre_hz + need_hz / 2 < rf_rate_hz / 2:
+        return
+    a = np.abs(rf.astype(np.int64) if rf.dtype.kind in "iu" else rf)  # |int32 min| overflows int32
+    scan, sample = np.unravel_index(int(np.argmax(a)), a.shape)
+    peak, typical = float(a[scan, sample]), float(np.percentile(a, 99.9))
+    raise RecordingError(source, None, (
+        f"the measured spectrum is implausibly wide for a radar pulse: -10 dB band {band.low_hz / 1e9:.3f}-"
+        f"{band.high_hz / 1e9:.3f} GHz ({band.bandwidth_hz / 1e9:.3f} GHz), -20 dB band "
+        f"{band.low_20db_hz / 1e9:.3f}-{band.high_20db_hz / 1e9:.3f} GHz, needing a complex band of "
+        f"{need_hz / 1e9:.3f} GHz that does not fit between 0 and the RF Nyquist frequency "
+        f"{rf_rate_hz / 2e9:.3f} GHz. A corrupt sample or a clipped spike flattens the spectrum: the largest "
+        f"|sample| is {peak:.6g} (scan {scan}, sample {sample}), {peak / max(typical, 1):.3g} x the 99.9th "
+        f"percentile {typical:.6g}"))
 
 
 def to_baseband(
@@ -217,9 +244,13 @@ def measure_pulse(echo: np.ndarray, sample_rate_hz: float, window_start_s: float
     t = window_start_s + np.arange(echo.shape[1]) / sample_rate_hz
     r = 0.5 * c * t
     inside = np.flatnonzero((r >= start_m) & (r <= stop_m))
+    whose = f"the echo of {source}" if source else "the echo"
+    advice = (f"{whose} spans {r[0]:.2f}-{r[-1]:.2f} m (one-way, on the archive's axis): give "
+              "--pulse-window-m START STOP around a stationary echo inside it (the direct coupling, where "
+              "the scan window holds it), or use --pulse gaussian")
     if inside.size < 4:
-        raise RecordingError(source, None, f"the pulse's reference window {start_m}-{stop_m} m holds "
-                                           f"{inside.size} samples of the echo ({r[0]:.2f}-{r[-1]:.2f} m)")
+        raise OptionError("pulse_window_start_m", f"the pulse's reference window {start_m}-{stop_m} m holds "
+                                                  f"{inside.size} samples of the echo; {advice}")
     s = echo[:, inside].mean(axis=0)
     n = inside.size
     edge = max(1, int(PULSE_WINDOW_TAPER * n))
@@ -229,7 +260,8 @@ def measure_pulse(echo: np.ndarray, sample_rate_hz: float, window_start_s: float
     s = s * w
     peak = int(np.argmax(np.abs(s)))
     if np.abs(s[peak]) == 0:
-        raise RecordingError(source, None, f"no reference echo between {start_m} and {stop_m} m")
+        raise OptionError("pulse_window_start_m",
+                          f"no reference echo between {start_m} and {stop_m} m; {advice}")
     # the envelope peak to a fraction of a sample (parabola through the peak's log-magnitude)
     frac = 0.0
     if 0 < peak < n - 1:

@@ -24,12 +24,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ..model import PassGeometry, RadarParameters, RawRF, ScanPass
+from ..archive import MAX_RAIL_DEVIATION_M
+from ..config import MAX_RANGE_DELAY_S
+from ..model import SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters, RawRF, ScanPass
 from ..records import ConfigError
-from . import RawRecording, RecordingError, baseband
+from ..utc import parse_utc
+from . import OptionError, RawRecording, RecordingError, baseband
 
 log = logging.getLogger("uwbcl")
 
+DEFAULT_REFERENCE_RANGE_M = 3.0  # the scene centre's range when the recording's window holds it
 MOTION_THRESHOLD_M = 0.002  # a position this far from the first one has moved (about where the echo shows it)
 _REST_SCANS = 8  # scans at the start assumed at rest for the radar's motion detector
 
@@ -44,7 +48,8 @@ class ImportOptions:
     reference_point_m: tuple[float, float, float] | None = (
         None  # default: on boresight, reference_range_m away
     )
-    reference_range_m: float = 3.0
+    # default: DEFAULT_REFERENCE_RANGE_M, or the middle of the recording's delay window when that lies outside
+    reference_range_m: float | None = None
     antenna_aperture_m: float = 0.14
     pulse_repetition_frequency_hz: float | None = None  # default: 1 / median scan interval
     range_delay_s: float = 0.0  # calibrated two-way antenna/cable delay (archive 1.1 /radar@range_delay_s)
@@ -75,6 +80,8 @@ class Positions:
     x_m: np.ndarray  # (K,)
     y_m: np.ndarray | None = None
     z_m: np.ndarray | None = None
+    source: str = ""  # the file read, for messages
+    line: np.ndarray | None = None  # (K,) its line number of each position, for messages
 
 
 def read_positions_csv(path: str | os.PathLike[str]) -> Positions:
@@ -92,9 +99,11 @@ def read_positions_csv(path: str | os.PathLike[str]) -> Positions:
             raise RecordingError(path, None, f"line 1: no column {name!r} (header: {', '.join(header)})")
     cols = {name: header.index(name) for name in ("time_s", "x_m", "y_m", "z_m") if name in header}
     values = {name: [] for name in cols}
+    lines = []
     for line, row in enumerate(rows[1:], start=2):
         if not any(c.strip() for c in row):
             continue
+        lines.append(line)
         for name, i in cols.items():
             try:
                 v = float(row[i])
@@ -108,11 +117,13 @@ def read_positions_csv(path: str | os.PathLike[str]) -> Positions:
     t = np.asarray(values["time_s"])
     if t.size < 2:
         raise RecordingError(path, None, "fewer than 2 positions")
+    lines = np.asarray(lines)
     bad = np.flatnonzero(np.diff(t) <= 0)
     if bad.size:
-        raise RecordingError(path, None, f"line {bad[0] + 3}: time_s does not increase")
+        raise RecordingError(path, None, f"line {lines[bad[0] + 1]}: time_s does not increase")
     arr = {k: np.asarray(v) for k, v in values.items()}
-    return Positions(time_s=t, x_m=arr["x_m"], y_m=arr.get("y_m"), z_m=arr.get("z_m"))
+    return Positions(time_s=t, x_m=arr["x_m"], y_m=arr.get("y_m"), z_m=arr.get("z_m"), source=str(path),
+                     line=lines)
 
 
 def radar_first_motion_s(recording: RawRecording, factor: float = 5.0) -> float | None:
@@ -170,6 +181,7 @@ class Track:
     n_rest: int = 0
     y_m: np.ndarray | None = None
     z_m: np.ndarray | None = None
+    positions: Positions | None = None  # the log the track came from, for messages
 
 
 def track_from_positions(
@@ -191,12 +203,15 @@ def track_from_positions(
     t = recording.scan_time_s + time_offset_s
     inside = np.flatnonzero((t >= positions.time_s[0]) & (t <= positions.time_s[-1]))
     if inside.size < 2:
+        t0, t1 = recording.scan_time_s[0], recording.scan_time_s[-1]
         raise RecordingError(
             recording.source,
             None,
-            f"the positions ({positions.time_s[0]:.3f}.."
+            f"the positions of {positions.source or 'the log'} ({positions.time_s[0]:.3f}.."
             f"{positions.time_s[-1]:.3f} s) cover {inside.size} scans at a time offset of "
-            f"{time_offset_s:.3f} s; check --time-offset-s",
+            f"{time_offset_s:.3f} s; the scans run from {t0:.3f} to {t1:.3f} s on the radar's clock "
+            f"(positions time = scan time + offset: {positions.time_s[0] - t0:+.3f} s would put the first "
+            "scan at the first position); check --time-offset-s",
         )
 
     def at(v):
@@ -219,22 +234,25 @@ def track_from_positions(
         n_rest=inside.size - (seg.stop - seg.start),
         y_m=None if y is None else y[seg],
         z_m=None if z is None else z[seg],
+        positions=positions,
     )
 
 
 def constant_speed_track(recording: RawRecording, speed_m_s: float) -> Track:
     """Every scan on a straight track at ``speed_m_s`` (sign: direction), centred on x = 0."""
     if not (math.isfinite(speed_m_s) and speed_m_s != 0):
-        raise ValueError(f"speed must be finite and non-zero, got {speed_m_s}")
+        raise OptionError("speed_m_s", f"must be finite and non-zero, got {speed_m_s}")
     t = recording.scan_time_s
     x = speed_m_s * (t - 0.5 * (t[0] + t[-1]))
     return Track(scans=np.arange(recording.n_scans), x_m=x, time_offset_s=None)
 
 
-def default_reference_point(x_centre_m: float, options: ImportOptions, height_m: float) -> tuple:
-    """On the boresight at reference_range_m from the aperture centre, at rail height."""
+def default_reference_point(x_centre_m: float, options: ImportOptions, height_m: float,
+                            range_m: float | None = None) -> tuple:
+    """On the boresight at ``range_m`` (default: reference_range_m) from the aperture centre, at rail
+    height."""
     th = math.radians(options.rotation_table_angle_deg)
-    r = options.reference_range_m
+    r = range_m if range_m is not None else options.reference_range_m or DEFAULT_REFERENCE_RANGE_M
     return (x_centre_m + r * math.sin(th), options.boresight_y_sign * r * math.cos(th), height_m)
 
 
@@ -246,6 +264,7 @@ class ImportResult:
     band: baseband.Band
     decimation: int
     track: Track
+    notes: list[str] = dataclasses.field(default_factory=list)  # values the import chose, for its summary
 
 
 def build_pass(
@@ -255,32 +274,49 @@ def build_pass(
     band: baseband.Band | None = None,
     file_mtime_s: float | None = None,
 ) -> ImportResult:
-    """Convert the kept scans to complex baseband and assemble the archive pass (with the raw RF if asked)."""
+    """Convert the kept scans to complex baseband and assemble the archive pass (with the raw RF if asked).
+
+    OptionError (a usage error) for a value that does not fit the recording; RecordingError for a recording
+    or positions log that cannot make an archive. The cheap checks come before the conversion."""
     if not recording.is_real_rf:
         raise NotImplementedError("complex (already demodulated) recordings: not yet")  # e.g. a Novelda X4
     if track.scans.size < 2:
         raise RecordingError(recording.source, None, f"only {track.scans.size} scans left for the pass")
-    rf = recording.samples[track.scans]
-    band = band or baseband.measure_band(rf, recording.bin_period_s)
-    carrier = options.carrier_frequency_hz or band.centre_hz
-    decimation = options.decimation or baseband.choose_decimation(
-        1.0 / recording.bin_period_s, band, options.oversampling
-    )
-    echo, rate = baseband.to_baseband(rf, recording.bin_period_s, recording.scan_start_s, carrier, decimation)
+    window_start_s = _window_start_s(recording, options)
     height = options.height_m
     if height is None:
         if track.z_m is None:
-            raise RecordingError(recording.source, None, "no rail height: give --height-m (or z_m positions)")
+            raise OptionError("height_m", "required: the rail height is the median z_m of the positions, and "
+                                          "there are none")
         height = float(np.median(track.z_m))
     # the antenna's deviations from the straight rail (archive 1.2, compensated in focusing: method.md C14):
     # y_m is the antenna's Y_r (the straight rail is the X_r axis), z_m - height its height above the rail's
     dy = None if track.y_m is None else np.array(track.y_m, dtype=float)
     dz = None if track.z_m is None else track.z_m - height
     times = recording.scan_time_s[track.scans]
+    _check_deviations(track, times, dy, dz, height)
+    rf = recording.samples[track.scans]
+    rf_rate_hz = 1.0 / recording.bin_period_s
+    band = band or baseband.measure_band(rf, recording.bin_period_s)
+    baseband.check_band(rf, rf_rate_hz, band, recording.source, options.oversampling)
+    carrier = options.carrier_frequency_hz or band.centre_hz
+    decimation = options.decimation or baseband.choose_decimation(rf_rate_hz, band, options.oversampling)
+    _check_kept_band(band, carrier, decimation, rf_rate_hz)
+    try:
+        echo, rate = baseband.to_baseband(rf, recording.bin_period_s, recording.scan_start_s, carrier,
+                                          decimation)
+    except ValueError as exc:  # the kept band leaves 0..Nyquist
+        given = [k for k in ("carrier_frequency_hz", "decimation") if getattr(options, k) is not None]
+        if given:
+            raise OptionError(given[0], str(exc)) from None
+        raise RecordingError(recording.source, None, f"cannot convert to baseband: {exc}") from None
     prf = options.pulse_repetition_frequency_hz or 1.0 / float(np.median(np.diff(times)))
     x_centre = 0.5 * float(track.x_m[0] + track.x_m[-1])
-    reference = options.reference_point_m or default_reference_point(x_centre, options, height)
-    window_start_s = recording.scan_start_s - options.range_delay_s
+    notes = []
+    window_m = (0.5 * SPEED_OF_LIGHT_M_S * window_start_s,
+                0.5 * SPEED_OF_LIGHT_M_S * (window_start_s + (echo.shape[1] - 1) / rate))
+    reference = _reference_point(x_centre, options, height, window_m, notes)
+    _warn_undersampled(recording.source, track.x_m, carrier)
     measured = None
     if options.pulse == "measured":
         measured = baseband.measure_pulse(echo, rate, window_start_s, carrier, options.pulse_window_start_m,
@@ -319,7 +355,107 @@ def build_pass(
         antenna_y_m=dy,
         antenna_z_m=dz,
     )
-    return ImportResult(scan=scan, band=band, decimation=decimation, track=track)
+    return ImportResult(scan=scan, band=band, decimation=decimation, track=track, notes=notes)
+
+
+def _window_start_s(recording: RawRecording, options: ImportOptions) -> float:
+    """The archive's window start, the calibrated delay removed; OptionError for a delay that puts it behind
+    the antenna (docs/importing.md section 5)."""
+    delay = options.range_delay_s
+    start = recording.scan_start_s - delay
+    if start < 0 < delay:
+        raise OptionError("range_delay_s", (
+            f"{delay:.4g} s is more than the recording's scan start {recording.scan_start_s:.4g} s: the "
+            f"window would start {-start:.4g} s ({0.5 * SPEED_OF_LIGHT_M_S * -start:.2f} m) behind the "
+            "antenna (a P440's delay is about 10e-9 s; the value is in seconds)"))
+    if delay < 0:
+        log.warning("%s: range_delay_s %.4g s is negative: the antenna's echo would come before the radar's "
+                    "zero delay (a sign mistake?)", recording.source, delay)
+    return start
+
+
+def _check_deviations(track: Track, scan_time_s: np.ndarray, dy: np.ndarray | None, dz: np.ndarray | None,
+                      height_m: float) -> None:
+    """RecordingError naming the positions file, column and line of a rail deviation the archive cannot
+    hold (before anything is written)."""
+    pos = track.positions
+    for column, d in (("y_m", dy), ("z_m", dz)):
+        bad = np.flatnonzero(np.abs(d) > MAX_RAIL_DEVIATION_M) if d is not None else []
+        if not len(bad):
+            continue
+        limit = (f"beyond the +-{MAX_RAIL_DEVIATION_M} m a rail deviation may have (so are {len(bad)} of the "
+                 f"{len(d)} scans kept)")
+        if pos is None or pos.line is None or track.time_offset_s is None:
+            raise RecordingError(pos.source if pos else "positions", None,
+                                 f"{column}: {d[bad[0]]:+.3f} m from the straight rail, {limit}")
+        # the logged row behind the first such scan: of the two it lies between, the one further off
+        values = pos.y_m if column == "y_m" else pos.z_m - height_m
+        i = int(np.searchsorted(pos.time_s, scan_time_s[bad[0]] + track.time_offset_s))
+        i = max((min(k, len(values) - 1) for k in (i - 1, i)), key=lambda k: abs(values[k]))
+        what = (f"y_m {pos.y_m[i]:+.3f} m is" if column == "y_m" else
+                f"z_m {pos.z_m[i]:.3f} m is {values[i]:+.3f} m from the rail height {height_m:.3f} m,")
+        raise RecordingError(pos.source, None, (
+            f"line {pos.line[i]}: {what} {limit}; y_m is the distance from the straight rail line, z_m the "
+            "height (docs/importing.md section 4)"))
+
+
+def _check_kept_band(band: baseband.Band, carrier_hz: float, decimation: int, rf_rate_hz: float) -> None:
+    """OptionError for a given carrier or decimation whose complex band leaves out part of the measured -10 dB
+    band (the written pass would model a band its samples alias)."""
+    rate = rf_rate_hz / decimation
+    if band.low_hz >= carrier_hz - rate / 2 and band.high_hz <= carrier_hz + rate / 2:
+        return
+    lo_ghz, hi_ghz = (carrier_hz - rate / 2) / 1e9, (carrier_hz + rate / 2) / 1e9
+    numbers = (f"the complex band {lo_ghz:.3f}-{hi_ghz:.3f} GHz (carrier {carrier_hz / 1e9:.3f} GHz, rate "
+               f"{rate / 1e9:.3f} GHz = RF {rf_rate_hz / 1e9:.3f} GHz / {decimation}) leaves out part of the "
+               f"measured -10 dB band {band.low_hz / 1e9:.3f}-"
+               f"{band.high_hz / 1e9:.3f} GHz ({band.bandwidth_hz / 1e9:.3f} GHz)")
+    # The defaults cover the band (check_band passed): a decimation below the bandwidth or a carrier off the
+    # band was given.
+    if rate < band.bandwidth_hz:
+        most = math.floor(rf_rate_hz / band.bandwidth_hz)
+        raise OptionError("decimation", f"{decimation}: {numbers}; the complex rate must be at least the "
+                                        f"bandwidth: decimation <= {most}")
+    raise OptionError("carrier_frequency_hz", f"{carrier_hz:.6g} Hz: {numbers}; centre the carrier on the "
+                                              f"band ({band.centre_hz:.6g} Hz)")
+
+
+def _reference_point(x_centre_m: float, options: ImportOptions, height_m: float,
+                     window_m: tuple[float, float], notes: list[str]) -> tuple:
+    """The scene centre: given, or on boresight at reference_range_m (default: DEFAULT_REFERENCE_RANGE_M, or
+    the middle of the delay window when that lies outside it, with a note); a warning when a given one lies
+    outside the window (the scene centre would be a range the pass never recorded)."""
+    lo, hi = window_m
+    window = f"the recording's window {lo:.2f}-{hi:.2f} m (one-way range on the archive's axis)"
+    if options.reference_point_m is not None:
+        r = math.dist((x_centre_m, 0.0, height_m), options.reference_point_m)
+        if not lo <= r <= hi:
+            log.warning("the reference point %s (--reference-point) lies %.2f m from the aperture centre, "
+                        "outside %s", options.reference_point_m, r, window)
+        return options.reference_point_m
+    r = options.reference_range_m
+    if r is None:
+        r = DEFAULT_REFERENCE_RANGE_M
+        if not lo <= r <= hi:
+            r = 0.5 * (lo + hi)
+            notes.append(f"reference: on boresight at {r:.2f} m, the middle of {window}; the default "
+                         f"{DEFAULT_REFERENCE_RANGE_M} m lies outside it (--reference-range-m sets it)")
+    elif not lo <= r <= hi:
+        log.warning("the reference range %.2f m (--reference-range-m) lies outside %s", r, window)
+    return default_reference_point(x_centre_m, options, height_m, r)
+
+
+def _warn_undersampled(source: str, x_m: np.ndarray, carrier_hz: float) -> None:
+    """A warning when the pulses are further apart along the rail than a quarter wavelength: a beam that sees
+    +-90 deg has a two-way Doppler band of 4 v / lambda, sampled without aliasing when dx <= lambda / 4 (the
+    processed beam's band, narrower and more so when squinted, may tolerate more: not refused)."""
+    spacing_m = float(np.median(np.abs(np.diff(x_m))))
+    quarter_m = SPEED_OF_LIGHT_M_S / carrier_hz / 4
+    if spacing_m > quarter_m:
+        log.warning("%s: the pulses are %.1f mm apart along the rail (median), more than a quarter "
+                    "wavelength (%.1f mm at %.3f GHz): the image may alias in azimuth (a beam seeing +-90 "
+                    "deg needs lambda / 4; docs/importing.md section 4)",
+                    source, 1e3 * spacing_m, 1e3 * quarter_m, carrier_hz / 1e9)
 
 
 def _start_from_mtime(mtime_s: float | None, before_end_s: float) -> str:
@@ -364,11 +500,11 @@ def options_from_table(table: dict, path: str | os.PathLike[str] | None = None) 
     return out
 
 
-def check_options(options: ImportOptions, path: str | os.PathLike[str] | None = None) -> None:
-    """ConfigError for values no archive could hold (checked before any file is read)."""
+def check_options(options: ImportOptions) -> None:
+    """OptionError (key, reason) for values no archive could hold, checked before any file is read."""
 
     def fail(key: str, reason: str) -> None:
-        raise ConfigError(path, key, reason)
+        raise OptionError(key, reason)
 
     if options.boresight_y_sign not in (-1, 1):
         fail("boresight_y_sign", f"must be -1 or +1, got {options.boresight_y_sign}")
@@ -385,6 +521,10 @@ def check_options(options: ImportOptions, path: str | os.PathLike[str] | None = 
         value = getattr(options, key)
         if value is not None and not (math.isfinite(value) and value > 0):
             fail(key, f"must be > 0, got {value}")
+    if options.height_m is not None and not math.isfinite(options.height_m):
+        fail("height_m", f"must be finite, got {options.height_m}")
+    if options.reference_point_m is not None and not all(map(math.isfinite, options.reference_point_m)):
+        fail("reference_point_m", f"must be finite, got {options.reference_point_m}")
     if options.decimation is not None and options.decimation < 1:
         fail("decimation", f"must be >= 1, got {options.decimation}")
     if options.pulse not in ("gaussian", "measured"):
@@ -394,3 +534,20 @@ def check_options(options: ImportOptions, path: str | os.PathLike[str] | None = 
              f"pulse_window_stop_m, got {options.pulse_window_start_m}, {options.pulse_window_stop_m}")
     if not math.isfinite(options.range_delay_s):
         fail("range_delay_s", f"must be finite, got {options.range_delay_s}")
+    if not abs(options.range_delay_s) < MAX_RANGE_DELAY_S:  # the site config's bound (config.py)
+        fail("range_delay_s", f"must be within +-{MAX_RANGE_DELAY_S:g} s (a larger value is a unit error: ns "
+                              f"for s?), got {options.range_delay_s!r}")
+    _check_identity(options)
+
+
+def _check_identity(options: ImportOptions) -> None:
+    """OptionError for a pass identity the archive would refuse after the whole conversion."""
+    if options.cycle < 0:
+        raise OptionError("cycle", f"must be >= 0, got {options.cycle}")
+    if not options.rig_id.strip():
+        raise OptionError("rig_id", "must not be empty")
+    if options.pass_start_time is not None:
+        try:
+            parse_utc(options.pass_start_time)
+        except ValueError as exc:
+            raise OptionError("pass_start_time", f"{exc} (e.g. 2026-11-23T06:00:00Z)") from None
