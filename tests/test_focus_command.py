@@ -3,6 +3,9 @@ section 7); the measures on peaks whose widths and sidelobes are known in closed
 
 import csv
 import math
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -223,7 +226,7 @@ def test_usage_errors_exit_2(single_pass, tmp_path, capsys):
 
 
 def test_without_matplotlib_focus_says_so_and_exits_2(single_pass, tmp_path, capsys, monkeypatch):
-    def missing():
+    def missing(out_dir):
         raise BatchError("plots need matplotlib: pip install 'uwbcl[plot]'")
 
     monkeypatch.setattr(outputs, "require_matplotlib", missing)
@@ -237,3 +240,18 @@ def test_process_cannot_use_the_single_pass_that_focus_can(single_pass, tmp_path
     path, _ = single_pass
     assert main(["process", str(path.parent), "--out", str(tmp_path / "p"), "--backend", "numpy",
                  "--jobs", "1", "--no-progress"]) == 1
+
+
+def test_focus_writes_nothing_outside_its_output_directory_not_even_matplotlibs_cache(single_pass, tmp_path):
+    path, _ = single_pass
+    home, out = tmp_path / "home", tmp_path / "o"
+    home.mkdir()
+    unset = ("MPLCONFIGDIR", "XDG_CONFIG_HOME", "XDG_CACHE_HOME")
+    env = {k: v for k, v in os.environ.items() if k not in unset}
+    env["HOME"] = str(home)
+    proc = subprocess.run([sys.executable, "-c", "import sys; from uwbcl.cli import main; sys.exit(main())",
+                           "focus", str(path), "--out", str(out), "--backend", "numpy"],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert list(home.rglob("*")) == []
+    assert list(out.glob("*.png")) and (out / outputs.MPL_CONFIG_DIR).is_dir()

@@ -398,16 +398,14 @@ def test_a_focused_image_per_pass_marks_its_detections(tmp_path):
 
 
 def test_plots_without_matplotlib_stop_the_run_before_it_starts(archive_dir, tmp_path, monkeypatch):
-    import builtins
+    import importlib.util
 
-    real_import = builtins.__import__
+    real_find_spec = importlib.util.find_spec
 
     def no_matplotlib(name, *args, **kw):
-        if name.startswith("matplotlib"):
-            raise ModuleNotFoundError(name)
-        return real_import(name, *args, **kw)
+        return None if name.startswith("matplotlib") else real_find_spec(name, *args, **kw)
 
-    monkeypatch.setattr(builtins, "__import__", no_matplotlib)
+    monkeypatch.setattr(importlib.util, "find_spec", no_matplotlib)
     with pytest.raises(BatchError, match="uwbcl\\[plot\\]"):
         batch.process_directory(archive_dir, tmp_path / "out", SETTINGS,
                                 options(outputs=OutputOptions(plots=True)))

@@ -724,7 +724,7 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
     in_dir, out_dir = Path(in_dir), Path(out_dir)
     out_opts = options.outputs
     if out_opts.plots or out_opts.cycle_images:
-        outputs.require_matplotlib()
+        outputs.require_matplotlib(out_dir)
     with _exclusive(out_dir):
         files, problems, warnings = discover(in_dir, out_dir, options.follow_symlinks)
         for p in problems:

@@ -140,7 +140,7 @@ def _focus(args: argparse.Namespace) -> int:
     from . import commission, outputs
 
     try:
-        outputs.require_matplotlib()
+        outputs.require_matplotlib(Path(args.out))
         site = config.load_config(args.config) if args.config else config.SiteConfig()
         settings = config.override(site, algorithm=args.algorithm, backend=args.backend).processing_settings()
     except (ConfigError, BatchError) as exc:

@@ -7,10 +7,12 @@ errors.csv: every problem; plots/ (on request): time series per rig and focused 
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import io
 import logging
 import os
 import shutil
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -313,12 +315,17 @@ def _reuse_cycle_images(out_dir: Path, gen: Path) -> None:
 
 
 # ----------------------------------------------------------------------------------------------- plots
-def require_matplotlib() -> None:
+MPL_CONFIG_DIR = ".uwbcl-matplotlib"  # matplotlib's config and font cache, inside OUT
 
-    try:
-        import matplotlib  # noqa: F401
-    except ModuleNotFoundError:
-        raise BatchError("plots need matplotlib: pip install 'uwbcl[plot]'") from None
+
+def require_matplotlib(out_dir: Path) -> None:
+    """BatchError when matplotlib is not installed. Points matplotlib's config and font cache at
+    OUT/.uwbcl-matplotlib (unless MPLCONFIGDIR is set): importing it would otherwise write under the user's
+    home, outside the output directory. Called before matplotlib is imported, which it does not do itself."""
+    if importlib.util.find_spec("matplotlib") is None:
+        raise BatchError("plots need matplotlib: pip install 'uwbcl[plot]'")
+    if "matplotlib" not in sys.modules:
+        os.environ.setdefault("MPLCONFIGDIR", str(Path(out_dir).resolve() / MPL_CONFIG_DIR))
 
 
 def _pyplot():
