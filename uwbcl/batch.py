@@ -126,7 +126,17 @@ def detect_file(path: str, settings: ProcessingSettings) -> dict:
         return {"error": str(e), "kind": "exceeds_limits"}
     except Exception as e:  # noqa: BLE001 - a numerical failure in one pass must not stop the night's run
         return {"error": f"focusing failed: {type(e).__name__}: {e}", "kind": "processing_failed"}
-    header = {
+    try:
+        header = pass_header(scan, path, settings)
+    except (archive.ArchiveError, OSError) as e:  # the file changed under us
+        return {"error": f"changed while being read: {e}", "kind": "unreadable"}
+    return {"header": header, "detections": [dataclasses.asdict(d) for d in detections]}
+
+
+def pass_header(scan, path: str | Path, settings: ProcessingSettings) -> dict:
+    """The record header of a pass read from ``path``: its identity and the parameters a cycle's passes
+    must share (`PARAMETER_KEYS`). Reads the pass id from the file (ArchiveError, OSError)."""
+    return {
         "rig_id": scan.rig_id, "cycle": int(scan.cycle), "height_m": float(scan.geometry.height_m),
         "pass_start_time": scan.pass_start_time,
         "parameters": {
@@ -138,12 +148,8 @@ def detect_file(path: str, settings: ProcessingSettings) -> dict:
             "reference_point_m": list(scan.geometry.reference_point_m),
             "boresight_y_sign": scan.geometry.boresight_y_sign,
         },
+        "pass_id": archive.read_pass_header(path, settings.limits)["pass_id"],
     }
-    try:
-        header["pass_id"] = archive.read_pass_header(path, settings.limits)["pass_id"]
-    except (archive.ArchiveError, OSError) as e:  # the file changed under us
-        return {"error": f"changed while being read: {e}", "kind": "unreadable"}
-    return {"header": header, "detections": [dataclasses.asdict(d) for d in detections]}
 
 
 DETECT = detect_file  # the per-pass worker (tests substitute one that crashes)

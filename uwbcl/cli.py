@@ -135,6 +135,37 @@ def _process(args: argparse.Namespace) -> int:
         return 1
     return 0
 
+def _check(args: argparse.Namespace) -> int:
+    """`uwbcl check IN_DIR`: exit 0 when every archive is read and every cycle usable, 1 on any problem (each
+    printed, as `uwbcl process` would write it to errors.csv), 2 on usage errors."""
+    from . import check
+
+    try:
+        site = config.load_config(args.config) if args.config else config.SiteConfig()
+        site = config.override(site, heights_m=config.parse_heights(args.heights))
+        settings = site.processing_settings()
+        options = site.batch_options(follow_symlinks=args.follow_symlinks)
+    except ConfigError as exc:
+        print(f"uwbcl check: {exc}", file=sys.stderr)
+        return 2
+    in_dir = Path(args.in_dir)
+    if not in_dir.is_dir():
+        print(f"uwbcl check: {in_dir}: not a directory", file=sys.stderr)
+        return 2
+    report = check.check_directory(in_dir, settings, options)
+    print(f"{in_dir}: {report.n_files} archives, {len(report.passes)} read")
+    for line in check.rig_lines(report, options):
+        print(line)
+    for title, found in (("warnings", report.warnings), ("problems", report.problems)):
+        if found:
+            print(f"{len(found)} {title}:")
+            for p in found:
+                print(f"  {p.kind}: {p.file}: {p.reason}")
+    if not report.problems:
+        print("no problems: uwbcl process would use every pass")
+    return 1 if report.problems else 0
+
+
 def _focus(args: argparse.Namespace) -> int:
     """`uwbcl focus ARCHIVE... --out DIR`: exit 2 on usage errors, 1 when an archive cannot be focused."""
     from . import commission, outputs
@@ -594,6 +625,17 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--follow-symlinks", action="store_true",
                    help="read archives linked from outside ARCHIVE_DIR and enter linked directories")
     q.set_defaults(func=_process)
+
+    c = sub.add_parser("check", help="read and group every archive under IN_DIR as process would, without "
+                                     "focusing: per rig the cycles, heights, radar and geometry found, and "
+                                     "every problem")
+    c.add_argument("in_dir")
+    c.add_argument("--config", help="site configuration, TOML: the expected heights and the read limits")
+    c.add_argument("--heights", nargs="+",
+                   help="expected rail heights in metres; passes at others are errors")
+    c.add_argument("--follow-symlinks", action="store_true",
+                   help="read archives linked from outside IN_DIR and enter linked directories")
+    c.set_defaults(func=_check)
 
     f = sub.add_parser("focus", help="commissioning: focus single passes, write their images and "
                                      "detections.csv (docs/outputs.md)")

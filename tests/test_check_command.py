@@ -1,0 +1,70 @@
+"""`uwbcl check IN_DIR`: every archive read and grouped as `uwbcl process` would, without focusing; the
+problems it finds are the ones the batch reports."""
+
+from __future__ import annotations
+
+import shutil
+
+import h5py
+import numpy as np
+from shift_case import SETTINGS, options
+
+from uwbcl import batch, check
+from uwbcl.cli import main
+
+
+def pass_files(root):
+    return sorted(root.rglob("*.h5"))
+
+
+def test_check_summarises_each_rigs_cycles_heights_radar_and_geometry_and_exits_0_on_a_clean_tree(
+        archive_dir, capsys):
+    assert main(["check", str(archive_dir)]) == 0
+    out = capsys.readouterr().out
+    assert "6 archives, 6 read" in out
+    assert "rig rig-1: 6 passes, 3 cycles (0-2), 3 usable" in out
+    assert "heights: 0.2 m x 3, 0.6 m x 3" in out and "rib on the -Y side" in out
+    assert "no problems" in out
+    (doppler,) = [line for line in out.splitlines() if "Doppler side" in line]
+    lo, hi = (float(v) for v in doppler.split(": ")[1].split(" over")[0].split(" to "))
+    assert 0.7 < lo <= hi < 1.3  # the format's conventions: about +1
+
+
+def test_check_finds_the_problems_process_reports_and_exits_1(archive_dir, tmp_path, capsys):
+    src = tmp_path / "in"
+    shutil.copytree(archive_dir, src)
+    files = pass_files(src)
+    files[0].write_bytes(b"not an archive")  # cycle 0 is left with one height
+    with h5py.File(files[3], "r+") as f:
+        f["radar"].attrs["carrier_frequency_hz"] = -1.0
+    (src / "notes.h5").write_bytes(b"")
+    report = check.check_directory(src, SETTINGS, options())
+    processed = batch.process_directory(src, tmp_path / "out", SETTINGS, options())
+    found = sorted((p.file, p.kind) for p in report.problems)
+    assert found == sorted((p.file, p.kind) for p in processed.errors)
+    assert {p.kind for p in report.problems} >= {"invalid_archive", "single_height"}
+    assert main(["check", str(src)]) == 1
+    out = capsys.readouterr().out
+    assert "carrier_frequency_hz" in out and files[3].relative_to(src).as_posix() in out
+
+
+def test_check_warns_about_every_conjugated_pass(archive_dir, tmp_path):
+    src = tmp_path / "in"
+    shutil.copytree(archive_dir, src)
+    for path in pass_files(src)[:2]:
+        with h5py.File(path, "r+") as f:
+            echo = f["echo"]
+            if echo.attrs["layout"] == "int16_iq":
+                echo[..., 1] = -echo[..., 1]
+            else:
+                echo[...] = np.conj(echo[...])
+    report = check.check_directory(src, SETTINGS, options())
+    warned = sorted(w.file for w in report.warnings if w.kind == "q_sign")
+    assert warned == [p.relative_to(src).as_posix() for p in pass_files(src)[:2]]
+    assert report.problems == []  # conjugated data are read and grouped: only focusing fails
+
+
+def test_check_refuses_a_missing_directory_and_a_bad_height_list_as_usage_errors(tmp_path, capsys):
+    assert main(["check", str(tmp_path / "nowhere")]) == 2
+    assert "not a directory" in capsys.readouterr().err
+    assert main(["check", str(tmp_path), "--heights", "x"]) == 2
