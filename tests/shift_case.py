@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import h5py
+import numpy as np
+
 from uwbcl import shift
 from uwbcl.records import AssociationSettings, BatchOptions, ProcessingSettings
 
@@ -13,3 +16,13 @@ CONFIG = shift.ShiftConfig(rigs=1, cycles=3, seed=5)
 
 def options(**kw) -> BatchOptions:
     return BatchOptions(**{"jobs": 1, "progress": False, **kw})
+
+
+def conjugate_pass(path) -> None:
+    """Negate the Q channel of an archive's echo in place, as a radar with a negated Q would write it."""
+    with h5py.File(path, "r+") as f:
+        echo = f["echo"]
+        if echo.attrs["layout"] == "int16_iq":
+            echo[..., 1] = -echo[..., 1]
+        else:
+            echo[...] = np.conj(echo[...])

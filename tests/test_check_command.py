@@ -6,8 +6,7 @@ from __future__ import annotations
 import shutil
 
 import h5py
-import numpy as np
-from shift_case import SETTINGS, options
+from shift_case import SETTINGS, conjugate_pass, options
 
 from uwbcl import batch, check
 from uwbcl.cli import main
@@ -52,12 +51,7 @@ def test_check_warns_about_every_conjugated_pass(archive_dir, tmp_path):
     src = tmp_path / "in"
     shutil.copytree(archive_dir, src)
     for path in pass_files(src)[:2]:
-        with h5py.File(path, "r+") as f:
-            echo = f["echo"]
-            if echo.attrs["layout"] == "int16_iq":
-                echo[..., 1] = -echo[..., 1]
-            else:
-                echo[...] = np.conj(echo[...])
+        conjugate_pass(path)
     report = check.check_directory(src, SETTINGS, options())
     warned = sorted(w.file for w in report.warnings if w.kind == "q_sign")
     assert warned == [p.relative_to(src).as_posix() for p in pass_files(src)[:2]]

@@ -21,7 +21,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from shift_case import OUTPUTS, SETTINGS, options
+from shift_case import OUTPUTS, SETTINGS, conjugate_pass, options
 
 from uwbcl import batch, shift, threads
 from uwbcl.cli import main
@@ -318,12 +318,7 @@ def test_a_rig_whose_data_were_conjugated_is_warned_about_the_q_sign_and_a_clean
     assert not [w for w in clean[1].warnings if w.kind == "q_sign"]
     src = copy_archive(archive_dir, tmp_path)
     for path in pass_files(src):
-        with h5py.File(path, "r+") as f:
-            echo = f["echo"]
-            if echo.attrs["layout"] == "int16_iq":
-                echo[..., 1] = -echo[..., 1]
-            else:
-                echo[...] = np.conj(echo[...])
+        conjugate_pass(path)
     report = _run(src, tmp_path / "out")
     (warning,) = [w for w in report.warnings if w.kind == "q_sign"]
     assert "conjugated" in warning.reason and warning.file == pass_files(src)[0].relative_to(src).as_posix()
