@@ -170,6 +170,15 @@ def test_the_site_delay_moves_the_window_by_its_difference_from_the_recorded_del
     assert "records no range_delay_s" in caplog.text
 
 
+def test_a_site_delay_that_would_start_the_window_behind_the_antenna_is_refused_with_the_numbers():
+    scan = dataclasses.replace(_sim1_pass(), range_delay_s=1.0e-9)
+    too_long = scan.range_window_start_s + 1.0e-9 + 2.0e-9
+    with pytest.raises(ValueError, match=r"behind the antenna") as err:
+        pipeline.apply_range_delay(scan, too_long)
+    assert "0.30 m behind" in str(err.value)  # 2 ns two-way
+    assert pipeline.apply_range_delay(scan, too_long - 2.5e-9).range_window_start_s > 0
+
+
 def test_the_radar_table_and_the_new_detection_keys_are_read_and_checked():
     cfg = config.parse_config({"radar": {"range_delay_s": 2.3e-9},
                                "detection": {"search": "footprint", "cancel_time_budget_s": 2.0}})
