@@ -277,21 +277,48 @@ def _grid_views(web_m: float, spacing_m: float, missing: tuple[float, ...]) -> t
 
 
 @pytest.mark.parametrize("prior", [None, (1.0, 0.0, 0.0)])
-def test_a_backward_look_alike_that_shares_more_plates_does_not_hide_the_advance(prior):
-    """A grid spacing P larger than the web w puts a look-alike at w - P, backwards; on a short view it
-    shares more plates than the truth (the far plate of the first view was not located here) and once won
-    every cycle of an independent 1.2 m grid / 1.0 m web / 1.8 m rail scenario, `ok` at -0.2 m without a
-    prior and once with one. The face does not move backwards: the answer is the advance (eq. M2b)."""
+def test_on_an_exact_grid_only_a_web_depth_tells_the_advance_from_its_look_alikes(prior):
+    """A grid spacing P larger than the web w puts look-alikes at w - P (backwards: no hypothesis, eq. M2b)
+    and at w + P (forwards, fewer plates in common). On an exact grid the plates cannot tell w from w + P: the
+    plates one look-alike has beyond the other's are where the grid puts them (eq. M1a). Without a web depth
+    the row is therefore not `ok`, whichever it reports; with one it is `ok` at w, and stays so with the
+    backward rule off: the backward look-alike's two extra plates (it once won `ok` at -0.2 m in an
+    independent 1.2 m grid / 1.0 m web / 1.8 m rail scenario) are no evidence against the prior."""
     before, after = _grid_views(1.0, 1.2, missing=(3.6,))
     settings = AssociationSettings(prior_advance_m=prior)
     d = _lookalike_estimate(before, after, settings)
-    assert d.status == "ok" and abs(d.advance_m[0] - 1.0) < 1e-3 and d.n_targets == 4, d
-    # without the rule the backward look-alike (six plates) wins, or with a web depth is a rival
     off = _lookalike_estimate(before, after, dataclasses.replace(settings, max_backward_m=100.0))
     if prior is None:
-        assert off.status == "ok" and abs(off.advance_m[0] + 0.2) < 1e-3 and off.n_targets == 6, off
+        assert d.status == "ambiguous" and off.status == "ambiguous", (d, off)
     else:
-        assert off.status == "ambiguous", off
+        for row in (d, off):
+            assert row.status == "ok" and abs(row.advance_m[0] - 1.0) < 1e-3 and row.n_targets == 4, row
+
+
+@pytest.mark.parametrize("web_m", [0.93, 0.96, 1.0])
+def test_a_regular_grid_a_web_short_of_its_spacing_is_never_reported_as_no_advance(web_m):
+    """An independent writer's exact 1.0 m grid (two rows, no plate missing, a rib without echoes of its own)
+    and webs of 0.93-1.0 m: the look-alike w - P lies within max_backward_m of zero, so it is a hypothesis,
+    and seeing the whole strip of three columns again it matched six plates against the advance's four:
+    without a prior every row was `ok` at a retreat of about 0 with a bound under a millimetre, a metre off.
+    Eq. M1a: the two extra plates are the grid's, so without a web depth the row is withheld; with one it is
+    `ok` at w."""
+    mine = np.array([[k * 1.0, -2.5, z] for k in range(-3, 10) for z in (0.5, 1.1)])
+    before = mine[(mine[:, 0] >= -0.05) & (mine[:, 0] <= 2.55)]  # three columns in view
+    moved = mine - (web_m, 0.0, 0.0)
+    after = moved[(moved[:, 0] >= -0.05) & (moved[:, 0] <= 2.55)]
+    blind = _lookalike_estimate(before, after, AssociationSettings())
+    assert blind.status != "ok" or abs(blind.advance_m[0] - web_m) < 1e-3, blind
+    prior = _lookalike_estimate(before, after, AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0)))
+    assert prior.status == "ok" and abs(prior.advance_m[0] - web_m) < 1e-3, prior
+    # an irregular layout of the same density is no grid: its plates still decide without a prior
+    jitter = np.array([0.0, 0.21, -0.17, 0.13, -0.09, 0.19, -0.23, 0.07, 0.16, -0.12, 0.24, -0.05, 0.11])
+    rough = mine + np.repeat(jitter, 2)[:, None] * np.array([1.0, 0.0, 0.0])
+    before = rough[(rough[:, 0] >= 0.2) & (rough[:, 0] <= 2.8)]
+    moved = rough - (web_m, 0.0, 0.0)
+    after = moved[(moved[:, 0] >= 0.2) & (moved[:, 0] <= 2.8)]
+    irregular = _lookalike_estimate(before, after, AssociationSettings())
+    assert irregular.status == "ok" and abs(irregular.advance_m[0] - web_m) < 1e-3, irregular
 
 
 def test_with_a_web_depth_a_backward_translation_is_no_answer_however_wide_the_window():

@@ -20,7 +20,7 @@ import pytest
 from uwbcl import batch, registration, simulate
 from uwbcl import geometry as geo
 from uwbcl.chain import RigChain
-from uwbcl.displacement import estimate_advance
+from uwbcl.displacement import estimate_advance, location_covariance_m2
 from uwbcl.model import PassGeometry, RadarParameters
 from uwbcl.records import AssociationSettings, CycleResult, Located, PassRecord, ProcessingSettings
 
@@ -259,3 +259,23 @@ def test_the_association_backprojects_with_the_runs_backend_or_says_why_not(monk
     with caplog.at_level("WARNING", logger="uwbcl"):
         assert pipeline.association_focuser(ProcessingSettings(backend="opencl")) is NUMPY_FOCUSER
     assert "numpy reference" in caplog.text and "no OpenCL platform" in caplog.text
+
+
+def test_on_an_exact_grid_the_rib_evidence_that_only_grows_with_the_overlap_decides_nothing():
+    """Eq. M1a on M7: where the rib is the grid's plates alone, its coherence at the alias with the larger
+    overlap is larger by the plates that overlap adds, as the plates' own score is; levelled to equal
+    overlaps it chooses neither. Evidence for one translation beyond that (the rib's own texture) still
+    decides."""
+    xs = [0.0, 1.0, 2.0, 3.0]
+    before, after = regular_row(0.0, xs), regular_row(0.95, [1.0, 2.0, 3.0, 4.0])
+    cov = [location_covariance_m2(t.position_m, (0.2, 0.6), 0.003) for t in before]
+    kw = {"before_cov_m2": np.array(cov), "after_cov_m2": np.array(cov)}
+
+    def per_plate(t_m, sigma_z_m=0.0):  # 10 per plate in the overlap: the alias -0.05 m sees 4, 0.95 m 3
+        return 10.0 * (4 if abs(t_m[0] + 0.05) < 0.01 else 3 if abs(t_m[0] - 0.95) < 0.01 else 0)
+
+    settings = AssociationSettings()
+    d = estimate_advance(before, after, settings, rib=per_plate, **kw)
+    assert d.status == "ambiguous", d
+    textured = estimate_advance(before, after, settings, rib=FixedRib([0.95, 0.0, 0.0], 14.0), **kw)
+    assert textured.status == "ok" and textured.retreat_m == pytest.approx(0.95, abs=1e-3), textured

@@ -50,6 +50,13 @@ NULL_OFFSET_M = np.array([1.0, 0.1, 0.6])
 # within COVERAGE x its bound.
 COVERAGE = 3.0
 _IMMATERIAL_SCALE = np.array([COVERAGE, COVERAGE, 1.0])  # the vertical bound holds the whole offset (M3a)
+# Eq. M1a: a translation difference under which plates land on another plate of their own cycle from at least
+# this many positions along the rail in each cycle, and this fraction of those that could, is a period of the
+# layout.
+ALIAS_MIN_INTERVALS = 2
+ALIAS_FRACTION = 0.5
+ALIAS_EXTENT_M = 0.05  # beyond the plates' x extent a moved plate still counts as where a match could be
+ALIAS_CANDIDATES = 6  # the translations (best first) that may be the best once levelled
 # The rib registration (eq. M7) is asked only when the plates leave the best's lead over the runner-up below
 # RIB_REACH x min_margin, and scores the translations within that of the best, at most RIB_CANDIDATES.
 RIB_REACH = 2.0
@@ -317,6 +324,8 @@ class _Hypothesis:
     inside: bool  # within the prior window (always True without a prior)
     vertical: float = 0.0  # the vertical step prior's penalty in score (eq. M2v), <= 0
     rib: float = 0.0  # the rib registration's evidence in score (eq. M7), >= 0
+    data: float = 0.0  # the data part of score (eq. M1)
+    aliased: bool = False  # levelled against the best as its grid alias (eq. M1a)
 
 
 def _prior_log(shift: np.ndarray, settings: AssociationSettings) -> tuple[float, bool]:
@@ -422,7 +431,7 @@ def _hypotheses(diff: np.ndarray, cov: np.ndarray, gain: np.ndarray, settings: A
         data = float(np.sum(gain[idx] - 0.5 * _chi2(diff[idx], shift, cov[idx])))
         prior, inside = _prior_log(shift, settings)
         vertical = _vertical_log(shift, s_cov, settings)
-        out.append(_Hypothesis(data + prior + vertical, shift, s_cov, key, inside, vertical))
+        out.append(_Hypothesis(data + prior + vertical, shift, s_cov, key, inside, vertical, data=data))
     out.sort(key=lambda h: (-h.score, -len(h.pairs), h.pairs))
     tol = np.asarray(settings.tolerance_m, dtype=float)
     distinct: list[_Hypothesis] = []
@@ -430,6 +439,77 @@ def _hypotheses(diff: np.ndarray, cov: np.ndarray, gain: np.ndarray, settings: A
         if all(np.any(np.abs(h.shift - k.shift) > tol) for k in distinct):
             distinct.append(h)
     return distinct
+
+
+def _self_matches(p: np.ndarray, pc: np.ndarray, d: np.ndarray, d_cov: np.ndarray, gate: float
+                  ) -> tuple[int, int, int]:
+    """One cycle's plates against themselves moved by d: (matches, candidates, intervals). Matches: one-to-one
+    pairs P_i + d ~ P_k (i != k) within the chi-square gate; candidates: the P_i + d that land within the
+    plates' own x extent, where such a match could be; intervals: the distinct x positions (more than
+    |d_x| / 2 apart) the matched pairs start from (the plates of one column count once)."""
+    if len(p) < 2:
+        return 0, 0, 0
+    diff = p[None, :, :] - p[:, None, :]  # [i, k] = P_k - P_i
+    cov = pc[:, None] + pc[None, :] + d_cov + np.eye(3) * MODEL_SIGMA_M**2
+    chi2 = _chi2(diff, d, cov)
+    np.fill_diagonal(chi2, np.inf)
+    moved_x = p[:, 0] + d[0]
+    reach = 3.0 * np.sqrt(np.maximum(pc[:, 0, 0], 0.0)) + ALIAS_EXTENT_M
+    candidates = int(np.sum((moved_x >= p[:, 0].min() - reach) & (moved_x <= p[:, 0].max() + reach)))
+    pairs = _greedy(chi2, gate)
+    starts = np.sort([p[i, 0] for i, _ in pairs])
+    intervals = int(len(starts) > 0) + int(np.sum(np.diff(starts) > max(0.5 * abs(d[0]), ALIAS_EXTENT_M)))
+    return len(pairs), candidates, intervals
+
+
+def _self_similar(d: np.ndarray, d_cov: np.ndarray, p: np.ndarray, pc: np.ndarray, q: np.ndarray,
+                  qc: np.ndarray, gate: float) -> bool:
+    """Eq. M1a's test: the plates of both cycles repeat under the translation difference d (3,) m (a regular
+    bolt grid, d a multiple of its spacing): plates moved by d land on another plate of their own cycle
+    (within the gate of their location covariances) from at least ALIAS_MIN_INTERVALS distinct positions
+    along the rail in each cycle (two columns that happen to lie d apart are no grid, however many rows they
+    hold; at a low SNR the gate is centimetres wide and an irregular grid has such pairs), and at least
+    ALIAS_FRACTION of the plates that could (moved by d, still within the layout's extent) do."""
+    mp, cp, ip = _self_matches(p, pc, d, d_cov, gate)
+    mq, cq, iq = _self_matches(q, qc, d, d_cov, gate)
+    return min(ip, iq) >= ALIAS_MIN_INTERVALS and mp + mq >= ALIAS_FRACTION * (cp + cq)
+
+
+def _level_aliases(hyps: list[_Hypothesis], p: np.ndarray, pc: np.ndarray, q: np.ndarray, qc: np.ndarray,
+                   settings: AssociationSettings) -> list[_Hypothesis]:
+    """Eq. M1a: two translations that differ by a period of the plate layout are compared on equal numbers
+    of matches. On a regular grid the translation with the smaller retreat overlaps more of the two cycles'
+    views and so matches more plates; eq. M1 counts each such match as evidence (a chance plate would seldom
+    lie there), but on a grid the plate that entered the view lies exactly where the grid says: the extra
+    matches say nothing. The lead of a over b is then that of their data scores and rib evidence (M7, which
+    grows with the overlap in the same way where the rib is the grid's plates alone) scaled to the smaller
+    number of matches, n_min / n x (S_data + E), prior and vertical terms unchanged; otherwise the lead of
+    their scores. The best is the translation among the first ALIAS_CANDIDATES whose smallest lead over every
+    other is largest (earlier on a tie); the others are returned with the best's score less that lead, best
+    first. ``hyps``: the unlevelled hypotheses, any order."""
+    hyps = sorted(hyps, key=lambda h: (-h.score, -len(h.pairs), h.pairs))
+    if len(hyps) < 2:
+        return hyps
+    gate = settings.outlier_chi2
+
+    def lead(a: _Hypothesis, b: _Hypothesis) -> tuple[float, bool]:
+        d = b.shift - a.shift
+        # only a material rival: one that moves only the vertical is M3a's (the retreat is known)
+        if max(abs(d[0]), abs(d[1])) > COVERAGE * settings.max_bound_m and _self_similar(
+                d, a.cov + b.cov, p, pc, q, qc, gate):
+            n = min(len(a.pairs), len(b.pairs))
+            return ((a.score - (a.data + a.rib) * (1.0 - n / len(a.pairs)))
+                    - (b.score - (b.data + b.rib) * (1.0 - n / len(b.pairs)))), True
+        return a.score - b.score, False
+
+    table = {}
+    for i, a in enumerate(hyps[:ALIAS_CANDIDATES]):
+        table[i] = [lead(a, b) if j != i else (np.inf, False) for j, b in enumerate(hyps)]
+    best = max(table, key=lambda i: (min(v for v, _ in table[i]), -i))
+    rivals = [dataclasses.replace(h, score=hyps[best].score - table[best][j][0], aliased=table[best][j][1])
+              for j, h in enumerate(hyps) if j != best]
+    # the best stays first: a rival that leads it (no translation leads every other) leaves a negative margin
+    return [hyps[best], *sorted(rivals, key=lambda h: (-h.score, -len(h.pairs), h.pairs))]
 
 
 def _with_rib_evidence(hyps: list[_Hypothesis], rib: Callable[[np.ndarray, float], float],
@@ -471,7 +551,8 @@ def _box_match(p: np.ndarray, q: np.ndarray, shift: np.ndarray, tol: np.ndarray)
 
 def _pair_terms(before: list[Located], after: list[Located], tol: np.ndarray, before_cov_m2, after_cov_m2):
     """Positions p (n, 3), q (m, 3), differences P_i - P'_j (n, m, 3), their covariances (n, m, 3, 3), the
-    match gains (n, m) of eq. M1, and whether covariances were given."""
+    match gains (n, m) of eq. M1, whether covariances were given, and the plates' covariances (n, 3, 3),
+    (m, 3, 3)."""
     p = np.array([t.position_m for t in before], dtype=float)
     q = np.array([t.position_m for t in after], dtype=float)
     have_cov = before_cov_m2 is not None and after_cov_m2 is not None
@@ -485,7 +566,7 @@ def _pair_terms(before: list[Located], after: list[Located], tol: np.ndarray, be
     # M1: ln N_xz(0; C) - ln(rho): a match's likelihood over a chance plate within the same (x, z) cell.
     det_xz = cov[..., 0, 0] * cov[..., 2, 2] - cov[..., 0, 2] ** 2
     gain = np.maximum(-np.log(PLATE_DENSITY_PER_M2 * 2.0 * np.pi * np.sqrt(det_xz)), 0.5)
-    return p, q, diff, cov, gain, have_cov
+    return p, q, diff, cov, gain, have_cov, pc, qc
 
 
 def _competitors(best: _Hypothesis, rivals: list[_Hypothesis], settings: AssociationSettings
@@ -511,7 +592,7 @@ def _competitors(best: _Hypothesis, rivals: list[_Hypothesis], settings: Associa
     material = ([c for c, skip in zip(comps, immaterial) if not skip]
                 or [(min(m for m, _ in comps), np.zeros(3))])
     margin, offset = min(material, key=lambda c: c[0])
-    return float(margin), var, np.exp(-min(margin, 700.0)) * offset**2
+    return float(margin), var, np.exp(-min(max(margin, 0.0), 700.0)) * offset**2
 
 
 def translation_scores(before: list[Located], after: list[Located], settings: AssociationSettings, *,
@@ -521,9 +602,12 @@ def translation_scores(before: list[Located], after: list[Located], settings: As
     if not before or not after:
         return []
     tol = np.asarray(settings.tolerance_m, dtype=float)
-    _, _, diff, cov, gain, _ = _pair_terms(before, after, tol, before_cov_m2, after_cov_m2)
+    p, q, diff, cov, gain, have_cov, pc, qc = _pair_terms(before, after, tol, before_cov_m2, after_cov_m2)
     blind = dataclasses.replace(settings, prior_advance_m=None, vertical_prior_m=None)
-    return [(h.shift, h.score) for h in _hypotheses(diff, cov, gain, blind)]
+    hyps = _hypotheses(diff, cov, gain, blind)
+    if have_cov:  # as estimate_advance
+        hyps = _level_aliases(hyps, p, pc, q, qc, blind)
+    return [(h.shift, h.score) for h in hyps]
 
 
 def estimate_advance(before: list[Located], after: list[Located],
@@ -573,10 +657,17 @@ def estimate_advance(before: list[Located], after: list[Located],
     none = Displacement(nan3, nan3, 0, float("nan"), "too_few_targets", [])
     if not before or not after:
         return none
-    p, q, diff, cov, gain, have_cov = _pair_terms(before, after, tol, before_cov_m2, after_cov_m2)
-    hyps = _hypotheses(diff, cov, gain, settings)
+    p, q, diff, cov, gain, have_cov, pc, qc = _pair_terms(before, after, tol, before_cov_m2, after_cov_m2)
+    raw = hyps = _hypotheses(diff, cov, gain, settings)
+    # M1a needs the plates' precision: the tolerance box would make every grid look regular
+    level = ((lambda hs: _level_aliases(hs, p, pc, q, qc, settings)) if have_cov else
+             (lambda hs: sorted(hs, key=lambda h: (-h.score, -len(h.pairs), h.pairs))))
+    hyps = level(raw)
     if rib is not None:
-        hyps = _with_rib_evidence(hyps, rib, settings)
+        # M7 on the levelled ranking; then the rib's evidence is levelled with the plates' (M1a)
+        evidence = {h.pairs: h.rib for h in _with_rib_evidence(hyps, rib, settings)}
+        hyps = level([dataclasses.replace(h, score=h.score + evidence.get(h.pairs, 0.0),
+                                          rib=evidence.get(h.pairs, 0.0)) for h in raw])
     if not hyps or len(hyps[0].pairs) < settings.min_targets:
         return none
     best = hyps[0]
