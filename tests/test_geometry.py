@@ -159,3 +159,8 @@ def test_the_echos_doppler_centroid_says_plus_one_for_a_written_pass_and_minus_o
     assert geo.doppler_step_ratio(scan.echo[:5], args[0][:5], *args[1:]) is None
     noise = np.random.default_rng(1).normal(size=scan.echo.shape) * (1 + 0j)
     assert geo.doppler_step_ratio(noise, *args) is None
+    # a small pass of complex noise (docs/archive-format.md section 7's example: 21 pulses x 32 samples),
+    # whose chance coherence exceeds the fixed floor: no verdict either
+    rng = np.random.default_rng(0)
+    small = rng.standard_normal((21, 32)) + 1j * rng.standard_normal((21, 32))
+    assert geo.doppler_step_ratio(small, 0.0075 * (np.arange(21) - 10), 30.0, args[2]) is None

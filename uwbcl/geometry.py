@@ -199,10 +199,12 @@ def pass_footprint(rail_lo_m: float, rail_hi_m: float, rotation_table_angle_rad:
 
 # The Q-sign check: decided only where the squint gives a Doppler centroid to measure (|theta| at least this),
 # the centroid's phase step per pulse is unaliased with margin (at most this, rad), and the echo holds a
-# coherent signal (pulse-to-pulse correlation over its power at least this).
+# coherent signal (pulse-to-pulse correlation over its power at least this, and at least NOISE_SIGMAS times
+# what white noise gives, 1 / sqrt(pulse pairs x samples): a small pass of noise alone is no evidence).
 DOPPLER_CHECK_MIN_SQUINT_DEG = 5.0
 DOPPLER_CHECK_MAX_STEP_RAD = 0.5 * math.pi
 DOPPLER_CHECK_MIN_COHERENCE = 0.02
+DOPPLER_CHECK_NOISE_SIGMAS = 5.0
 # A ratio below this says the centroid is on the wrong side (+1 expected, -1 for conjugated data).
 DOPPLER_WRONG_SIDE_RATIO = -0.5
 
@@ -226,7 +228,8 @@ def doppler_step_ratio(echo: np.ndarray, positions_m: np.ndarray, rotation_table
     e = echo - echo.mean(axis=0)
     pairs = np.vdot(e[:-1], e[1:])  # sum of conj(s_k) s_k+1
     power = float(np.vdot(e, e).real)
-    if not power > 0 or abs(pairs) < DOPPLER_CHECK_MIN_COHERENCE * power:
+    floor = max(DOPPLER_CHECK_MIN_COHERENCE, DOPPLER_CHECK_NOISE_SIGMAS / math.sqrt((n - 1) * echo.shape[1]))
+    if not power > 0 or abs(pairs) < floor * power:
         return None
     return float(np.angle(pairs)) / expected
 
