@@ -62,3 +62,19 @@ def test_check_refuses_a_missing_directory_and_a_bad_height_list_as_usage_errors
     assert main(["check", str(tmp_path / "nowhere")]) == 2
     assert "not a directory" in capsys.readouterr().err
     assert main(["check", str(tmp_path), "--heights", "x"]) == 2
+
+
+def test_check_lists_the_readers_warnings_once_each_and_an_empty_tree_exits_1(archive_dir, tmp_path, capsys):
+    src = tmp_path / "in"
+    shutil.copytree(archive_dir, src)
+    with h5py.File(pass_files(src)[0], "r+") as f:
+        f.attrs["format_minor_version"] = 9
+        f["radar"].attrs["tx_power_dbm"] = 3.0
+    report = check.check_directory(src, SETTINGS, options())
+    reader = [w.reason for w in report.warnings if w.kind == "reader"]
+    assert len(reader) == 2 and any("newer" in r for r in reader) and any("tx_power_dbm" in r for r in reader)
+    assert report.problems == []
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["check", str(empty)]) == 1
+    assert "no archives" in capsys.readouterr().out

@@ -8,7 +8,9 @@ before the first night's run, and for anyone writing archives with their own sof
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import logging
 import math
 from collections import defaultdict
 from pathlib import Path
@@ -71,7 +73,10 @@ def check_directory(in_dir: Path, settings: ProcessingSettings | None = None,
     for path in walk.files:
         name = path.relative_to(in_dir).as_posix()
         try:
-            passes.append(summarise_pass(path, name, settings))
+            with _reader_warnings() as said:
+                passes.append(summarise_pass(path, name, settings))
+            warnings += [Problem(name, "reader", text.replace(f"{path}: ", "", 1))
+                         for text in dict.fromkeys(said)]  # each once: the header and the data both warn
         except archive.ArchiveError as e:
             problems.append(Problem(name, "invalid_archive", f"{e.field}: {e.reason}"))
         except OSError as e:
@@ -89,6 +94,26 @@ def check_directory(in_dir: Path, settings: ProcessingSettings | None = None,
                                     f"the reference point lies {p.reference_range_m:.2f} m from the aperture "
                                     f"centre, outside the recorded window {lo:.2f}-{hi:.2f} m"))
     return CheckReport(len(walk.files), passes, problems, warnings)
+
+
+@contextlib.contextmanager
+def _reader_warnings():
+    """The archive reader's warnings (a newer minor version, attributes it ignores) while reading one file,
+    as their texts; they go to the log in `uwbcl process`."""
+    said: list[str] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            said.append(record.getMessage())
+
+    logger, handler = logging.getLogger("uwbcl"), Keep(logging.WARNING)
+    logger.addHandler(handler)
+    propagate, logger.propagate = logger.propagate, False
+    try:
+        yield said
+    finally:
+        logger.removeHandler(handler)
+        logger.propagate = propagate
 
 
 def _span(values, fmt: str, unit: str) -> str:
