@@ -484,9 +484,9 @@ def _level_aliases(hyps: list[_Hypothesis], p: np.ndarray, pc: np.ndarray, q: np
     matches say nothing. The lead of a over b is then that of their data scores and rib evidence (M7, which
     grows with the overlap in the same way where the rib is the grid's plates alone) scaled to the smaller
     number of matches, n_min / n x (S_data + E), prior and vertical terms unchanged; otherwise the lead of
-    their scores. The best is the translation among the first ALIAS_CANDIDATES whose smallest lead over every
-    other is largest (earlier on a tie); the others are returned with the best's score less that lead, best
-    first. ``hyps``: the unlevelled hypotheses, any order."""
+    their scores. The best is the translation among the first ALIAS_CANDIDATES that leads every other by
+    min_margin, or where none does the unlevelled best; the others are returned with the best's score less
+    its lead over them, best first. ``hyps``: the unlevelled hypotheses, any order."""
     hyps = sorted(hyps, key=lambda h: (-h.score, -len(h.pairs), h.pairs))
     if len(hyps) < 2:
         return hyps
@@ -505,7 +505,9 @@ def _level_aliases(hyps: list[_Hypothesis], p: np.ndarray, pc: np.ndarray, q: np
     table = {}
     for i, a in enumerate(hyps[:ALIAS_CANDIDATES]):
         table[i] = [lead(a, b) if j != i else (np.inf, False) for j, b in enumerate(hyps)]
-    best = max(table, key=lambda i: (min(v for v, _ in table[i]), -i))
+    # the translation that leads every other by min_margin once levelled, if one does; else the unlevelled
+    # best (reported with its smallest lead, under min_margin: the row is withheld either way)
+    best = next((i for i in table if min(v for v, _ in table[i]) >= settings.min_margin), 0)
     rivals = [dataclasses.replace(h, score=hyps[best].score - table[best][j][0], aliased=table[best][j][1])
               for j, h in enumerate(hyps) if j != best]
     # the best stays first: a rival that leads it (no translation leads every other) leaves a negative margin
