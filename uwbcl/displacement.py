@@ -325,7 +325,6 @@ class _Hypothesis:
     vertical: float = 0.0  # the vertical step prior's penalty in score (eq. M2v), <= 0
     rib: float = 0.0  # the rib registration's evidence in score (eq. M7), >= 0
     data: float = 0.0  # the data part of score (eq. M1)
-    aliased: bool = False  # levelled against the best as its grid alias (eq. M1a)
 
 
 def _prior_log(shift: np.ndarray, settings: AssociationSettings) -> tuple[float, bool]:
@@ -492,23 +491,23 @@ def _level_aliases(hyps: list[_Hypothesis], p: np.ndarray, pc: np.ndarray, q: np
         return hyps
     gate = settings.outlier_chi2
 
-    def lead(a: _Hypothesis, b: _Hypothesis) -> tuple[float, bool]:
+    def lead(a: _Hypothesis, b: _Hypothesis) -> float:
         d = b.shift - a.shift
         # only a material rival: one that moves only the vertical is M3a's (the retreat is known)
         if max(abs(d[0]), abs(d[1])) > COVERAGE * settings.max_bound_m and _self_similar(
                 d, a.cov + b.cov, p, pc, q, qc, gate):
             n = min(len(a.pairs), len(b.pairs))
             return ((a.score - (a.data + a.rib) * (1.0 - n / len(a.pairs)))
-                    - (b.score - (b.data + b.rib) * (1.0 - n / len(b.pairs)))), True
-        return a.score - b.score, False
+                    - (b.score - (b.data + b.rib) * (1.0 - n / len(b.pairs))))
+        return a.score - b.score
 
     table = {}
     for i, a in enumerate(hyps[:ALIAS_CANDIDATES]):
-        table[i] = [lead(a, b) if j != i else (np.inf, False) for j, b in enumerate(hyps)]
+        table[i] = [lead(a, b) if j != i else np.inf for j, b in enumerate(hyps)]
     # the translation that leads every other by min_margin once levelled, if one does; else the unlevelled
     # best (reported with its smallest lead, under min_margin: the row is withheld either way)
-    best = next((i for i in table if min(v for v, _ in table[i]) >= settings.min_margin), 0)
-    rivals = [dataclasses.replace(h, score=hyps[best].score - table[best][j][0], aliased=table[best][j][1])
+    best = next((i for i in table if min(table[i]) >= settings.min_margin), 0)
+    rivals = [dataclasses.replace(h, score=hyps[best].score - table[best][j])
               for j, h in enumerate(hyps) if j != best]
     # the best stays first: a rival that leads it (no translation leads every other) leaves a negative margin
     return [hyps[best], *sorted(rivals, key=lambda h: (-h.score, -len(h.pairs), h.pairs))]
