@@ -34,7 +34,9 @@ rail's length, PRF and carriage speed, the sampling rate, the range window, the 
 beam whose first null is at endfire, the reference point), which the other studies hold at one value.
 The pooled table also counts the withheld (not ok) rows and, in brackets, those whose cycle shares a located
 plate with the cycle before it at the true step (within SHARED_PLATE_TOL_M): the rest had nothing in common
-with their neighbour, so no association could have linked them (a data limit, not the method's).
+with their neighbour, so no association could have linked them (a data limit, not the method's). A second
+table splits the draw's rows by geometry class (`geometry_class`): staggered rows, or columns by how many rail
+heights resolve their closest pair of rows in range (`rows_resolved_heights`), and short rails.
 
 Archives are cached under WORK/<scenario>/archive (regenerated only when the scenario's parameters change).
 `--reuse-detections` copies the per-pass detection cache of the earlier run whose cache was written last
@@ -611,6 +613,53 @@ def replica_summary(results: dict, names: list[str]) -> str:
     return "\n".join(lines)
 
 
+SHORT_RAIL_M = 2.1  # the random draws' class of short rails (docs/method.md section 6.1)
+
+
+def rows_resolved_heights(s: Scenario) -> int:
+    """How many rail heights at least resolve the closest pair of the scenario's bolt rows in range: the
+    fewest, over pairs of rows, of the heights at which the pair's closest-approach ranges (plates in one
+    column on the rib, eq. 20) differ by at least a range resolution c / 2B. Plates in one column share their
+    x, so only range tells them apart: a pair resolved at no height is one peak at every height, located as
+    neither (docs/method.md section 6.1)."""
+    resolution_m = C_M_S / (2.0 * s.bandwidth_hz)
+    fewest = len(s.heights_m)
+    for a, za in enumerate(s.rows_z_m):
+        for zb in s.rows_z_m[a + 1:]:
+            fewest = min(fewest, sum(abs(math.hypot(s.rib_m, za - h) - math.hypot(s.rib_m, zb - h))
+                                     >= resolution_m for h in s.heights_m))
+    return fewest
+
+
+def geometry_class(s: Scenario) -> str:
+    """A random scenario's class for `class_summary`: staggered rows or columns (by `rows_resolved_heights`),
+    and the rail's length against SHORT_RAIL_M."""
+    if s.aligned:
+        n = rows_resolved_heights(s)
+        rows = f"columns, resolved at {'>= 2' if n >= 2 else n} h"
+    else:
+        rows = "rows staggered"
+    return f"{rows}, rail {'<' if s.rail_m < SHORT_RAIL_M else '>='} {SHORT_RAIL_M} m"
+
+
+def class_summary(results: dict, snr_db: dict, classes: dict) -> str:
+    """Rows and % ok with / without a prior per geometry class (`geometry_class`, keyed by scenario name) and
+    SNR class: where the draw's withheld rows lie."""
+    lines = [f"{'geometry class':40s} {'SNR':>7s} {'scen':>4s} {'rows':>4s} {'ok% prior / no prior':>21s}"]
+    for cls in sorted(set(classes.values())):
+        for label, keep in (("10+ dB", lambda v: v >= 10.0), ("5 dB", lambda v: v < 10.0)):
+            names = [n for n, c in classes.items() if c == cls and keep(snr_db.get(n, math.nan))]
+            if not names:
+                continue
+            pct = []
+            for suffix in ("", "-noprior"):
+                runs = [results[n + suffix] for n in names if n + suffix in results]
+                pct.append(100.0 * sum(r["ok"] for r in runs) / max(sum(r["rows"] for r in runs), 1))
+            rows = sum(results[n]["rows"] for n in names)
+            lines.append(f"{cls:40s} {label:>7s} {len(names):4d} {rows:4d} {pct[0]:10.1f} / {pct[1]:<8.1f}")
+    return "\n".join(lines)
+
+
 def summary(results: dict, snr_db: dict) -> str:
     """Pooled over scenarios, per SNR class and with / without a prior: rows, % ok, ok rows beyond 3 x their
     bound, gross errors, RMS of the ok rows (retreat / creep, mm), and the withheld rows whose cycle shares
@@ -707,13 +756,14 @@ def main(argv=None) -> int:
 def run_random(args) -> int:
     """`--random N`: short runs of independently drawn scenarios, as a user's first cycles would be."""
     cycles = args.cycles or 6
-    results, snr_db, looks = {}, {}, []
+    results, snr_db, looks, classes = {}, {}, [], {}
     for seed in range(args.random_seed, args.random_seed + args.random):
         if args.only and f"r{seed}" not in args.only:  # the draw's other scenarios are skipped, not redrawn
             continue
         s = random_scenario(seed, cycles, tuple(args.random_web) if args.random_web else None,
                             args.random_aligned, args.random_acquisition)
         root = args.work / s.name
+        classes[s.name] = geometry_class(s)
         arch = generate(s, cycles, root)
         rig_m = np.array(json.loads((root / "truth.json").read_text())["rig_m"])
         for prior in (True, False):
@@ -737,6 +787,7 @@ def run_random(args) -> int:
                  if args.random_acquisition else ""), flush=True)
     print(table(results))
     print(summary(results, snr_db))
+    print(class_summary(results, snr_db, classes))
     if args.look_errors:
         print(look_error_table(looks))
     if args.json:

@@ -73,6 +73,27 @@ def test_aligned_columns_put_every_rows_plates_at_the_same_x_and_change_no_other
         assert np.sum(gaps < 0.2) >= len(plates) // 3
 
 
+def test_a_ring_whose_rows_no_height_resolves_in_range_is_classed_apart_from_one_a_low_height_resolves():
+    study = load()
+    # a 4.2 m rib, rows 0.5 / 1.1 / 1.7 m, 1.2 GHz (0.125 m): from 0.19 and 0.70 m the lower pair is 86 and
+    # 14 mm apart in range; a 2.0 m rib puts it 173 mm apart from 0.19 m (one height), the upper pair 309 and
+    # 196 mm (both)
+    far = study.Scenario("far", rib_m=4.2, rows_z_m=(0.5, 1.1, 1.7), heights_m=(0.19, 0.7),
+                         bandwidth_hz=1.2e9, aligned=True, rail_m=3.0)
+    near = dataclasses.replace(far, rib_m=2.0)
+    assert study.rows_resolved_heights(far) == 0 and study.rows_resolved_heights(near) == 1
+    assert study.rows_resolved_heights(dataclasses.replace(near, rows_z_m=(1.1, 1.7))) == 2
+    assert study.geometry_class(far) == "columns, resolved at 0 h, rail >= 2.1 m"
+    short = dataclasses.replace(near, rail_m=1.6)
+    assert study.geometry_class(short) == "columns, resolved at 1 h, rail < 2.1 m"
+    assert study.geometry_class(dataclasses.replace(far, aligned=False)).startswith("rows staggered")
+    rows = {"far": dict(ok=1, rows=4), "far-noprior": dict(ok=0, rows=4), "near": dict(ok=5, rows=5),
+            "near-noprior": dict(ok=4, rows=5)}
+    table = study.class_summary(rows, {"far": 15.0, "near": 5.0},
+                                {"far": study.geometry_class(far), "near": study.geometry_class(near)})
+    assert "25.0 / 0.0" in table and "100.0 / 80.0" in table
+
+
 def test_the_registration_studys_coherence_is_one_for_the_same_image_at_any_phase_and_small_for_noise():
     reg = load_script("registration_study")
     rng = np.random.default_rng(7)
