@@ -188,6 +188,24 @@ class BeamFootprint:
         return out[0], out[1]
 
 
+# An interval between consecutive logged pulses longer than this many times their median interval is a gap
+# in the aperture (pulses lost: a radar's dropped scans, an importer that skipped a damaged record), not a
+# wobble of the carriage's speed (+-15 % moves an interval by ~1.3x at most; one pulse lost doubles it).
+TRACK_GAP_FACTOR = 2.5
+
+
+def track_gaps(positions_m) -> np.ndarray:
+    """The gaps of a pass's track: (k, 2) [start, end] positions (m, increasing) of every interval between
+    consecutive pulses longer than TRACK_GAP_FACTOR x the median interval; (0, 2) when there is none.
+    `positions_m` (n,) strictly monotonic, either direction."""
+    x = np.sort(np.asarray(positions_m, dtype=float))
+    if x.size < 3:
+        return np.zeros((0, 2))
+    d = np.diff(x)
+    gap = np.flatnonzero(d > TRACK_GAP_FACTOR * np.median(d))
+    return np.column_stack([x[gap], x[gap + 1]])
+
+
 def pass_footprint(rail_lo_m: float, rail_hi_m: float, rotation_table_angle_rad: float, aperture_m: float,
                    wavelength_m: float, edge: str = "3db") -> BeamFootprint:
     """The `BeamFootprint` of a pass whose antenna travels [rail_lo_m, rail_hi_m] (relative to the aperture

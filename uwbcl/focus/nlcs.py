@@ -281,17 +281,36 @@ def linear_range_walk_correction(s1: np.ndarray, x_rel_m: np.ndarray, grid: Focu
 
 
 def lagrange_weights(x_nodes: np.ndarray, x_out: np.ndarray, order: int = 6):
-    """Start index and weights of the `order`-point Lagrange interpolation from sorted nodes to x_out."""
+    """Indices (n_out, order) of `order` consecutive nodes (sorted, increasing) and the Lagrange weights that
+    interpolate from them to each x_out (n_out,).
+
+    A gap in the track (`geometry.track_gaps`: pulses lost) is no data: an x_out inside one gets zero weights,
+    and a stencil takes no node across one (its taps beyond the gap weigh 0 and the order drops where a run of
+    pulses between gaps is shorter than `order`). Interpolating across a gap would extrapolate a polynomial
+    over centimetres to decimetres of a signal with several cycles per decimetre: garbage in the image where
+    a hole belongs. Without gaps: the plain `order`-point Lagrange stencil, centred where the ends allow.
+    """
     n = x_nodes.size
     half = order // 2
-    j = np.clip(np.searchsorted(x_nodes, x_out) - half, 0, n - order)
+    k = np.searchsorted(x_nodes, x_out)  # x_out lies between nodes k - 1 and k
+    d = np.diff(x_nodes)
+    is_gap = d > geo.TRACK_GAP_FACTOR * np.median(d) if n >= 3 else np.zeros(max(n - 1, 0), dtype=bool)
+    run = np.concatenate([[0], np.cumsum(is_gap)])  # the run of pulses (between gaps) of each node
+    first = np.searchsorted(run, np.arange(run[-1] + 1))  # each run's first node
+    last = np.append(first[1:] - 1, n - 1)
+    own = run[np.clip(k - 1, 0, n - 1)]  # the run of each x_out's left node (of node 0 before the track)
+    inside_gap = np.concatenate([[False], is_gap, [False]])[k]
+    j = np.clip(np.minimum(k - half, last[own] - order + 1), first[own], None)
+    j = np.clip(j, 0, n - order)
     idx = j[:, None] + np.arange(order)[None, :]
     xn = x_nodes[idx]
+    tap = run[idx] == own[:, None]  # taps in the x_out's own run
     w = np.ones((x_out.size, order))
     for m in range(order):
-        for k in range(order):
-            if k != m:
-                w[:, m] *= (x_out - xn[:, k]) / (xn[:, m] - xn[:, k])
+        for q in range(order):
+            if q != m:
+                w[:, m] *= np.where(tap[:, q], (x_out - xn[:, q]) / (xn[:, m] - xn[:, q]), 1.0)
+    w = np.where(tap & ~inside_gap[:, None], w, 0.0)
     return idx, w
 
 
