@@ -194,15 +194,20 @@ class BeamFootprint:
 TRACK_GAP_FACTOR = 2.5
 
 
+def gap_intervals(sorted_positions_m: np.ndarray) -> np.ndarray:
+    """(n - 1,) bool: which intervals between consecutive pulses (positions (n,) increasing, m) are gaps,
+    longer than TRACK_GAP_FACTOR x the median interval (none with fewer than 3 pulses)."""
+    d = np.diff(sorted_positions_m)
+    if d.size < 2:
+        return np.zeros(d.size, dtype=bool)
+    return d > TRACK_GAP_FACTOR * np.median(d)
+
+
 def track_gaps(positions_m) -> np.ndarray:
-    """The gaps of a pass's track: (k, 2) [start, end] positions (m, increasing) of every interval between
-    consecutive pulses longer than TRACK_GAP_FACTOR x the median interval; (0, 2) when there is none.
-    `positions_m` (n,) strictly monotonic, either direction."""
+    """The gaps of a pass's track (`gap_intervals`): (k, 2) [start, end] positions (m, increasing); (0, 2)
+    when there is none. `positions_m` (n,) strictly monotonic, either direction."""
     x = np.sort(np.asarray(positions_m, dtype=float))
-    if x.size < 3:
-        return np.zeros((0, 2))
-    d = np.diff(x)
-    gap = np.flatnonzero(d > TRACK_GAP_FACTOR * np.median(d))
+    gap = np.flatnonzero(gap_intervals(x))
     return np.column_stack([x[gap], x[gap + 1]])
 
 

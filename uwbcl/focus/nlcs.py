@@ -293,8 +293,7 @@ def lagrange_weights(x_nodes: np.ndarray, x_out: np.ndarray, order: int = 6):
     n = x_nodes.size
     half = order // 2
     k = np.searchsorted(x_nodes, x_out)  # x_out lies between nodes k - 1 and k
-    d = np.diff(x_nodes)
-    is_gap = d > geo.TRACK_GAP_FACTOR * np.median(d) if n >= 3 else np.zeros(max(n - 1, 0), dtype=bool)
+    is_gap = geo.gap_intervals(x_nodes)
     run = np.concatenate([[0], np.cumsum(is_gap)])  # the run of pulses (between gaps) of each node
     first = np.searchsorted(run, np.arange(run[-1] + 1))  # each run's first node
     last = np.append(first[1:] - 1, n - 1)
