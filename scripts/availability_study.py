@@ -73,6 +73,7 @@ import numpy as np
 
 from uwbcl import batch, config
 from uwbcl.archive import height_mm
+from uwbcl.geometry import closest_approach_range_m
 from uwbcl.records import Detection, PassRecord
 
 C_M_S = 299_792_458.0
@@ -626,7 +627,8 @@ def rows_resolved_heights(s: Scenario) -> int:
     fewest = len(s.heights_m)
     for a, za in enumerate(s.rows_z_m):
         for zb in s.rows_z_m[a + 1:]:
-            fewest = min(fewest, sum(abs(math.hypot(s.rib_m, za - h) - math.hypot(s.rib_m, zb - h))
+            fewest = min(fewest, sum(abs(float(closest_approach_range_m((0.0, s.rib_m, za), h)
+                                               - closest_approach_range_m((0.0, s.rib_m, zb), h)))
                                      >= resolution_m for h in s.heights_m))
     return fewest
 
