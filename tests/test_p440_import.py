@@ -220,6 +220,58 @@ def test_a_truncated_last_record_and_a_scan_missing_a_message_are_dropped_with_l
     np.testing.assert_array_equal(rec.samples[1], np.arange(1400, 2100))
 
 
+def _stream_with_stamps(tmp_path, stamps_ms, rows=None) -> Path:
+    n_bins = 700
+    rf = np.arange(len(stamps_ms) * n_bins, dtype=np.int32).reshape(len(stamps_ms), n_bins)
+    if rows is not None:
+        rf = rf[rows]
+    return p440.write_p440_stream(tmp_path / "t.p440", rf, stamps_ms, scan_start_ps=9000)
+
+
+def test_the_49_7_day_clock_rollover_is_a_short_step_forward_and_two_swapped_scans_a_short_step_back():
+    wrap = 1 << 32
+    np.testing.assert_array_equal(p440.unwrap_timestamps_ms([wrap - 30, wrap - 10, 10, 30]),
+                                  [wrap - 30, wrap - 10, wrap + 10, wrap + 30])
+    np.testing.assert_array_equal(p440.unwrap_timestamps_ms([1000, 1041, 1020, 1062]),
+                                  [1000, 1041, 1020, 1062])
+
+
+def test_two_scans_logged_out_of_order_are_put_back_in_the_radars_time_order_with_a_warning(tmp_path, caplog):
+    # scans 1 and 2 swapped in the file: the second timestamp steps back 20 ms (the importer once took that
+    # for a 2**32 ms rollover and put the pass 49.7 days away)
+    path = _stream_with_stamps(tmp_path, [1000, 1040, 1020, 1060], rows=[0, 2, 1, 3])
+    with caplog.at_level(logging.WARNING, logger="uwbcl"):
+        rec = p440.READER.read(path)
+    np.testing.assert_allclose(rec.scan_time_s, [1.0, 1.02, 1.04, 1.06])
+    np.testing.assert_array_equal(rec.samples[:, 0], [0, 700, 1400, 2100])
+    assert "2 scans were out of time order (the first at byte" in caplog.text
+
+
+def test_a_repeated_scan_is_dropped_naming_both_byte_offsets_and_counted_apart_from_incomplete_ones(
+        tmp_path, caplog):
+    path = _small_stream(tmp_path, n_scans=3)
+    data = path.read_bytes()
+    scan1 = data[_record(2):_record(4)]  # 700 bins: two messages per scan
+    path.write_bytes(data[:_record(4)] + scan1 + data[_record(4):])
+    with caplog.at_level(logging.WARNING, logger="uwbcl"):
+        rec = p440.READER.read(path)
+    assert rec.n_scans == 3 and rec.n_repeated == 1 and rec.n_dropped == 0
+    assert f"repeats the scan at byte {_record(2)}; dropped" in caplog.text
+    assert (np.diff(rec.scan_time_s) > 0).all()
+
+
+@pytest.mark.parametrize(("stamps", "message"), [
+    ([1000, 1020, 1020, 1040], "has the timestamp of a different scan"),
+    ([5_000_000, 5_000_020, 40, 60], "the radar clock goes back"),
+])
+def test_a_clock_that_goes_back_beyond_a_reordering_or_two_scans_at_one_time_are_rejected_at_the_scan(
+        tmp_path, stamps, message):
+    path = _stream_with_stamps(tmp_path, stamps)
+    with pytest.raises(RecordingError) as err:
+        p440.READER.read(path)
+    assert str(err.value).startswith(f"{path}: byte {_record(4)}: ") and message in str(err.value)
+
+
 # ----------------------------------------------------------------------------------------------- positions
 
 

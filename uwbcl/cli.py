@@ -495,7 +495,9 @@ def _import(args: argparse.Namespace) -> int:
         _remove_empty(made)
         raise
     band, scan = result.band, result.scan
-    print(f"{source}: {recording.n_scans} complete scans read, {recording.n_dropped} incomplete dropped")
+    repeated = f", {recording.n_repeated} repeated dropped" if recording.n_repeated else ""
+    print(f"{source}: {recording.n_scans + recording.n_repeated} complete scans read, "
+          f"{recording.n_dropped} incomplete dropped{repeated}")
     if track.time_offset_s is not None:
         print(f"positions: time offset {track.time_offset_s:+.3f} s; {track.n_outside_log} scans outside "
               f"the log, {track.n_rest} at rest or turning back trimmed")

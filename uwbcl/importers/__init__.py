@@ -65,6 +65,8 @@ class RawRecording:
         Reader name (e.g. "p440").
     n_dropped : int
         Incomplete scans that were dropped (a truncated last scan, lost messages).
+    n_repeated : int
+        Scans dropped as repeats of the scan before them (same timestamp, counter and samples).
     scan_id : ndarray, (n_scans,) int64
         The radar's scan counter, where it has one (gaps show lost scans).
     carrier_frequency_hz : float or None
@@ -80,6 +82,7 @@ class RawRecording:
     source: str = ""
     radar: str = ""
     n_dropped: int = 0
+    n_repeated: int = 0
     scan_id: np.ndarray | None = None
     carrier_frequency_hz: float | None = None
     metadata: dict = dataclasses.field(default_factory=dict)

@@ -15,9 +15,10 @@ Layout (all integers big-endian; checked against a real recording, docs/importin
   (61.035 ps for scan_res 32), before the radar's internal antenna/cable delay is removed.
 
 The reader holds one record at a time besides its output (one int32 array sized from the file length), drops
-an incomplete scan (a truncated last scan, a lost message) with a log line, and raises `RecordingError` naming
-the file and byte offset of a record it cannot trust (wrong message type, absurd sample counts, a scan
-configuration that changes mid-file).
+an incomplete scan (a truncated last scan, a lost message) or a repeated one with a log line, puts scans
+logged out of time order back in the radar's order, and raises `RecordingError` naming the file and byte
+offset of a record it cannot trust (wrong message type, absurd sample counts, a scan configuration that
+changes mid-file, a radar clock that goes back).
 """
 
 from __future__ import annotations
@@ -43,6 +44,10 @@ MAX_SAMPLES_PER_MESSAGE = (RECORD_BYTES - HEADER.size) // 4  # 350
 BIN_CLOCK_HZ = 512 * 1.024e9  # scan_res counts periods of this clock (1.907 ps)
 MAX_SAMPLES_PER_SCAN = 1 << 16  # far above any P440 scan window; a larger count is a corrupt header
 _TIMESTAMP_WRAP_MS = 1 << 32
+# Scans whose timestamps run backwards by at most this are a logger's reordering (UDP delivers out of order)
+# and are put back in the radar's time order; a longer step back is a restarted radar clock or two
+# recordings in one file, which no order repairs.
+MAX_REORDER_MS = 1000
 _RECORDS_PER_READ = 4096  # ~6 MB per read: bounded memory whatever the file size
 
 _CONFIG_FIELDS = ("node_id", "scan_start_ps", "scan_stop_ps", "scan_res", "pii")
@@ -132,10 +137,12 @@ class _StreamState:
         self.rf: np.ndarray | None = None
         self.times_ms: list[int] = []
         self.ids: list[int] = []
+        self.offsets: list[int] = []  # byte offset of each complete scan's message 0, for messages
         self.shape: tuple | None = None  # (scan_start, scan_stop, scan_res, n_total, n_messages) of the file
         self.scan: _Scan | None = None
         self.n_complete = 0
         self.n_dropped = 0
+        self.n_repeated = 0
 
     def fail(self, offset: int, reason: str) -> None:
         raise RecordingError(self.path, offset, reason)
@@ -223,8 +230,48 @@ class _StreamState:
         if index == n_messages - 1:
             self.times_ms.append(scan.timestamp_ms)
             self.ids.append(scan.message_id)
+            self.offsets.append(scan.offset)
             self.n_complete += 1
             self.scan = None
+
+    def time_order(self, ms: np.ndarray, rf: np.ndarray) -> np.ndarray | None:
+        """The scans to keep, in the radar's time order (None: all of them, as read).
+
+        A scan repeated (same timestamp, counter and samples) is dropped; scans that run back in time by up to
+        MAX_REORDER_MS are put back in order; both with a warning. A longer step back, or two different scans
+        with one timestamp, is a RecordingError at the later scan's byte offset."""
+        steps = np.diff(ms)
+        if np.all(steps > 0):
+            return None
+        keep = np.ones(ms.size, dtype=bool)
+        latest = 0  # the scan with the latest time so far
+        for i in range(1, ms.size):
+            back = int(ms[latest] - ms[i])
+            if back < 0:
+                latest = i
+            elif back == 0 and self.ids[i] == self.ids[latest] and np.array_equal(rf[i], rf[latest]):
+                keep[i] = False
+                log.warning("%s: scan %d at byte %d repeats the scan at byte %d; dropped", self.path,
+                            self.ids[i], self.offsets[i], self.offsets[latest])
+            elif back == 0:
+                self.fail(self.offsets[i], f"scan {self.ids[i]} has the timestamp of a different scan "
+                                           f"(scan {self.ids[latest]} at byte {self.offsets[latest]})")
+            elif back > MAX_REORDER_MS:
+                self.fail(self.offsets[i], f"the radar clock goes back {back / 1e3:.3f} s from the scan at "
+                                           f"byte {self.offsets[latest]} (a restarted radar, or two "
+                                           "recordings in one file)")
+        kept = np.flatnonzero(keep)
+        order = kept[np.argsort(ms[kept], kind="stable")]
+        if np.any(np.diff(ms[order]) <= 0):  # a repeat of an earlier, not the latest, scan
+            i = int(order[np.flatnonzero(np.diff(ms[order]) <= 0)[0] + 1])
+            self.fail(self.offsets[i], f"scan {self.ids[i]} has the timestamp of another scan")
+        moved = int(np.sum(order != kept))
+        if moved:
+            first = int(kept[np.flatnonzero(order != kept)[0]])
+            log.warning("%s: %d scans were out of time order (the first at byte %d); put back in the "
+                        "radar's order", self.path, moved, self.offsets[first])
+        self.n_repeated = int(np.sum(~keep))
+        return order
 
     def drop(self, why: str) -> None:
         self.n_dropped += 1
@@ -245,11 +292,13 @@ class _StreamState:
         if self.n_complete == 0:
             raise RecordingError(self.path, None, "no complete scan in the file")
         start, stop, res, n_total, _ = self.shape
-        # ms since boot, u32: unwrap the 49.7-day rollover so times keep increasing.
-        ms = np.asarray(self.times_ms, dtype=np.int64)
-        ms = ms + _TIMESTAMP_WRAP_MS * np.concatenate([[0], np.cumsum(np.diff(ms) < 0)])
+        ms = unwrap_timestamps_ms(self.times_ms)
         rf = self.rf[: self.n_complete]
         self.rf = None
+        order = self.time_order(ms, rf)
+        if order is not None:
+            rf, ms = rf[order], ms[order]
+            self.ids = [self.ids[i] for i in order]
         metadata = dict(cfg, scan_stop_ps=stop, num_samples_total=n_total)
         return RawRecording(
             samples=rf,
@@ -259,9 +308,22 @@ class _StreamState:
             source=str(self.path),
             radar="p440",
             n_dropped=self.n_dropped,
+            n_repeated=self.n_repeated,
             scan_id=np.asarray(self.ids, dtype=np.int64),
             metadata=metadata,
         )
+
+
+def unwrap_timestamps_ms(stamps) -> np.ndarray:
+    """u32 ms-since-boot timestamps (n,) -> int64 ms, unwrapped at the 49.7-day rollover: each step is taken
+    modulo 2**32 as a signed 32-bit number (serial-number arithmetic, RFC 1982), so a rollover is a short
+    step forward and two swapped scans a short step back, not 49.7 days."""
+    ms = np.asarray(stamps, dtype=np.int64)
+    if ms.size == 0:
+        return ms
+    half = _TIMESTAMP_WRAP_MS // 2
+    steps = (np.diff(ms) + half) % _TIMESTAMP_WRAP_MS - half
+    return ms[0] + np.concatenate([[0], np.cumsum(steps)])
 
 
 # ----------------------------------------------------------------------------------------------- writing
