@@ -15,7 +15,7 @@ import h5py
 import numpy as np
 import pytest
 
-from uwbcl import archive, cli, pipeline
+from uwbcl import archive, cli, geometry, pipeline
 from uwbcl.importers import RecordingError, baseband, p440, passes, synthetic
 from uwbcl.model import SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters, ScanPass
 from uwbcl.records import ProcessingSettings
@@ -385,6 +385,20 @@ def test_without_the_calibrated_delay_the_range_error_is_large_and_reported(
     # The envelope is c d / 2 = 344.8 mm late but the phase history is right: NLCS settles between them.
     # Measured: +319 and +283 mm in range.
     assert (errors[:, 1] > 200.0).all() and (errors[:, 1] < 1e3 * SPEED_OF_LIGHT_M_S * 2.3e-9 / 2 + 5).all()
+
+
+def test_scans_lost_mid_pass_are_named_as_a_gap_in_the_track_when_imported(tmp_path, synthetic_recording,
+                                                                           capsys):
+    scan_file, positions, site = synthetic_recording
+    data = scan_file.read_bytes()
+    per_scan = 2 * p440.RECORD_BYTES  # 480 bins: two messages per scan
+    holed = tmp_path / "holed.p440"
+    holed.write_bytes(data[:_record(2 * 400)] + data[_record(2 * 420):])  # 20 scans (6 cm) lost mid-rail
+    assert len(data) - len(holed.read_bytes()) == 20 * per_scan
+    scan = _import(tmp_path, (holed, positions, site), "--time-offset-s", str(LOGGER_OFFSET_S))
+    err = capsys.readouterr().err
+    assert "warning: 1 gap(s) in the track" in err and "hole in the aperture" in err
+    assert len(geometry.track_gaps(scan.pulse_position_m)) == 1
 
 
 def test_the_clocks_align_on_the_first_motion_within_one_scan(synthetic_recording):

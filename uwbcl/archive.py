@@ -29,7 +29,7 @@ import h5py
 import numpy as np
 
 from uwbcl.atomic import PARTIAL_SUFFIX, atomic_path
-from uwbcl.geometry import track_gaps
+from uwbcl.geometry import describe_gaps, track_gaps
 from uwbcl.model import MeasuredPulse, PassGeometry, RadarParameters, RawRF, ScanPass
 from uwbcl.names import safe_name
 from uwbcl.records import ReadLimits
@@ -401,10 +401,7 @@ def read_pass(path: str | os.PathLike[str], limits: ReadLimits = ReadLimits()) -
     _check_pulses(path, time_s, position_m, h["n_pulses"])
     gaps = track_gaps(position_m)
     if len(gaps):
-        widest = gaps[np.argmax(gaps[:, 1] - gaps[:, 0])]
-        log.warning("%s: /pulses/position_m: %d gap(s) in the track, %.3f m in all (the widest from %.3f to "
-                    "%.3f m): no pulses there, focused as a hole in the aperture", path, len(gaps),
-                    float(np.sum(gaps[:, 1] - gaps[:, 0])), widest[0], widest[1])
+        log.warning("%s: /pulses/position_m: %s", path, describe_gaps(gaps))
     if h["echo_layout"] == "int16_iq":
         echo = scale * (raw[..., 0].astype(np.float64) + 1j * raw[..., 1].astype(np.float64))
     else:

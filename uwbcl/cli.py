@@ -17,7 +17,7 @@ from .threads import one_blas_thread
 # Before numpy loads (the imports below): BLAS on one thread in this process and the workers it starts.
 one_blas_thread()
 
-from . import __version__, archive, batch, config  # noqa: E402
+from . import __version__, archive, batch, config, geometry  # noqa: E402
 from .atomic import write_text_atomic  # noqa: E402
 from .importers import OptionError, RecordingError, passes, registry  # noqa: E402
 from .records import ALGORITHMS, BACKENDS, BatchError, ConfigError, OutputError  # noqa: E402
@@ -509,6 +509,9 @@ def _import(args: argparse.Namespace) -> int:
           f"{scan.pulse_position_m[-1]:+.3f} m")
     for note in result.notes:
         print(note)
+    gaps = geometry.track_gaps(scan.pulse_position_m)
+    if len(gaps):
+        print(f"warning: {geometry.describe_gaps(gaps)}", file=sys.stderr)
     print(f"pass start: {scan.pass_start_time}" + ("" if options.pass_start_time else
           " (the file's modification time minus the recording's length; --pass-start-time sets it)"))
     if options.range_delay_s == 0.0:

@@ -211,6 +211,15 @@ def track_gaps(positions_m) -> np.ndarray:
     return np.column_stack([x[gap], x[gap + 1]])
 
 
+def describe_gaps(gaps_m: np.ndarray) -> str:
+    """One line for messages about a track's gaps (`track_gaps`, (k, 2) m, k >= 1)."""
+    width = gaps_m[:, 1] - gaps_m[:, 0]
+    widest = gaps_m[np.argmax(width)]
+    return (f"{len(gaps_m)} gap(s) in the track, {float(np.sum(width)):.3f} m in all (the "
+            f"widest from {widest[0]:.3f} to {widest[1]:.3f} m): no pulses there, focused as a hole in the "
+            "aperture")
+
+
 def pass_footprint(rail_lo_m: float, rail_hi_m: float, rotation_table_angle_rad: float, aperture_m: float,
                    wavelength_m: float, edge: str = "3db") -> BeamFootprint:
     """The `BeamFootprint` of a pass whose antenna travels [rail_lo_m, rail_hi_m] (relative to the aperture
