@@ -267,7 +267,8 @@ def write_pass(
     if echo_dtype not in ECHO_DTYPES:
         raise ValueError(f"echo_dtype must be one of {ECHO_DTYPES}, got {echo_dtype!r}")
     if not overwrite and path.exists():
-        raise FileExistsError(errno.EEXIST, "scan file exists (pass overwrite=True to replace it)", str(path))
+        raise FileExistsError(errno.EEXIST, "scan file exists (--overwrite, or overwrite=True in Python, "
+                              "replaces it)", str(path))
 
     echo = np.asarray(scan.echo)
     if echo.ndim != 2 or not np.iscomplexobj(echo):
