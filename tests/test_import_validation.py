@@ -213,6 +213,7 @@ def test_a_corrupt_sample_is_reported_as_an_implausibly_wide_band_naming_the_fil
     err = capsys.readouterr().err
     assert f"uwbcl import p440: {bad}: the measured spectrum is implausibly wide" in err
     assert "the largest |sample| is 1.67762e+07 (scan 7, sample 123)" in err
+    assert "1 scan(s) hold a sample over 100 x it (scans 7)" in err
 
 
 def test_the_summary_prints_the_pass_start_and_where_it_came_from(small, tmp_path, capsys):

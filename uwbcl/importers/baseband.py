@@ -131,6 +131,10 @@ def required_rate_hz(band: Band, oversampling: float = DEFAULT_OVERSAMPLING,
     return max(oversampling * band.bandwidth_hz, 2.0 * half_20 / (1.0 - taper))
 
 
+SPIKE_FACTOR = 100.0  # a sample this many times the 99.9th percentile of |RF| is named a spike by check_band
+SPIKED_SCANS_LISTED = 5
+
+
 def check_band(rf: np.ndarray, rf_rate_hz: float, band: Band, source: str = "",
                oversampling: float = DEFAULT_OVERSAMPLING) -> None:
     """RecordingError naming the file for a spectrum no pulse has: one so wide that the complex band it needs
@@ -142,6 +146,9 @@ def check_band(rf: np.ndarray, rf_rate_hz: float, band: Band, source: str = "",
     a = np.abs(rf.astype(np.int64) if rf.dtype.kind in "iu" else rf)  # |int32 min| overflows int32
     scan, sample = np.unravel_index(int(np.argmax(a)), a.shape)
     peak, typical = float(a[scan, sample]), float(np.percentile(a, 99.9))
+    spiked = np.flatnonzero(np.max(a, axis=1) > SPIKE_FACTOR * max(typical, 1.0))
+    listed = ", ".join(str(i) for i in spiked[:SPIKED_SCANS_LISTED])
+    listed += ", ..." if spiked.size > SPIKED_SCANS_LISTED else ""
     raise RecordingError(source, None, (
         f"the measured spectrum is implausibly wide for a radar pulse: -10 dB band {band.low_hz / 1e9:.3f}-"
         f"{band.high_hz / 1e9:.3f} GHz ({band.bandwidth_hz / 1e9:.3f} GHz), -20 dB band "
@@ -149,7 +156,8 @@ def check_band(rf: np.ndarray, rf_rate_hz: float, band: Band, source: str = "",
         f"{need_hz / 1e9:.3f} GHz that does not fit between 0 and the RF Nyquist frequency "
         f"{rf_rate_hz / 2e9:.3f} GHz. A corrupt sample or a clipped spike flattens the spectrum: the largest "
         f"|sample| is {peak:.6g} (scan {scan}, sample {sample}), {peak / max(typical, 1):.3g} x the 99.9th "
-        f"percentile {typical:.6g}"))
+        f"percentile {typical:.6g}; {spiked.size} scan(s) hold a sample over {SPIKE_FACTOR:g} x it"
+        + (f" (scans {listed})" if spiked.size else "")))
 
 
 def to_baseband(
