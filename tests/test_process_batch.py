@@ -233,7 +233,7 @@ ADDED = {  # an extra file next to the good ones: name -> (make(src_pass, dst), 
 
 @pytest.mark.parametrize("case", sorted(ADDED))
 def test_a_bad_extra_file_is_named_in_errors_csv_and_the_good_cycles_are_untouched(
-        case, archive_dir, clean, tmp_path):
+        case, archive_dir, clean, tmp_path, capsys):
     src = copy_archive(archive_dir, tmp_path)
     bad = src / "incoming" / f"{case}.h5"
     bad.parent.mkdir()
@@ -250,6 +250,11 @@ def test_a_bad_extra_file_is_named_in_errors_csv_and_the_good_cycles_are_untouch
     assert rows(out / "displacements.csv") == rows(clean[0] / "displacements.csv")
     assert (out / "targets.csv").read_bytes() == (clean[0] / "targets.csv").read_bytes()
     assert tree_hashes(src) == before  # input never modified
+    n, summary = len(pass_files(src)), capsys.readouterr().out
+    if kind == "invalid_archive":  # a file that is not read is not counted as focused
+        assert f"{n} passes (0 focused, {n - 1} from the cache, 1 not read or not focused)" in summary
+    else:  # both copies read: the duplicate is a problem of the cycle
+        assert f"{n} passes (0 focused, {n} from the cache)" in summary
 
 
 def _cycle_files(root: Path, cycle: int) -> list[Path]:

@@ -738,7 +738,7 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
         cache = PassCache(out_dir, settings, options.cache)
         records, pass_problems, focused = detect_all(files, in_dir, settings, cache, options, runner)
         problems += pass_problems
-        n_detected = len(focused)
+        n_detected = sum(1 for r in records if r.file in focused)  # a pass that failed is a problem, not this
         q_sign = q_sign_warnings(records, in_dir, settings)
         warnings += suspicious(records) + q_sign
         for w in warnings:

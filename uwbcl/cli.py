@@ -122,7 +122,9 @@ def _process(args: argparse.Namespace) -> int:
     if args.profile:
         _print_profile(settings)
     flagged = sum(r["status"] != "ok" for r in report.rows)
-    extra = "".join([f", {len(report.warnings)} warnings" if report.warnings else "",
+    unread = report.n_passes - report.n_detected - report.n_cached
+    extra = "".join([f", {unread} not read or not focused" if unread else "",
+                     f", {len(report.warnings)} warnings" if report.warnings else "",
                      f", {report.n_cache_damaged} damaged cache entries recomputed" if report.n_cache_damaged
                      else ""])
     print(f"{report.n_passes} passes ({report.n_detected} focused, {report.n_cached} from the cache{extra}), "

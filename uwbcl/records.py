@@ -349,7 +349,7 @@ class BatchReport:
     cycles: list[CycleResult]
     series: list[SeriesRow]
     n_passes: int
-    n_detected: int  # passes focused in this run
+    n_detected: int  # passes focused in this run (not those that failed: they are errors)
     n_cached: int = 0  # passes whose detections came from the cache
     n_cache_damaged: int = 0  # damaged cache entries found and recomputed
     warnings: list[Problem] = dataclasses.field(default_factory=list)  # accepted but suspicious input
