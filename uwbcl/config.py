@@ -18,6 +18,7 @@ from .records import (
     ALGORITHMS,
     BACKENDS,
     BACKGROUND_MODES,
+    HEIGHT_TOLERANCE_M,
     SEARCH_REGIONS,
     AssociationSettings,
     BatchOptions,
@@ -55,7 +56,7 @@ class SiteConfig:
     prior_vertical_m: float = 0.0
     prior_window_m: tuple[float, float, float] | None = None  # None: AssociationSettings' default
     heights_m: tuple[float, ...] | None = None  # expected rail heights; passes at others are rejected
-    height_tolerance_m: float = 0.005
+    height_tolerance_m: float = HEIGHT_TOLERANCE_M
     max_bridge_cycles: int = 3  # how many cycles a displacement may span after an untrusted one
     association: dict[str, Any] = dataclasses.field(default_factory=dict)  # AssociationSettings overrides
     detection: dict[str, Any] = dataclasses.field(default_factory=dict)  # DetectionSettings overrides

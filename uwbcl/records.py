@@ -205,13 +205,19 @@ class OutputOptions:
     cycle_images: bool = False  # focused image PNG per pass with the detections marked (refocuses: slow)
 
 
+# How close (m) a pass's recorded height must be to a configured rail height: `uwbcl process` rejects a pass
+# farther from every configured height, `uwbcl acquire` re-runs a pass whose PASS.HEIGHT is farther from the
+# commanded one (a carriage that did not reach it).
+HEIGHT_TOLERANCE_M = 0.005
+
+
 @dataclasses.dataclass(frozen=True)
 class BatchOptions:
     jobs: int | None = None  # None: all cores for numpy, 2 for the OpenCL backend (default_jobs)
     cache: bool = True
     progress: bool | None = None  # None: a progress bar when stderr is a terminal
     heights_m: tuple[float, ...] | None = None  # expected rail heights (None: any)
-    height_tolerance_m: float = 0.005
+    height_tolerance_m: float = HEIGHT_TOLERANCE_M
     max_bridge_cycles: int = 3
     outputs: OutputOptions = OutputOptions()
     follow_symlinks: bool = False  # read archives linked from outside the input directory, enter linked dirs

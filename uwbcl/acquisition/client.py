@@ -23,8 +23,9 @@ import threading
 import time
 from pathlib import Path
 
+from .. import archive
 from ..config import read_toml
-from ..records import ConfigError
+from ..records import HEIGHT_TOLERANCE_M, ConfigError
 from . import registers as R
 from .recorder import (
     AbsurdValue,
@@ -65,6 +66,10 @@ class CycleSuperseded(Exception):
 # ============================================================================================== settings
 
 
+COMMAND_SLOW_S = 10.0  # a command not acknowledged or not DONE after this long is logged (once)
+COMMAND_RESEND_MAX_S = 1.0  # the longest interval between writes of an unacknowledged command
+
+
 @dataclasses.dataclass(frozen=True)
 class AcquireSettings:
     host: str = "127.0.0.1"
@@ -83,6 +88,7 @@ class AcquireSettings:
     stall_timeout_s: float = 15.0  # watchdog: no new pulse and no state change for this long -> ABORT, re-run
     max_request_rate_hz: float = 2500.0  # bound on requests per second: no loop can spin the link
     command_timeout_s: float = 120.0
+    height_tolerance_m: float = HEIGHT_TOLERANCE_M  # PASS.HEIGHT this far from the commanded height: re-run
     poll_s: float = 0.02  # between window reads when the buffer is empty
     heartbeat_timeout_s: float = 2.0  # replies with a frozen HEARTBEAT for this long: the controller is hung
     max_samples_per_pulse: int = Limits.max_samples_per_pulse
@@ -111,7 +117,7 @@ class AcquireSettings:
         if not -89.0 < self.rotation_table_angle_deg < 89.0:
             raise ConfigError(None, "acquire.rotation_table_angle_deg", "must be within (-89, 89)")
         for name in ("timeout_s", "reconnect_max_s", "stall_timeout_s", "command_timeout_s", "poll_s",
-                     "rib_distance_m", "max_request_rate_hz"):
+                     "rib_distance_m", "max_request_rate_hz", "height_tolerance_m"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ConfigError(None, f"acquire.{name}",
                                   f"must be finite and > 0, got {getattr(self, name)}")
@@ -656,14 +662,16 @@ class AcquisitionSession:
                     if attempt > 1:  # a fault that repeats is not retried at full speed
                         self.link.sleep(min(0.05 * 2 ** (attempt - 2), self.settings.reconnect_max_s))
                     continue
-                pass_id = f"{scan.rig_id}-c{cycle:06d}-h{round(height * 1000):04d}-b{boot:08X}-p{token}"
+                # the height in the id and the name is the one the archive records (PASS.HEIGHT), as the
+                # archive format names files: a carriage a fraction of a millimetre off gives h0149
+                pass_id = f"{archive.default_pass_id(scan)}-b{boot:08X}-p{token}"
                 try:
                     path = write_scan(self.out, scan, pass_id, unique=f"b{boot:08X}_p{token}")
                 except OSError as exc:  # disk full, permissions: the pass is lost to us, the service goes on
                     self.report.passes_failed.append(f"{name}: cannot write the archive: {exc}")
                     log.error("pass %s: cannot write the archive: %s", name, exc)
                     break
-                if not path.name.endswith(f"_h{round(height * 1000):04d}.h5"):
+                if path.name != archive.default_relative_path(scan).name:
                     self.link.counts.names_taken += 1
                     log.warning("pass %s: the usual archive name was taken (cycle %d acquired before); "
                                 "written as %s", name, cycle, path.name)
@@ -694,8 +702,9 @@ class AcquisitionSession:
         self._adopt_description()
         boot, identity, radar, rig_id = self.link.boot_id, self.identity, self.radar, self.rig_id
         self._make_idle(status)
-        self._command(R.Command.MOVE_HEIGHT, round(height_m * 1e6))
-        self._command(R.Command.SET_TABLE_ANGLE, round(self.settings.rotation_table_angle_deg * 1e3))
+        self._command(R.Command.MOVE_HEIGHT, round(height_m * 1e6), cycle=cycle)
+        self._command(R.Command.SET_TABLE_ANGLE, round(self.settings.rotation_table_angle_deg * 1e3),
+                      cycle=cycle)
         self._token = self._token % 2_000_000_000 + 1
         token = self._token
         self._command(R.Command.START_PASS, token, wait=False)
@@ -704,7 +713,16 @@ class AcquisitionSession:
         if desc["TOKEN"] != token:
             raise PassIncomplete(f"PASS.TOKEN is {desc['TOKEN']}, not the {token} just started")
         if desc["CYCLE"] != cycle:
-            raise CycleSuperseded(desc["CYCLE"])
+            counter = self._status()["CYCLE_COUNTER"]
+            if counter != cycle:  # the face moved on between our STATUS and START_PASS
+                self._abort_quietly()
+                raise CycleSuperseded(counter)
+            raise PassIncomplete(f"PASS.CYCLE is {desc['CYCLE']}, not the cycle {cycle} CYCLE_COUNTER shows")
+        off_m = abs(desc["HEIGHT"] - height_m)
+        if off_m > self.settings.height_tolerance_m:
+            tol_mm = 1e3 * self.settings.height_tolerance_m
+            raise PassIncomplete(f"PASS.HEIGHT is {desc['HEIGHT']:.4f} m, {1e3 * off_m:.1f} mm from the "
+                                 f"{height_m:.4f} m commanded (tolerance {tol_mm:g} mm)")
         try:
             assembler = PassAssembler(desc, radar, self.settings.limits)
         except AbsurdValue:
@@ -816,12 +834,20 @@ class AcquisitionSession:
             d.seen_state = state
         if status["STATUS_WORD"] & R.Status.OVERFLOW:
             raise PassIncomplete("device buffer overflowed: pulses were dropped")
+        cycle = asm.descriptor["CYCLE"]
+        if status["CYCLE_COUNTER"] != cycle and status["STATUS_WORD"] & R.Status.PASS_ACTIVE:
+            # the rig moved under a running pass the controller neither held nor aborted (map 4.2): useless
+            self._abort_quietly()
+            log.warning("fault: cycle counter changed from %d to %d while pass token %d ran (the controller "
+                        "did not abort it); the pass is incomplete", cycle, status["CYCLE_COUNTER"],
+                        asm.token)
+            raise CycleSuperseded(status["CYCLE_COUNTER"])
         if not window_empty or status["STATUS_WORD"] & R.Status.PASS_ACTIVE:
             return False
         p = self.link.read_block(R.PASS)
         if p["TOKEN"] != asm.token or p["PASS_STATE"] != R.PassState.COMPLETE:
-            state = R.PassState(p["PASS_STATE"]).name if p["PASS_STATE"] < 4 else p["PASS_STATE"]
-            raise PassIncomplete(f"pass ended ({state}) before its LAST pulse arrived")
+            raise PassIncomplete(f"pass ended ({R.enum_name(R.PassState, p['PASS_STATE'])}) before its LAST "
+                                 "pulse arrived")
         # The last pulses may have arrived after our window read: look once more, then give up.
         d.empty_after_end += 1
         if d.empty_after_end > 1:
@@ -844,31 +870,49 @@ class AcquisitionSession:
         self._cmd_seq = R.cmd_seq_next(self._cmd_seq or 0)  # 65535 -> 1; never 0
         return self._cmd_seq
 
-    def _command(self, code: R.Command, arg: int = 0, wait: bool = True) -> None:
-        """Write a command, confirm its acknowledgement, and (wait=True) wait until it is DONE."""
+    def _command(self, code: R.Command, arg: int = 0, wait: bool = True, cycle: int | None = None) -> None:
+        """Write a command, confirm its acknowledgement, and (wait=True) wait until it is DONE.
+
+        Not acknowledged: the same CMD_SEQ is written again (executed at most once, map section 7) at growing
+        intervals, poll_s doubling to 1 s. A CMD_RESULT this client does not know is not final (map section
+        10): it waits on. With `cycle`, a CYCLE_COUNTER that moves on meanwhile raises CycleSuperseded (map
+        section 8, step 4): a stuck command must not make the rig miss the next cycle."""
         seq = self._next_cmd_seq()
         values = {"CMD_CODE": int(code), "CMD_SEQ": seq, "ARG0": arg}
-        deadline = time.monotonic() + self.settings.command_timeout_s
+        start = time.monotonic()
+        deadline = start + self.settings.command_timeout_s
+        resend_s, next_resend, told = self.settings.poll_s, start + self.settings.poll_s, False
         self.link.write_block(R.COMMAND, values)
         while True:
             st = self._status()
+            now = time.monotonic()
+            if cycle is not None and st["CYCLE_COUNTER"] != cycle:
+                raise CycleSuperseded(st["CYCLE_COUNTER"])
             known = st["CMD_RESULT"] in R.CommandResult._value2member_map_
             result = R.CommandResult(st["CMD_RESULT"]) if known else None
+            if not told and now - start > COMMAND_SLOW_S:
+                told = True
+                log.warning("%s %d: not %s after %.0f s; waiting up to %g s", code.name, arg,
+                            "done" if st["CMD_ACK_SEQ"] == seq else "acknowledged", now - start,
+                            self.settings.command_timeout_s)
             if st["CMD_ACK_SEQ"] != seq:  # not recorded (a controller off the map): the same CMD_SEQ again
-                if time.monotonic() > deadline:
+                if now > deadline:
                     raise PassIncomplete(f"{code.name}: never acknowledged (CMD_ACK_SEQ {st['CMD_ACK_SEQ']})")
                 self.link.sleep(self.settings.poll_s)
-                self.link.write_block(R.COMMAND, values)
+                if time.monotonic() >= next_resend:
+                    self.link.write_block(R.COMMAND, values)
+                    resend_s = min(2.0 * resend_s, COMMAND_RESEND_MAX_S)
+                    next_resend = time.monotonic() + resend_s
                 continue
-            if result is R.CommandResult.DONE or (result is R.CommandResult.ACCEPTED and not wait):
-                return
+            rejected = result is not None and result.name.startswith("REJECTED")
             if result is R.CommandResult.FAILED:
                 raise PassIncomplete(f"{code.name} failed on the device "
                                      f"(FAULT_WORD 0x{st['FAULT_WORD']:04X})")
-            if result is not R.CommandResult.ACCEPTED:
-                name = result.name if result is not None else st["CMD_RESULT"]
-                raise PassIncomplete(f"{code.name} {arg} rejected: {name}")
-            if time.monotonic() > deadline:
+            if rejected:
+                raise PassIncomplete(f"{code.name} {arg} rejected: {result.name}")
+            if result is R.CommandResult.DONE or not wait:  # not waiting: the pass is followed through PASS
+                return
+            if now > deadline:
                 raise PassIncomplete(f"{code.name} not done after {self.settings.command_timeout_s:g} s")
             self.link.sleep(self.settings.poll_s)
 

@@ -128,7 +128,7 @@ class PassAssembler:
                 raise PassIncomplete(f"PASS.{name} changed during the pass "
                                      f"({d0[name]} -> {descriptor[name]})")
         if descriptor["PASS_STATE"] != R.PassState.COMPLETE:
-            raise PassIncomplete(f"pass ended in state {R.PassState(descriptor['PASS_STATE']).name}")
+            raise PassIncomplete(f"pass ended in state {R.enum_name(R.PassState, descriptor['PASS_STATE'])}")
         if descriptor["OVERFLOW_COUNT"]:
             raise PassIncomplete(f"device buffer overflowed: {descriptor['OVERFLOW_COUNT']} pulses dropped")
         if descriptor["PULSES_PRODUCED"] != self.count or not self.last_seen:

@@ -255,6 +255,12 @@ class PassState(enum.IntEnum):
     ABORTED = 3
 
 
+def enum_name(kind: type[enum.IntEnum], value: int) -> str:
+    """The name of `value` in `kind`, or "unknown value N": a controller of a later minor may send values this
+    client does not know (section 10), and a message about them must not fail."""
+    return kind(value).name if value in kind._value2member_map_ else f"unknown value {value}"
+
+
 class ResultStatus(enum.IntEnum):
     OK = 0
     AMBIGUOUS = 1
@@ -368,8 +374,11 @@ FAULT_TAXONOMY = (
               "IDENTITY or RADAR, re-read on a new connection or boot, differ from what the pass assumed",
               "ABORT, run the pass again with the new values"),
     FaultRule("PASS_INCOMPLETE", FaultClass.PASS,
-              "sequence gap, OVERFLOW, PASS_STATE ABORTED, PULSES_PRODUCED != PULSES_PLANNED, a PASS value "
-              "that changed, a foreign TOKEN or CYCLE", "ABORT if still running, log, run the pass again"),
+              "sequence gap, OVERFLOW, PASS_STATE ABORTED (or not COMPLETE at the end), PULSES_PRODUCED != "
+              "PULSES_PLANNED, a PASS value that changed, a foreign TOKEN or CYCLE, PASS.HEIGHT more than "
+              "height_tolerance_m from the commanded height, CYCLE_COUNTER changed while the pass ran",
+              "ABORT if still running, log, run the pass again (a changed CYCLE_COUNTER: scan the new "
+              "cycle)"),
     FaultRule("ABSURD_VALUE", FaultClass.PASS,
               "a PASS or RADAR value the client will not use (sizes over its limits, a record that does not "
               "fit WINDOW_REGS, AMPLITUDE_SCALE not finite > 0)", "ABORT, log, re-read, run the pass again"),
@@ -377,9 +386,10 @@ FAULT_TAXONOMY = (
               "no new pulse and no change of STATE, PASS_STATE or PULSES_PRODUCED for stall_timeout_s",
               "log, ABORT, run the pass again"),
     FaultRule("COMMAND_FAILED", FaultClass.PASS,
-              "REJECTED_BUSY, REJECTED_NOT_READY, REJECTED_UNKNOWN, REJECTED_RANGE or FAILED; not DONE in "
-              "time",
-              "ABORT, log, run the pass again"),
+              "REJECTED_BUSY, REJECTED_NOT_READY, REJECTED_UNKNOWN, REJECTED_RANGE or FAILED; not "
+              "acknowledged or not DONE within command_timeout_s (default 120 s; the same CMD_SEQ is written "
+              "again at growing intervals, 20 ms doubling to 1 s, meanwhile)",
+              "ABORT, log, run the pass again; a CYCLE_COUNTER change while waiting: scan the new cycle"),
     FaultRule("CYCLES_MISSED", FaultClass.NOTICE, "CYCLE_COUNTER moved on by more than 1 (modulo 2^32)",
               "log the cycles never scanned; scan the new one"),
     FaultRule("COUNTER_DECREASED", FaultClass.NOTICE, "CYCLE_COUNTER moved back (modulo 2^32)",
