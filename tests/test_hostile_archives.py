@@ -120,6 +120,20 @@ def test_a_compression_bomb_within_the_limits_is_refused_by_a_lower_limit_and_re
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 64 << 10  # kB: nothing decompressed
 
 
+@pytest.mark.parametrize("name", ["echo", "pulses/time_s"])
+def test_a_chunk_declared_far_larger_than_its_dataset_is_refused_before_hdf5_inflates_it(good, name):
+    def bomb(f):  # the right shape, in one chunk of gigabytes (legal with a larger maxshape)
+        data, attrs = f[name][()], dict(f[name].attrs)
+        del f[name]
+        big = (16_000, 1024) if data.ndim == 2 else (20_000_000,)  # 125 / 153 MiB
+        ds = f.create_dataset(name, data=data, chunks=big, maxshape=(None,) * data.ndim, compression="gzip")
+        ds.attrs.update(attrs)
+
+    bad = copy_with(good, good.with_name("chunkbomb.h5"), bomb)
+    assert bad.stat().st_size < 1 << 20
+    refused(bad, f"/{name}", "a chunk may hold at most 64 MiB or the whole dataset")
+
+
 def test_filters_other_than_the_standard_lossless_ones_are_refused(good):
     def scaleoffset(f):
         data = f["pulses/position_m"][()]

@@ -556,6 +556,10 @@ def _check_size(path: Any, echo: h5py.Dataset, time_ds: h5py.Dataset, position_d
                                "(limits.max_pulses)")
 
 
+# The largest chunk a dataset may have beyond its own size (uncompressed bytes): write_pass's are ~1 MiB.
+MAX_CHUNK_BYTES = 64 << 20
+
+
 def _check_storage(path: Any, ds: h5py.Dataset) -> None:
     """Data stored in this file, decoded by a standard lossless filter: nothing else is read."""
     if ds.is_virtual:
@@ -565,6 +569,15 @@ def _check_storage(path: Any, ds: h5py.Dataset) -> None:
         name = dcpl.get_external(0)[0]
         raise ArchiveError(path, ds.name,
                            f"external raw storage in {name!r} (data outside the file); not read")
+    if ds.chunks is not None:
+        # HDF5 decompresses whole chunks: a chunk larger than its dataset (legal with a larger maxshape) is a
+        # compression bomb, gigabytes from a small dataset of a small file
+        chunk_bytes = math.prod(ds.chunks) * ds.dtype.itemsize
+        data_bytes = ds.size * ds.dtype.itemsize
+        if chunk_bytes > max(MAX_CHUNK_BYTES, data_bytes):
+            raise ArchiveError(path, ds.name, f"a chunk of {list(ds.chunks)} ({chunk_bytes / 2**20:.1f} MiB) "
+                               f"for {data_bytes / 2**20:.3f} MiB of data: a chunk may hold at most "
+                               f"{MAX_CHUNK_BYTES >> 20} MiB or the whole dataset; not read")
     for i in range(dcpl.get_nfilters()):
         code, _, _, name = dcpl.get_filter(i)
         if code not in ALLOWED_FILTERS:
