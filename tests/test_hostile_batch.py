@@ -20,7 +20,7 @@ import h5py
 import pytest
 from shift_case import CONFIG, OUTPUTS, SETTINGS, options
 
-from uwbcl import archive, batch, outputs, shift
+from uwbcl import archive, batch, config, outputs, shift
 from uwbcl.cli import main
 from uwbcl.records import OutputOptions
 
@@ -197,6 +197,30 @@ def test_a_binary_or_utf16_config_is_a_usage_error(archive_dir, tmp_path, capsys
     cfg.write_bytes(content)
     assert main(["process", str(archive_dir), "--out", str(tmp_path / "o"), "--config", str(cfg)]) == 2
     assert "UTF-8" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kind, words", [("device", "not a regular file"), ("fifo", "not a regular file"),
+                                         ("huge", "not a site file"), ("deep", "nested too deeply")])
+def test_a_config_that_is_a_device_a_fifo_endless_or_nested_without_end_is_a_usage_error_at_once(
+        archive_dir, tmp_path, capsys, kind, words):
+    cfg = tmp_path / "site.toml"
+    if kind == "device":
+        cfg.symlink_to("/dev/zero")  # read to its end, it never ends
+    elif kind == "fifo":
+        os.mkfifo(cfg)  # opened for reading, it blocks until a writer comes
+    elif kind == "huge":
+        cfg.write_text("# x\n" * (1 << 19))
+    else:
+        cfg.write_text("a = " + "[" * 200_000)
+    assert main(["process", str(archive_dir), "--out", str(tmp_path / "o"), "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert f"{cfg}: -: " in err and words in err and "Traceback" not in err
+
+
+def test_a_config_with_a_utf8_byte_order_mark_is_read(archive_dir, tmp_path):
+    cfg = tmp_path / "site.toml"
+    cfg.write_bytes("\ufeff[site]\nweb_depth_m = 0.9\n".encode())
+    assert config.read_toml(cfg) == {"site": {"web_depth_m": 0.9}}
 
 
 @pytest.mark.parametrize("flags", [["--web-depth", "inf"], ["--heights", "nan", "0.6"], ["--heights", "low"]])

@@ -243,7 +243,7 @@ def with_range_delay(toml_text: str, delay_s: float) -> str:
 def write_config(out: Path, base: Path | None, delay_s: float) -> None:
     """OUT.toml: the site file `base` (or an empty one) with the delay set, checked as `uwbcl process` reads
     it before it is written (atomically)."""
-    text = with_range_delay(base.read_text(encoding="utf-8") if base is not None else "", delay_s)
+    text = with_range_delay(config.read_site_text(base) if base is not None else "", delay_s)
     parsed = config.tomllib.loads(text)
     config.parse_config(parsed, out)  # ConfigError naming OUT if the result would not load
     write_text_atomic(out, text)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-from pathlib import Path
+import stat
 from typing import Any
 
 from .records import (
@@ -306,13 +306,31 @@ def load_config(path: str | os.PathLike[str]) -> SiteConfig:
     return parse_config(read_toml(path), path)
 
 
+# A site file is a few kilobytes; anything far larger is not one (a device, a log written over it).
+MAX_CONFIG_BYTES = 1 << 20
+
+
+def read_site_text(path: str | os.PathLike[str]) -> str:
+    """The text of a site file: only a regular file of at most MAX_CONFIG_BYTES is read (never a FIFO or a
+    device such as /dev/zero, which would block or never end), UTF-8, a byte-order mark dropped. ConfigError
+    (file, "-") otherwise; OSError and UnicodeDecodeError pass to the caller."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))  # a FIFO must not block the open
+    with os.fdopen(fd, "rb") as f:
+        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+            raise ConfigError(path, "-", "not a regular file (a FIFO, a device or a directory); not read")
+        raw = f.read(MAX_CONFIG_BYTES + 1)
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise ConfigError(path, "-", f"larger than {MAX_CONFIG_BYTES >> 20} MiB: not a site file")
+    return raw.decode("utf-8").removeprefix("\ufeff")
+
+
 def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """The parsed tables of a site file; ConfigError for a missing, unreadable or invalid one."""
+    """The parsed tables of a site file (`read_site_text`); ConfigError for a missing, unreadable or invalid
+    one."""
     if tomllib is None:
         raise ConfigError(path, "-", "reading TOML needs Python >= 3.11 or the 'tomli' package")
     try:
-        with Path(path).open("rb") as f:
-            data = tomllib.load(f)
+        return tomllib.loads(read_site_text(path))
     except OSError as e:
         raise ConfigError(path, "-", f"cannot read: {e.strerror or e}") from e
     except tomllib.TOMLDecodeError as e:
@@ -320,7 +338,8 @@ def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
     except UnicodeDecodeError as e:  # binary, UTF-16, Latin-1: TOML is UTF-8
         raise ConfigError(path, "-", f"not a UTF-8 text file (TOML must be UTF-8): {e.reason} at byte "
                                      f"{e.start}") from e
-    return data
+    except RecursionError:  # tomllib recurses per nesting level: [[[[... thousands deep
+        raise ConfigError(path, "-", "not valid TOML: nested too deeply") from None
 
 
 def override(cfg: SiteConfig, **flags: Any) -> SiteConfig:
