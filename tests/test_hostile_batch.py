@@ -120,7 +120,8 @@ def test_a_linked_directory_is_reported_not_followed_and_followed_on_request_wit
 
 
 # ----------------------------------------------------------------------------------------------- the cache
-@pytest.mark.parametrize("damage", ["null", "not_a_list", "string_field", "directory", "cache_is_a_file"])
+@pytest.mark.parametrize("damage", ["null", "not_a_list", "string_field", "directory", "cache_is_a_file",
+                                    "link_to_dev_zero", "fifo", "huge"])
 def test_a_damaged_cache_is_recomputed_and_counted_never_fatal(tree, clean, damage):
     src, out = tree
     key_dir = next((out / batch.CACHE_DIR).iterdir())
@@ -136,6 +137,14 @@ def test_a_damaged_cache_is_recomputed_and_counted_never_fatal(tree, clean, dama
     elif damage == "directory":
         entry.unlink()
         entry.mkdir()
+    elif damage == "link_to_dev_zero":  # read to its end, it never ends: not read at all
+        entry.unlink()
+        entry.symlink_to("/dev/zero")
+    elif damage == "fifo":  # opened for reading, it blocks: not read at all
+        entry.unlink()
+        os.mkfifo(entry)
+    elif damage == "huge":
+        entry.write_text(json.dumps({**record, "pad": "x" * (batch.MAX_CACHE_ENTRY_BYTES + 1)}))
     else:
         shutil.rmtree(out / batch.CACHE_DIR)
         (out / batch.CACHE_DIR).write_text("not a directory")
@@ -144,6 +153,51 @@ def test_a_damaged_cache_is_recomputed_and_counted_never_fatal(tree, clean, dama
     assert (out / "displacements.csv").read_bytes() == (clean[0] / "displacements.csv").read_bytes()
     if damage != "cache_is_a_file":
         assert report.n_cache_damaged == 1 and report.n_detected == 1
+
+
+# ----------------------------------------------------------------------------------------------- the outputs
+@pytest.mark.parametrize("own", [batch.CACHE_DIR, outputs.GENERATIONS_DIR])
+def test_uwbcls_own_directories_replaced_by_links_stop_the_run_before_anything_is_written_through_them(
+        tree, tmp_path, capsys, own):
+    src, out = tree
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    shutil.rmtree(out / own, ignore_errors=True)
+    (out / own).symlink_to(victim)
+    assert main(["process", str(src), "--out", str(out), "--backend", "numpy", "--jobs", "1"]) == 2
+    err = capsys.readouterr().err
+    assert f"{out / own}: a symbolic link" in err and "Traceback" not in err
+    assert list(victim.iterdir()) == []
+
+
+def test_an_output_directory_that_cannot_be_made_or_whose_generations_are_a_file_is_named_without_traceback(
+        tree, tmp_path, capsys):
+    src, out = tree
+    assert main(["process", str(src), "--out", "/proc/uwbcl-cannot-be-made", "--backend", "numpy"]) == 2
+    err = capsys.readouterr().err
+    assert "/proc/uwbcl-cannot-be-made: cannot create or lock the output directory" in err
+    assert "Traceback" not in err
+    shutil.rmtree(out / outputs.GENERATIONS_DIR, ignore_errors=True)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / outputs.GENERATIONS_DIR).write_text("not a directory")
+    assert main(["process", str(src), "--out", str(out), "--backend", "numpy", "--jobs", "1"]) == 1
+    err = capsys.readouterr().err
+    assert f"cannot write the outputs: {out / outputs.GENERATIONS_DIR}" in err and "Traceback" not in err
+
+
+def test_plain_outputs_of_a_version_before_generations_are_kept_as_the_previous_set(tree, tmp_path):
+    src, _ = tree
+    out = tmp_path / "old-out"
+    out.mkdir()
+    (out / "displacements.csv").write_text("rig_id,cycle\nold,1\n")
+    (out / "plots").mkdir()
+    (out / "plots" / "mine.txt").write_text("kept")
+    batch.process_directory(src, out, SETTINGS, options())
+    previous = out / outputs.GENERATIONS_DIR / "g-000001"
+    assert (previous / "displacements.csv").read_text() == "rig_id,cycle\nold,1\n"
+    assert (previous / "plots" / "mine.txt").read_text() == "kept"
+    assert os.readlink(out / outputs.CURRENT_LINK).endswith("g-000002")
+    assert (out / "displacements.csv").read_text().startswith("rig_id,cycle,from_cycle")
 
 
 # ----------------------------------------------------------------------------------------------- names

@@ -206,6 +206,24 @@ def _record(file: str, sha: str, entry) -> PassRecord:
                       pass_start_time=h["pass_start_time"], parameters=params, detections=detections)
 
 
+# A cache entry holds one pass's detections (kilobytes); one far larger was not written by uwbcl.
+MAX_CACHE_ENTRY_BYTES = 16 << 20
+
+
+def _read_cache_entry(path: Path) -> str:
+    """A cache entry's text, read only from a regular file (not through a symbolic link, never a FIFO or a
+    device: an entry replaced by a link to /dev/zero would never end) of at most MAX_CACHE_ENTRY_BYTES;
+    OSError or ValueError otherwise (the entry is then damaged and recomputed)."""
+    flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+    with os.fdopen(os.open(path, flags), "rb") as f:
+        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+            raise ValueError("not a regular file")
+        raw = f.read(MAX_CACHE_ENTRY_BYTES + 1)
+    if len(raw) > MAX_CACHE_ENTRY_BYTES:
+        raise ValueError(f"larger than {MAX_CACHE_ENTRY_BYTES >> 20} MiB")
+    return raw.decode("utf-8")
+
+
 class PassCache:
     """Detections per (file content, settings) under OUT/.uwbcl-cache/<settings key>/<sha256>.json."""
 
@@ -221,7 +239,7 @@ class PassCache:
             return None
         path = self.dir / f"{sha}.json"
         try:
-            entry = json.loads(path.read_text())
+            entry = json.loads(_read_cache_entry(path))
             if not isinstance(entry, dict):
                 raise ValueError("not a JSON object")
             if entry.get("cache_version") != CACHE_VERSION or entry.get("sha256") != sha:
@@ -439,9 +457,20 @@ def rib_registration(groups: dict, in_dir: Path, settings: ProcessingSettings
 # ----------------------------------------------------------------------------------------------- the job
 @contextlib.contextmanager
 def _exclusive(out_dir: Path):
-    """One run per output directory; the lock dies with the process, so a killed run never blocks the next."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with (out_dir / LOCK_FILE).open("a") as f:
+    """One run per output directory; the lock dies with the process, so a killed run never blocks the next.
+    BatchError (the run cannot start) for a directory that cannot be made or locked, and for uwbcl's own
+    directories inside it replaced by symbolic links (they would take the writes outside OUT)."""
+    for own in (CACHE_DIR, outputs.GENERATIONS_DIR):
+        if (out_dir / own).is_symlink():
+            raise BatchError(f"{out_dir / own}: a symbolic link where uwbcl keeps its own directory; uwbcl "
+                             "writes only inside the output directory: remove the link")
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        lock = (out_dir / LOCK_FILE).open("a")
+    except OSError as e:
+        raise BatchError(f"{e.filename or out_dir}: cannot create or lock the output directory: "
+                         f"{e.strerror or e}") from None
+    with lock as f:
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

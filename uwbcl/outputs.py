@@ -167,7 +167,12 @@ def write_all(out_dir: Path, rows: list[SeriesRow], cycles: list[CycleResult], p
     Raises OutputError naming the path when a file cannot be written (disk full, permissions): the previous
     complete set stays in place.
     """
-    gen = new_generation(out_dir)
+    try:
+        _adopt_plain_outputs(out_dir)  # first: the old set's generation is then numbered before the new one
+        gen = new_generation(out_dir)
+    except OSError as e:
+        raise OutputError(f"cannot write the outputs: {e.filename or out_dir}: {e.strerror or e}; the "
+                          "previous outputs are intact") from e
     try:
         disp = displacement_records(rows)
         disp_text = write_displacements_csv(gen / "displacements.csv", rows)
