@@ -3,12 +3,13 @@ problems it finds are the ones the batch reports."""
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 
 import h5py
 from shift_case import SETTINGS, conjugate_pass, options
 
-from uwbcl import batch, check
+from uwbcl import archive, batch, check
 from uwbcl.cli import main
 
 
@@ -45,6 +46,30 @@ def test_check_finds_the_problems_process_reports_and_exits_1(archive_dir, tmp_p
     assert main(["check", str(src)]) == 1
     out = capsys.readouterr().out
     assert "carrier_frequency_hz" in out and files[3].relative_to(src).as_posix() in out
+
+
+def _rewrite(path, **change) -> None:
+    """Rewrite an archive with `change` applied to its ScanPass (echo, positions, ...)."""
+    scan = archive.read_pass(path)
+    archive.write_pass(path, dataclasses.replace(scan, **change), overwrite=True)
+
+
+def test_check_finds_passes_too_small_to_focus_or_beyond_the_limits_as_process_does(archive_dir, tmp_path):
+    src = tmp_path / "in"
+    shutil.copytree(archive_dir, src)
+    files = pass_files(src)
+    scan = archive.read_pass(files[1])
+    _rewrite(files[1], echo=scan.echo[:4], pulse_time_s=scan.pulse_time_s[:4],
+             pulse_position_m=scan.pulse_position_m[:4])  # valid (N >= 2), but no aperture to focus
+    _rewrite(files[2], pulse_position_m=scan.pulse_position_m * 1e-9)  # nanometres written as metres
+    report = check.check_directory(src, SETTINGS, options())
+    processed = batch.process_directory(src, tmp_path / "out", SETTINGS, options())
+    found = sorted((p.file, p.kind, p.reason) for p in report.problems)
+    assert found == sorted((p.file, p.kind, p.reason) for p in processed.errors)
+    names = {p.file: (p.kind, p.reason) for p in report.problems}
+    small = names[files[1].relative_to(src).as_posix()]
+    assert small[0] == "processing_failed" and "focusing needs at least 6 pulses" in small[1]
+    assert names[files[2].relative_to(src).as_posix()][0] == "exceeds_limits"
 
 
 def test_check_warns_about_every_conjugated_pass(archive_dir, tmp_path):

@@ -49,6 +49,7 @@ from .records import (
     DetectionSettings,
     LimitExceeded,
     PassRecord,
+    PassTooSmall,
     Problem,
     ProcessingSettings,
 )
@@ -124,6 +125,8 @@ def detect_file(path: str, settings: ProcessingSettings) -> dict:
         detections = pipeline.detect_pass(scan, settings)
     except LimitExceeded as e:
         return {"error": str(e), "kind": "exceeds_limits"}
+    except PassTooSmall as e:
+        return {"error": f"cannot be focused: {e}", "kind": "processing_failed"}
     except Exception as e:  # noqa: BLE001 - a numerical failure in one pass must not stop the night's run
         return {"error": f"focusing failed: {type(e).__name__}: {e}", "kind": "processing_failed"}
     try:

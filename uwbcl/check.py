@@ -15,9 +15,9 @@ import math
 from collections import defaultdict
 from pathlib import Path
 
-from . import archive, batch
+from . import archive, batch, pipeline
 from . import geometry as geo
-from .records import BatchOptions, PassRecord, Problem, ProcessingSettings
+from .records import BatchOptions, LimitExceeded, PassRecord, PassTooSmall, Problem, ProcessingSettings
 
 
 @dataclasses.dataclass
@@ -30,6 +30,7 @@ class PassSummary:
     window_m: tuple[float, float]  # one-way range of the first and last sample
     reference_range_m: float  # the reference point's distance from the aperture centre
     doppler_ratio: float | None  # geometry.doppler_step_ratio: about +1 by the format's conventions
+    unfocusable: Problem | None = None  # what `uwbcl process` would report before focusing (its plan)
 
 
 @dataclasses.dataclass
@@ -56,7 +57,22 @@ def summarise_pass(path: Path, name: str, settings: ProcessingSettings) -> PassS
     ratio = geo.doppler_step_ratio(scan.echo, x, scan.geometry.rotation_table_angle_deg,
                                    scan.radar.wavelength_m)
     return PassSummary(record, scan.n_pulses, (float(x[0]), float(x[-1])), (float(r[0]), float(r[-1])),
-                       math.dist(centre, scan.geometry.reference_point_m), ratio)
+                       math.dist(centre, scan.geometry.reference_point_m), ratio,
+                       plan_problem(scan, name, settings))
+
+
+def plan_problem(scan, name: str, settings: ProcessingSettings) -> Problem | None:
+    """The problem `uwbcl process` would report for this pass before focusing it: the site delay beyond its
+    window, a pass too small to focus, or one whose focus grid exceeds the limits (`pipeline.check_plan`)."""
+    try:
+        pipeline.check_plan(pipeline.apply_range_delay(scan, settings.range_delay_s), settings)
+    except LimitExceeded as e:
+        return Problem(name, "exceeds_limits", str(e))
+    except PassTooSmall as e:
+        return Problem(name, "processing_failed", f"cannot be focused: {e}")
+    except ValueError as e:  # the site's delay puts the first sample behind the antenna
+        return Problem(name, "processing_failed", f"focusing failed: ValueError: {e}")
+    return None
 
 
 def check_directory(in_dir: Path, settings: ProcessingSettings | None = None,
@@ -81,7 +97,8 @@ def check_directory(in_dir: Path, settings: ProcessingSettings | None = None,
             problems.append(Problem(name, "invalid_archive", f"{e.field}: {e.reason}"))
         except OSError as e:
             problems.append(Problem(name, "unreadable", f"cannot read: {e.strerror or e}"))
-    records = [p.record for p in passes]
+    problems += [p.unfocusable for p in passes if p.unfocusable is not None]
+    records = [p.record for p in passes if p.unfocusable is None]  # as in process: such a pass has no record
     _, grouping = batch.group_cycles(records, options)
     problems += grouping
     warnings += batch.suspicious(records)

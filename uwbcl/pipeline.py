@@ -9,7 +9,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from collections.abc import Sequence
+
+import numpy as np
 
 from . import chain, detect
 from .detect import phase as detect_phase
@@ -27,6 +30,7 @@ from .records import (
     Detection,
     DetectionSettings,
     LimitExceeded,
+    PassTooSmall,
     ProcessingSettings,
 )
 
@@ -91,13 +95,26 @@ def bp_u_extent_m(scan: ScanPass, settings: ProcessingSettings) -> tuple[float, 
     return detect.peaks.search_extent_u_m(grid, r, footprint)
 
 
+MIN_FOCUS_PULSES = nlcs.LAGRANGE_ORDER
+MIN_FOCUS_SAMPLES = 2
+
+
 def check_plan(scan: ScanPass, settings: ProcessingSettings) -> None:
     """LimitExceeded when focusing or detecting this pass would allocate more cells than
     settings.limits.max_focus_cells: the arrays are sized from the pass's metadata (rail length, pulse
     spacing, range window), so a pass whose positions are off by orders of magnitude is refused before any
     allocation."""
     limit = settings.limits.max_focus_cells
-    grid = nlcs.focus_grid(scan)
+    if scan.n_pulses < MIN_FOCUS_PULSES or scan.samples_per_pulse < MIN_FOCUS_SAMPLES:
+        raise PassTooSmall(f"{scan.n_pulses} pulses of {scan.samples_per_pulse} samples: focusing needs at "
+                           f"least {MIN_FOCUS_PULSES} pulses (the motion compensation's stencil) of "
+                           f"{MIN_FOCUS_SAMPLES} samples")
+    try:
+        with np.errstate(over="raise", invalid="raise"):
+            grid = nlcs.focus_grid(scan)
+    except (OverflowError, FloatingPointError, ValueError) as e:
+        raise LimitExceeded(f"the focus grid cannot be sized from this pass's metadata ({e}): positions, "
+                            "sample rate or range window off by orders of magnitude?") from None
     range_bin_m = grid.range_bins_m[1] - grid.range_bins_m[0] if grid.n_range > 1 else 1.0
     if settings.algorithm == "bp":
         u, r = backprojection.image_axes(grid, BP_PIXEL_M, BP_RANGE_MARGIN_M, bp_u_extent_m(scan, settings))
@@ -110,9 +127,11 @@ def check_plan(scan: ScanPass, settings: ProcessingSettings) -> None:
                             f"rail {grid.n_track} pulses {grid.track_spacing_m:.3g} m apart, "
                             f"{grid.n_range} range bins")
     d = settings.detection
-    footprint = ((2 * int(d.separation_m / pixel_m[0]) + 1)
-                 * (2 * int(d.range_separation_m / pixel_m[1]) + 1))
-    if footprint > limit:
+    with np.errstate(divide="ignore", over="ignore"):  # a zero or denormal cell: an infinite footprint
+        footprint = ((2 * np.floor(np.float64(d.separation_m) / pixel_m[0]) + 1)
+                     * (2 * np.floor(np.float64(d.range_separation_m) / pixel_m[1]) + 1))
+    if not footprint <= limit:  # NaN and inf included
+        footprint = int(footprint) if math.isfinite(footprint) else footprint
         raise LimitExceeded(f"detection's separation ellipse would span {footprint} cells (limit {limit}): "
                             f"pulses {grid.track_spacing_m:.3g} m apart for a {d.separation_m} m separation")
 

@@ -44,6 +44,11 @@ class BatchError(RuntimeError):
     """The run cannot start (output directory locked, plotting unavailable); nothing was written."""
 
 
+class PassTooSmall(ValueError):
+    """A valid archive too small to focus (fewer pulses than the motion compensation's stencil, one
+    sample)."""
+
+
 class LimitExceeded(ValueError):
     """A pass whose processing would need more memory than `ReadLimits` admit (named, never attempted)."""
 

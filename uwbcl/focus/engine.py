@@ -43,7 +43,7 @@ PROGRAM_FILES = ("common.cl", "range.cl", "azimuth.cl", "fft.cl", "backprojectio
 # |X_ref| closer than this fraction of its bin's peak to the H8 fit's threshold counts as undecided in
 # complex64 (measured complex64 error on PoCL: 3e-7 of the peak); such bins are recomputed in float64.
 REFERENCE_EDGE_MARGIN = 3e-6
-LAGRANGE_TAPS = 6  # taps of the motion-compensation resampling (nlcs.lagrange_weights' order)
+LAGRANGE_TAPS = nlcs.LAGRANGE_ORDER  # taps of the motion-compensation resampling
 ROW_STEP = 128  # band buffers' row counts are rounded up to this: their range-FFT plans recur across passes
 # An echo's rows (pulses) are rounded up to this, zero rows after the pulses: the pulse count moves with the
 # carriage speed from pass to pass, and every new row count of a range FFT is a new VkFFT plan (measured on

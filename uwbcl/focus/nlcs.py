@@ -280,7 +280,10 @@ def linear_range_walk_correction(s1: np.ndarray, x_rel_m: np.ndarray, grid: Focu
     return s1 * np.exp(1j * linear_range_walk_phase(x_rel_m, grid))
 
 
-def lagrange_weights(x_nodes: np.ndarray, x_out: np.ndarray, order: int = 6):
+LAGRANGE_ORDER = 6  # nodes of the motion-compensation resampling: a pass needs at least this many pulses
+
+
+def lagrange_weights(x_nodes: np.ndarray, x_out: np.ndarray, order: int = LAGRANGE_ORDER):
     """Indices (n_out, order) of `order` consecutive nodes (sorted, increasing) and the Lagrange weights that
     interpolate from them to each x_out (n_out,).
 
