@@ -402,7 +402,7 @@ def read_pass(path: str | os.PathLike[str], limits: ReadLimits = ReadLimits()) -
     _check_pulses(path, time_s, position_m, h["n_pulses"])
     gaps = track_gaps(position_m)
     if len(gaps):
-        log.warning("%s: /pulses/position_m: %s", path, describe_gaps(gaps))
+        _warn_once("%s: /pulses/position_m: %s", path, describe_gaps(gaps))
     if h["echo_layout"] == "int16_iq":
         echo = scale * (raw[..., 0].astype(np.float64) + 1j * raw[..., 1].astype(np.float64))
     else:
@@ -629,6 +629,8 @@ def _check_root_attrs(h: dict[str, Any], fail: Callable[[str, str], NoReturn]) -
     for name in _ROOT_STR:
         if not isinstance(h[name], str):
             fail(f"/@{name}", f"expected a string, got {type(h[name]).__name__}")
+        if "\x00" in h[name]:  # C readers stop there, and CSV readers choke on it in errors.csv
+            fail(f"/@{name}", "contains a NUL character")
     for name in ("rig_id", "pass_id"):
         if not h[name].strip():
             fail(f"/@{name}", "must not be empty")
@@ -877,8 +879,8 @@ def _read_additions(f: h5py.File, path: Any, h: dict[str, Any]) -> None:
     if minor < 0:
         raise ArchiveError(path, "/@format_minor_version", f"must be >= 0, got {minor}")
     if minor > FORMAT_MINOR_VERSION:
-        log.warning("%s: format 1.%d is newer than this reader (1.%d): additions it does not know are "
-                    "ignored", path, minor, FORMAT_MINOR_VERSION)
+        _warn_once("%s: format 1.%d is newer than this reader (1.%d): additions it does not know are "
+                   "ignored", path, minor, FORMAT_MINOR_VERSION)
     h["format_minor_version"] = minor
     radar = f["radar"]
     delay = _float_attr(radar, "range_delay_s", path) if "range_delay_s" in radar.attrs else 0.0
@@ -964,6 +966,22 @@ def _read_deviation(f: h5py.File, path: Any, name: str, n_pulses: int) -> np.nda
     return d
 
 
+_WARNED: dict[str, None] = {}  # the reader's warnings already given in this process (most recent last)
+_WARNED_KEPT = 4096
+
+
+def _warn_once(fmt: str, *args) -> None:
+    """A reader's warning about a file, once per process: a file is read more than once in a run (its header,
+    its data, the rib registration) and says the same each time (docs/archive-format.md section 5)."""
+    text = fmt % args
+    if text in _WARNED:
+        return
+    _WARNED[text] = None
+    if len(_WARNED) > _WARNED_KEPT:
+        del _WARNED[next(iter(_WARNED))]
+    log.warning("%s", text)
+
+
 def _warn_unknown(f: h5py.File, path: Any) -> None:
     # An unknown name in /radar, /geometry or /pulses may change where targets are (as range_delay_s does for
     # a 1.0 reader): say so instead of ignoring it silently. Elsewhere extras are free-form metadata.
@@ -973,8 +991,8 @@ def _warn_unknown(f: h5py.File, path: Any) -> None:
     if isinstance(pulses, h5py.Group):
         unknown += [f"/pulses/{name}" for name in pulses if name not in _KNOWN_PULSE_DATASETS]
     if unknown:
-        log.warning("%s: ignored (not known to this reader, format 1.%d): %s", path, FORMAT_MINOR_VERSION,
-                    ", ".join(sorted(unknown)))
+        _warn_once("%s: ignored (not known to this reader, format 1.%d): %s", path, FORMAT_MINOR_VERSION,
+                   ", ".join(sorted(unknown)))
 
 
 def read_raw_rf(path: str | os.PathLike[str]) -> RawRF | None:
