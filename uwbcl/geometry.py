@@ -237,6 +237,7 @@ DOPPLER_CHECK_MIN_SQUINT_DEG = 5.0
 DOPPLER_CHECK_MAX_STEP_RAD = 0.5 * math.pi
 DOPPLER_CHECK_MIN_COHERENCE = 0.02
 DOPPLER_CHECK_NOISE_SIGMAS = 5.0
+DOPPLER_CHECK_BLOCK_SAMPLES = 1 << 20  # pulses x samples per block of the estimate (16 MiB as complex128)
 # A ratio below this says the centroid is on the wrong side (+1 expected, -1 for conjugated data).
 DOPPLER_WRONG_SIDE_RATIO = -0.5
 
@@ -257,9 +258,13 @@ def doppler_step_ratio(echo: np.ndarray, positions_m: np.ndarray, rotation_table
     expected = 4.0 * math.pi / wavelength_m * math.sin(math.radians(rotation_table_angle_deg)) * dx_m
     if not 0.0 < abs(expected) <= DOPPLER_CHECK_MAX_STEP_RAD:
         return None
-    e = echo - echo.mean(axis=0)
-    pairs = np.vdot(e[:-1], e[1:])  # sum of conj(s_k) s_k+1
-    power = float(np.vdot(e, e).real)
+    mean = echo.mean(axis=0)
+    pairs, power = 0j, 0.0
+    step = max(1, DOPPLER_CHECK_BLOCK_SAMPLES // max(echo.shape[1], 1))
+    for i in range(0, n, step):  # in blocks of pulses: no copy of a whole (possibly 0.5 GB) echo
+        e = echo[i:i + step + 1] - mean  # one pulse of overlap for the pair across the block edge
+        pairs += np.vdot(e[:-1], e[1:])  # sum of conj(s_k) s_k+1
+        power += float(np.vdot(e[:step], e[:step]).real)
     floor = max(DOPPLER_CHECK_MIN_COHERENCE, DOPPLER_CHECK_NOISE_SIGMAS / math.sqrt((n - 1) * echo.shape[1]))
     if not power > 0 or abs(pairs) < floor * power:
         return None
