@@ -496,6 +496,14 @@ def _import(args: argparse.Namespace) -> int:
     except BaseException:
         _remove_empty(made)
         raise
+    _print_import_summary(source, recording, track, result, options, aligned=args.time_offset_s is None)
+    print(f"wrote 1 archive: {path}")
+    return 0
+
+
+def _print_import_summary(source, recording, track, result, options, *, aligned: bool) -> None:
+    """What `uwbcl import` says of a recording it converted (docs/importing.md); warnings on stderr.
+    `aligned`: the clocks were aligned on the first motion (no --time-offset-s)."""
     band, scan = result.band, result.scan
     repeated = f", {recording.n_repeated} repeated dropped" if recording.n_repeated else ""
     print(f"{source}: {recording.n_scans + recording.n_repeated} complete scans read, "
@@ -503,6 +511,10 @@ def _import(args: argparse.Namespace) -> int:
     if track.time_offset_s is not None:
         print(f"positions: time offset {track.time_offset_s:+.3f} s; {track.n_outside_log} scans outside "
               f"the log, {track.n_rest} at rest or turning back trimmed")
+        if track.n_outside_log and aligned:
+            print(f"warning: the clocks were aligned on the first motion, which assumes the recording starts "
+                  f"at rest; {track.n_outside_log} scans fell outside the positions log: give "
+                  "--time-offset-s if it did not start at rest", file=sys.stderr)
     print(f"spectrum: centre {band.centre_hz / 1e9:.3f} GHz, -10 dB band {band.low_hz / 1e9:.3f}-"
           f"{band.high_hz / 1e9:.3f} GHz ({band.bandwidth_hz / 1e9:.3f} GHz), "
           f"peak {band.peak_hz / 1e9:.3f} GHz")
@@ -519,8 +531,6 @@ def _import(args: argparse.Namespace) -> int:
     if options.range_delay_s == 0.0:
         print("warning: range_delay_s = 0 (uncalibrated): ranges include the radar's internal delay",
               file=sys.stderr)
-    print(f"wrote 1 archive: {path}")
-    return 0
 
 
 def _remove_empty(directories: list[Path]) -> None:
