@@ -615,7 +615,12 @@ class AcquisitionSession:
                                 "(its archives are named so that they cannot replace earlier ones)", last,
                                 cycle, cycle)
                 last = cycle
-                pending = self._scan_cycle(cycle)
+                try:
+                    pending = self._scan_cycle(cycle)
+                except Interrupted:  # stopped mid-cycle: the report says this cycle was not completed
+                    if cycle not in self.report.cycles_complete + self.report.cycles_incomplete:
+                        self.report.cycles_incomplete.append(cycle)
+                    raise
                 done += 1
                 pause_s = 0.1
                 if pending is not None and pending == last:
@@ -918,8 +923,13 @@ class AcquisitionSession:
 
     def _make_idle(self, status: dict) -> None:
         deadline = time.monotonic() + self.settings.command_timeout_s
+        told = False
         while True:
             word = status["STATUS_WORD"]
+            if word & R.Status.LOCAL and not told:  # the operator has the rig: say why nothing happens
+                told = True
+                log.warning("rig in local control (STATUS_WORD LOCAL): remote commands are rejected; waiting "
+                            "up to %g s for remote control", self.settings.command_timeout_s)
             if word & R.Status.READY and not word & R.Status.BUSY:
                 return
             if status["FAULT_WORD"] & ~(R.Fault.BUFFER_OVERFLOW | R.Fault.PASS_ABORTED):
