@@ -255,3 +255,27 @@ def test_focus_writes_nothing_outside_its_output_directory_not_even_matplotlibs_
     assert proc.returncode == 0, proc.stderr
     assert list(home.rglob("*")) == []
     assert list(out.glob("*.png")) and (out / outputs.MPL_CONFIG_DIR).is_dir()
+
+
+@pytest.mark.parametrize("algorithm", ["nlcs", "bp"])
+def test_save_image_writes_the_complex_image_whose_peaks_are_the_detections_of_detections_csv(
+        single_pass, tmp_path, algorithm):
+    import h5py
+
+    path, scan = single_pass
+    out = tmp_path / "out"
+    assert main(["focus", str(path), "--out", str(out), "--backend", "numpy", "--algorithm", algorithm,
+                 "--save-image"]) == 0
+    with open(out / "detections.csv", newline="") as f:
+        strongest = next(csv.DictReader(f))
+    with h5py.File(out / "sim1_h150.image.h5", "r") as f:  # read from docs/outputs.md section 7 alone
+        assert f.attrs["format"] == "uwbcl-focused-image" and f.attrs["format_version"] == 1
+        assert f.attrs["algorithm"] == algorithm and f.attrs["source"] == str(path)
+        image, az, rg = f["image"][()], f["azimuth_m"][()], f["range_m"][()]
+        assert image.dtype == np.complex64 and image.shape == (az.size, rg.size)
+        assert f["azimuth_m"].attrs["units"] == "m" and f["range_m"].attrs["units"] == "m"
+    i, k = np.unravel_index(np.argmax(np.abs(image)), image.shape)
+    # the image's brightest pixel is the strongest detection's peak, to a pixel
+    assert abs(az[i] - float(strongest["image_azimuth_m"])) <= abs(az[1] - az[0])
+    assert abs(rg[k] - float(strongest["image_range_m"])) <= abs(rg[1] - rg[0])
+    assert np.abs(image[i, k]) == pytest.approx(float(strongest["amplitude"]), rel=0.05)

@@ -198,7 +198,8 @@ def _focus(args: argparse.Namespace) -> int:
     done, failed = [], 0
     for path, png in zip(paths, commission.png_names(paths)):
         try:
-            result = commission.focus_one(path, out_dir / png, settings, str(path))
+            image_h5 = out_dir / f"{Path(png).stem}.image.h5" if args.save_image else None
+            result = commission.focus_one(path, out_dir / png, settings, str(path), image_h5)
         except archive.ArchiveError as exc:  # names the file itself
             print(f"uwbcl focus: {exc}", file=sys.stderr)
             failed += 1
@@ -664,6 +665,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--backend", choices=BACKENDS, default=None, help="opencl (default) or numpy")
     f.add_argument("--algorithm", choices=ALGORITHMS, default=None, help="default nlcs")
     f.add_argument("--config", help="site configuration, TOML (docs/configuration.md); flags override it")
+    f.add_argument("--save-image", action="store_true",
+                   help="also write each pass's complex image and axes as <pass>.image.h5 (docs/outputs.md)")
     f.set_defaults(func=_focus)
 
     k = sub.add_parser("calibrate", help="the radar's delay offset from passes over surveyed reflectors "

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from . import archive, detect, pipeline
+from . import __version__, archive, detect, pipeline
 from . import geometry as geo
-from .atomic import write_csv_atomic
+from .atomic import atomic_path, write_csv_atomic
 from .focus import nlcs
 from .model import SPEED_OF_LIGHT_M_S
 from .outputs import _pyplot, _save, safe_name
@@ -189,11 +189,42 @@ def image_axes(products) -> tuple[np.ndarray, np.ndarray]:
     return grid.t_azimuth_s * grid.speed_m_s, grid.range_bins_m
 
 
-def focus_one(path: Path, png: Path, settings: ProcessingSettings, label: str) -> FocusedPass:
-    """Read, focus and detect one pass, measure its detections and write its PNG (ArchiveError, OSError,
-    ValueError for a pass that cannot be read or focused)."""
+IMAGE_FORMAT = "uwbcl-focused-image"  # `uwbcl focus --save-image` (docs/outputs.md section 7)
+IMAGE_FORMAT_VERSION = 1
+
+
+def write_image_h5(path: Path, scan, products, settings: ProcessingSettings, label: str) -> None:
+    """One pass's focused complex image and its axes, atomically (docs/outputs.md section 7): a pass out of
+    uwbcl for a radar engineer's own tools, in the coordinates of detections.csv."""
+    import h5py
+
+    az, rg = image_axes(products)
+    with atomic_path(path) as tmp, h5py.File(tmp, "w", libver=("v110", "v110"), track_order=True) as f:
+        f.attrs.update({"format": IMAGE_FORMAT, "format_version": np.int64(IMAGE_FORMAT_VERSION),
+                        "created_by": f"uwbcl {__version__} focus", "source": label,
+                        "algorithm": settings.algorithm, "backend": settings.backend,
+                        "rig_id": scan.rig_id, "cycle": np.int64(scan.cycle),
+                        "height_m": float(scan.geometry.height_m),
+                        "carrier_frequency_hz": float(scan.radar.carrier_frequency_hz),
+                        "aperture_centre_m": float(products.grid.aperture_centre_m),
+                        "sin_squint": float(products.grid.sin_squint),
+                        "range_delay_s": float(scan.range_delay_s)})
+        ds = f.create_dataset("image", data=np.asarray(products.image, dtype=np.complex64),
+                              compression="gzip", shuffle=True)
+        ds.attrs.update({"units": "arb", "axes": "azimuth_m,range_m"})
+        for name, axis in (("azimuth_m", az), ("range_m", rg)):
+            f.create_dataset(name, data=np.asarray(axis, dtype=np.float64)).attrs["units"] = "m"
+
+
+def focus_one(path: Path, png: Path, settings: ProcessingSettings, label: str,
+              image_h5: Path | None = None) -> FocusedPass:
+    """Read, focus and detect one pass, measure its detections and write its PNG, and with `image_h5` its
+    complex image (`write_image_h5`) (ArchiveError, OSError, ValueError for a pass that cannot be read or
+    focused)."""
     scan = archive.read_pass(path)
     products, detections = pipeline.focus_pass(scan, settings)
+    if image_h5 is not None:
+        write_image_h5(image_h5, scan, products, settings, label)
     # strongest first (docs/outputs.md section 7): refinement and cancellation reorder the pixel peaks
     detections = sorted(detections, key=lambda d: -d.amplitude)
     az, rg = image_axes(products)
