@@ -179,7 +179,7 @@ class _AbsurdPassOnce(RigController):
 
 
 @pytest.mark.parametrize("values", [{"PULSES_PLANNED": 10**9}, {"SAMPLES_PER_PULSE": 60000},
-                                    {"AMPLITUDE_SCALE": -1.0}])
+                                    {"AMPLITUDE_SCALE": -1.0}, {"DIRECTION": 0}])
 def test_an_absurd_pass_value_fails_the_pass_which_is_aborted_and_re_run(values, tmp_path):
     device = _AbsurdPassOnce(FAST_DEVICE, **values)
     with RigServer(device, LOOPBACK, 0) as server:
@@ -455,3 +455,11 @@ def test_a_command_never_acknowledged_is_written_again_at_growing_intervals_and_
     assert waited < 30.0  # not the 60 s command timeout
     # 2 s of waiting: 20 ms doubling to 1 s is about 7 writes (one every poll was ~100)
     assert 3 <= device.repeats <= 12, device.repeats
+
+
+def test_a_direction_the_positions_contradict_is_never_archived(tmp_path):
+    device = _EveryPass(FAST_DEVICE, lambda b: {"DIRECTION": -b["DIRECTION"]})
+    with RigServer(device, LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, cycles=1, max_attempts=2))
+    assert report.passes_written == [] and len(report.passes_failed) == 2, report
+    assert all("PASS.DIRECTION is" in r for r in report.passes_incomplete)

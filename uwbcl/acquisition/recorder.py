@@ -79,6 +79,8 @@ class PassAssembler:
         scale = descriptor["AMPLITUDE_SCALE"]
         if not (math.isfinite(scale) and scale > 0):
             raise AbsurdValue(f"PASS.AMPLITUDE_SCALE = {scale}: must be a finite number > 0")
+        if descriptor["DIRECTION"] not in (-1, 1):
+            raise AbsurdValue(f"PASS.DIRECTION = {descriptor['DIRECTION']}: must be +1 or -1")
         self.descriptor = descriptor
         self.samples_per_pulse = m
         self.planned = n
@@ -139,6 +141,9 @@ class PassAssembler:
         steps = np.diff(self.position_m[:self.count])
         if not (np.all(steps > 0) or np.all(steps < 0)):
             raise PassIncomplete("rail positions not strictly monotonic (encoder fault)")
+        if np.sign(steps[0]) != descriptor["DIRECTION"]:  # one of the two is wrong, and nothing says which
+            raise PassIncomplete(f"PASS.DIRECTION is {descriptor['DIRECTION']:+d} but the positions run "
+                                 f"{'up' if steps[0] > 0 else 'down'} (encoder sign or controller fault)")
 
     def scan_pass(self, radar: dict, *, rig_id: str, reference_point_m, cycle: int) -> ScanPass:
         d, n = self.descriptor, self.count

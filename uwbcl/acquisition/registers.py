@@ -376,12 +376,14 @@ FAULT_TAXONOMY = (
     FaultRule("PASS_INCOMPLETE", FaultClass.PASS,
               "sequence gap, OVERFLOW, PASS_STATE ABORTED (or not COMPLETE at the end), PULSES_PRODUCED != "
               "PULSES_PLANNED, a PASS value that changed, a foreign TOKEN or CYCLE, PASS.HEIGHT more than "
-              "height_tolerance_m from the commanded height, CYCLE_COUNTER changed while the pass ran",
+              "height_tolerance_m from the commanded height, a DIRECTION the positions contradict, "
+              "CYCLE_COUNTER changed while the pass ran",
               "ABORT if still running, log, run the pass again (a changed CYCLE_COUNTER: scan the new "
               "cycle)"),
     FaultRule("ABSURD_VALUE", FaultClass.PASS,
               "a PASS or RADAR value the client will not use (sizes over its limits, a record that does not "
-              "fit WINDOW_REGS, AMPLITUDE_SCALE not finite > 0)", "ABORT, log, re-read, run the pass again"),
+              "fit WINDOW_REGS, AMPLITUDE_SCALE not finite > 0, DIRECTION not +1 or -1)",
+              "ABORT, log, re-read, run the pass again"),
     FaultRule("NO_PROGRESS", FaultClass.PASS,
               "no new pulse and no change of STATE, PASS_STATE or PULSES_PRODUCED for stall_timeout_s",
               "log, ABORT, run the pass again"),
