@@ -339,7 +339,9 @@ def test_happy_path_two_cycles_two_heights_archived_whole(tmp_path):
     assert all(s.geometry.rotation_table_angle_deg == 30.0 for s in scans)
     first = scans[0]
     assert first.rig_id == "sim-rig" and first.pass_start_time.endswith("Z")
-    assert first.geometry.reference_point_m == pytest.approx((2.4 * math.tan(math.radians(30)), -2.4, 0.3))
+    x_c = 0.5 * (first.pulse_position_m[0] + first.pulse_position_m[-1])  # the aperture centre (map 8)
+    aim = 2.4 * math.tan(math.radians(30))
+    assert first.geometry.reference_point_m == pytest.approx((x_c + aim, -2.4, 0.3))
 
 
 EXPECTED_COUNTER = {"drop": "disconnects", "missing": "no_reply", "exception": "exceptions",

@@ -146,7 +146,12 @@ class PassAssembler:
                                  f"{'up' if steps[0] > 0 else 'down'} (encoder sign or controller fault)")
 
     def scan_pass(self, radar: dict, *, rig_id: str, reference_point_m, cycle: int) -> ScanPass:
+        """The archived pass; `reference_point_m` is the scene centre relative to the aperture centre x_c (the
+        mid-point of the pass's first and last positions), placed at x_c + its x (docs/archive-format.md
+        section 3): a rail whose X_r is not centred on 0 keeps the squint the table was set to."""
         d, n = self.descriptor, self.count
+        x_c = 0.5 * float(self.position_m[0] + self.position_m[n - 1])
+        reference_point_m = (x_c + float(reference_point_m[0]), *reference_point_m[1:])
         echo = float(d["AMPLITUDE_SCALE"]) * (self.iq[:n, :, 0].astype(np.float64)
                                               + 1j * self.iq[:n, :, 1].astype(np.float64))
         geometry = PassGeometry(height_m=d["HEIGHT"], rotation_table_angle_deg=d["TABLE_ANGLE"],
