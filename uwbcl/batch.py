@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__, archive, chain, outputs, pipeline, registration, threads
+from . import __version__, archive, chain, interrupt, outputs, pipeline, registration, threads
 from . import geometry as geo
 from .atomic import write_text_atomic
 from .records import (
@@ -742,6 +742,7 @@ def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, ca
         progress.step(failed="error" in entry)
         if options.on_pass_done is not None:
             options.on_pass_done(done)
+        interrupt.check()  # a stop whose first raise a finalizer swallowed
 
     try:
         if runner is None:
@@ -798,6 +799,7 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
                             r.cycle.cycle, r.displacement.status, r.displacement.n_targets,
                             r.displacement.runner_up_targets)
         problems.sort(key=lambda p: (p.file, p.kind, p.reason))
+        interrupt.check()  # never publish a run that was asked to stop
         rows = outputs.write_all(out_dir, rows_series, cycles, problems, out_opts, groups=groups,
                                  in_dir=in_dir, settings=settings)
     n_cached = len(records) - sum(1 for r in records if r.file in focused)

@@ -17,7 +17,7 @@ from .threads import one_blas_thread
 # Before numpy loads (the imports below): BLAS on one thread in this process and the workers it starts.
 one_blas_thread()
 
-from . import __version__, archive, batch, config, geometry  # noqa: E402
+from . import __version__, archive, batch, config, geometry, interrupt  # noqa: E402
 from .atomic import write_text_atomic  # noqa: E402
 from .importers import OptionError, RecordingError, passes, registry  # noqa: E402
 from .records import ALGORITHMS, BACKENDS, BatchError, ConfigError, OutputError  # noqa: E402
@@ -115,7 +115,7 @@ def _process(args: argparse.Namespace) -> int:
     except OutputError as exc:
         print(f"uwbcl process: {exc}", file=sys.stderr)
         return 1
-    except Interrupted as exc:
+    except interrupt.Interrupted as exc:
         print(f"uwbcl process: stopped by {exc.name}; workers stopped, partial work discarded, the previous "
               "outputs are intact", file=sys.stderr)
         return 128 + exc.signum
@@ -322,28 +322,22 @@ def _directories_problem(in_dir: Path, out_dir: Path) -> str:
     return ""
 
 
-class Interrupted(BaseException):
-    """SIGINT or SIGTERM during a run. A BaseException, as KeyboardInterrupt is: the handler raises it
-    wherever the main thread is, and a pass's `except Exception` (one pass's failure must not stop the night)
-    must not take a stop for a failed pass (with --jobs 1 the passes run in the main thread)."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signum)
-        self.signum, self.name = signum, signal.Signals(signum).name
-
-
 @contextlib.contextmanager
 def _signals_as_interrupts():
-    """SIGINT and SIGTERM raise Interrupted in the main thread: the batch stops its workers on the way out."""
+    """SIGINT and SIGTERM raise Interrupted in the main thread (`interrupt.request`: remembered too, so one
+    that lands in a finalizer is raised again at the batch's next check): the batch stops its workers on the
+    way out."""
     def handler(signum, frame):
-        raise Interrupted(signum)
+        interrupt.request(signum)
 
+    interrupt.clear()
     old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+        interrupt.clear()
 
 
 def _engine_ready(device: str | None, profile: bool = False) -> bool:
