@@ -300,6 +300,17 @@ def test_nan_in_echo_is_reported_with_its_location(scan_file):
     assert "pulse 3, sample 5" in err.reason
 
 
+def test_an_echo_whose_values_would_overflow_float32_focusing_is_refused_and_one_below_is_read(scan_file):
+    def scale_to(value):
+        def change(f):
+            f["echo"].attrs["scale"] = value / float(np.max(np.abs(f["echo"][()].view(np.float32))))
+        return change
+
+    read_pass(edit(scan_file, scale_to(1e29)))  # far beyond any radar, still safe in float32
+    err = expect_error(edit(scan_file, scale_to(3e37)), "/echo", "where float32 focusing would overflow")
+    assert "values up to 3e+37" in err.reason
+
+
 @pytest.mark.parametrize("name", ["/pulses/time_s", "/pulses/position_m"])
 def test_non_finite_pulse_values_are_reported(scan_file, name):
     def put_inf(f):

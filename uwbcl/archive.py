@@ -278,7 +278,7 @@ def write_pass(
     time_s = np.asarray(scan.pulse_time_s, dtype=np.float64)
     position_m = np.asarray(scan.pulse_position_m, dtype=np.float64)
     _check_pulses(path, time_s, position_m, echo.shape[0])
-    _check_echo_finite(path, echo)
+    _check_echo_values(path, echo)
     stored, layout, scale = _encode_echo(path, echo, echo_dtype)
 
     with atomic_path(path, overwrite=overwrite) as partial, h5py.File(partial, "w", libver=_LIBVER) as f:
@@ -412,8 +412,7 @@ def read_pass(path: str | os.PathLike[str], limits: ReadLimits = ReadLimits()) -
         echo[...] = raw
     del raw
     echo *= scale
-    if h["echo_layout"] != "int16_iq":
-        _check_echo_finite(path, echo)
+    _check_echo_values(path, echo)
     radar = RadarParameters(**{k: h[k] for k in _RADAR_POSITIVE}, measured_pulse=measured)
     geometry = PassGeometry(
         height_m=h["height_m"],
@@ -700,11 +699,22 @@ def _check_pulses(path: Any, time_s: np.ndarray, position_m: np.ndarray, n_pulse
         )
 
 
-def _check_echo_finite(path: Any, echo: np.ndarray) -> None:
+# The largest |I| or |Q| of an echo (after its scale): the focusers work in float32 where the error budget
+# allows (max 3.4e38), and a pulse's compression gain (its samples, thousands) must not overflow there. No
+# radar comes near it; a file that does was written with a wrong scale.
+MAX_ECHO_COMPONENT = 1e30
+
+
+def _check_echo_values(path: Any, echo: np.ndarray) -> None:
     bad = ~np.isfinite(echo)
     if bad.any():
         pulse, sample = np.argwhere(bad)[0]
         raise ArchiveError(path, "/echo", f"NaN or inf (first at pulse {pulse}, sample {sample})")
+    largest = max(float(np.max(echo.real, initial=0.0)), -float(np.min(echo.real, initial=0.0)),
+                  float(np.max(echo.imag, initial=0.0)), -float(np.min(echo.imag, initial=0.0)))
+    if largest > MAX_ECHO_COMPONENT:
+        raise ArchiveError(path, "/echo", f"values up to {largest:.3g} (after the scale): more than "
+                           f"{MAX_ECHO_COMPONENT:g}, where float32 focusing would overflow; a wrong scale?")
 
 
 # ----------------------------------------------------------------------------------------------- attributes
