@@ -51,7 +51,8 @@ class PointEcho:
         Gaussian noise is exponential, its median s^2 ln 2 (on the samples at the original rate: as many
         independent values, a quarter of the work). Computed once, when a phase's sigma needs it (the rib
         registration's echoes never do)."""
-        return float(np.median(np.abs(self.rc.data[:, ::UPSAMPLE]) ** 2)) / math.log(2.0)
+        # squared in float64: |x|^2 of the complex64 data overflows float32 from |x| ~ 1.8e19
+        return float(np.median(np.abs(self.rc.data[:, ::UPSAMPLE]).astype(np.float64) ** 2)) / math.log(2.0)
 
     def image(self, x_m: np.ndarray, rc_m: np.ndarray, counts: bool = False):
         """Complex BP at rig-frame points: along the rail x_m (m), closest-approach range rc_m (m); with
