@@ -1,6 +1,7 @@
 """Atomic output files: write next to the final name, fsync, rename, fsync the directory. A reader, or a
 restarted run, never sees half a file, and a failed write leaves the previous version in place. Every file
-uwbcl writes goes through `atomic_path` (CSV, HDF5, PNG, JSON cache entries, archives)."""
+uwbcl writes goes through `atomic_path` (CSV, HDF5, PNG, JSON cache entries, archives). Small files it reads
+back or is given (site files, cache entries) go through `read_regular_file`."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import csv
 import errno
 import io
 import os
+import stat
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -101,3 +103,20 @@ def csv_bytes(columns, rows) -> bytes:
 
 def write_csv_atomic(path: Path, columns, rows) -> None:
     write_bytes_atomic(path, csv_bytes(columns, rows))
+
+
+def read_regular_file(path, max_bytes: int, *, follow_symlinks: bool = True) -> bytes:
+    """The bytes of a regular file of at most `max_bytes`. Opened without blocking and checked before it is
+    read, so a FIFO (which would block) or a device such as /dev/zero (which never ends) is refused, not read;
+    with follow_symlinks=False a symbolic link is refused too. OSError when it cannot be opened, ValueError
+    for anything but a regular file of at most `max_bytes`."""
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0)
+    if not follow_symlinks:
+        flags |= getattr(os, "O_NOFOLLOW", 0)
+    with os.fdopen(os.open(path, flags), "rb") as f:
+        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+            raise ValueError("not a regular file (a FIFO, a device or a directory); not read")
+        raw = f.read(max_bytes + 1)
+    if len(raw) > max_bytes:
+        raise ValueError(f"larger than {max_bytes >> 20} MiB")
+    return raw

@@ -38,7 +38,7 @@ import numpy as np
 
 from . import __version__, archive, chain, interrupt, outputs, pipeline, registration, threads
 from . import geometry as geo
-from .atomic import write_text_atomic
+from .atomic import read_regular_file, write_text_atomic
 from .records import (
     AssociationSettings,
     BatchError,
@@ -110,6 +110,16 @@ def settings_key(settings: ProcessingSettings) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+def focus_failure(e: Exception) -> dict:
+    """The {"error", "kind"} entry (errors.csv) of a pass whose focusing raised `e`: `uwbcl process` and
+    `uwbcl check` (which runs the plan check, `pipeline.check_plan`, alone) name it alike."""
+    if isinstance(e, LimitExceeded):
+        return {"error": str(e), "kind": "exceeds_limits"}
+    if isinstance(e, PassTooSmall):
+        return {"error": f"cannot be focused: {e}", "kind": "processing_failed"}
+    return {"error": f"focusing failed: {type(e).__name__}: {e}", "kind": "processing_failed"}
+
+
 def detect_file(path: str, settings: ProcessingSettings) -> dict:
     """Worker: read and focus one archive. Returns {"header": ..., "detections": [...]} or {"error": ...}.
 
@@ -123,12 +133,8 @@ def detect_file(path: str, settings: ProcessingSettings) -> dict:
         return {"error": f"cannot read: {e.strerror or e}", "kind": "unreadable"}
     try:
         detections = pipeline.detect_pass(scan, settings)
-    except LimitExceeded as e:
-        return {"error": str(e), "kind": "exceeds_limits"}
-    except PassTooSmall as e:
-        return {"error": f"cannot be focused: {e}", "kind": "processing_failed"}
     except Exception as e:  # noqa: BLE001 - a numerical failure in one pass must not stop the night's run
-        return {"error": f"focusing failed: {type(e).__name__}: {e}", "kind": "processing_failed"}
+        return focus_failure(e)
     try:
         header = pass_header(scan, path, settings)
     except (archive.ArchiveError, OSError) as e:  # the file changed under us
@@ -214,17 +220,9 @@ MAX_CACHE_ENTRY_BYTES = 16 << 20
 
 
 def _read_cache_entry(path: Path) -> str:
-    """A cache entry's text, read only from a regular file (not through a symbolic link, never a FIFO or a
-    device: an entry replaced by a link to /dev/zero would never end) of at most MAX_CACHE_ENTRY_BYTES;
-    OSError or ValueError otherwise (the entry is then damaged and recomputed)."""
-    flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
-    with os.fdopen(os.open(path, flags), "rb") as f:
-        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
-            raise ValueError("not a regular file")
-        raw = f.read(MAX_CACHE_ENTRY_BYTES + 1)
-    if len(raw) > MAX_CACHE_ENTRY_BYTES:
-        raise ValueError(f"larger than {MAX_CACHE_ENTRY_BYTES >> 20} MiB")
-    return raw.decode("utf-8")
+    """A cache entry's text (`read_regular_file`, not through a symbolic link: an entry replaced by a link to
+    /dev/zero would never end); OSError or ValueError otherwise (the entry is then damaged and recomputed)."""
+    return read_regular_file(path, MAX_CACHE_ENTRY_BYTES, follow_symlinks=False).decode("utf-8")
 
 
 class PassCache:

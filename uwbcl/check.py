@@ -17,7 +17,7 @@ from pathlib import Path
 
 from . import archive, batch, pipeline
 from . import geometry as geo
-from .records import BatchOptions, LimitExceeded, PassRecord, PassTooSmall, Problem, ProcessingSettings
+from .records import BatchOptions, PassRecord, Problem, ProcessingSettings
 
 
 @dataclasses.dataclass
@@ -66,12 +66,9 @@ def plan_problem(scan, name: str, settings: ProcessingSettings) -> Problem | Non
     window, a pass too small to focus, or one whose focus grid exceeds the limits (`pipeline.check_plan`)."""
     try:
         pipeline.check_plan(pipeline.apply_range_delay(scan, settings.range_delay_s), settings)
-    except LimitExceeded as e:
-        return Problem(name, "exceeds_limits", str(e))
-    except PassTooSmall as e:
-        return Problem(name, "processing_failed", f"cannot be focused: {e}")
-    except ValueError as e:  # the site's delay puts the first sample behind the antenna
-        return Problem(name, "processing_failed", f"focusing failed: ValueError: {e}")
+    except ValueError as e:  # LimitExceeded, PassTooSmall, or the site's delay behind the antenna
+        failure = batch.focus_failure(e)
+        return Problem(name, failure["kind"], failure["error"])
     return None
 
 

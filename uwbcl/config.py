@@ -10,9 +10,9 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import stat
 from typing import Any
 
+from .atomic import read_regular_file
 from .records import (
     AC_MODES,
     ALGORITHMS,
@@ -311,16 +311,13 @@ MAX_CONFIG_BYTES = 1 << 20
 
 
 def read_site_text(path: str | os.PathLike[str]) -> str:
-    """The text of a site file: only a regular file of at most MAX_CONFIG_BYTES is read (never a FIFO or a
-    device such as /dev/zero, which would block or never end), UTF-8, a byte-order mark dropped. ConfigError
-    (file, "-") otherwise; OSError and UnicodeDecodeError pass to the caller."""
-    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))  # a FIFO must not block the open
-    with os.fdopen(fd, "rb") as f:
-        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
-            raise ConfigError(path, "-", "not a regular file (a FIFO, a device or a directory); not read")
-        raw = f.read(MAX_CONFIG_BYTES + 1)
-    if len(raw) > MAX_CONFIG_BYTES:
-        raise ConfigError(path, "-", f"larger than {MAX_CONFIG_BYTES >> 20} MiB: not a site file")
+    """The text of a site file: a regular file of at most MAX_CONFIG_BYTES (`atomic.read_regular_file`: never
+    a FIFO or a device such as /dev/zero, which would block or never end), UTF-8, a byte-order mark dropped.
+    ConfigError (file, "-") otherwise; OSError and UnicodeDecodeError pass to the caller."""
+    try:
+        raw = read_regular_file(path, MAX_CONFIG_BYTES)
+    except ValueError as e:  # not a regular file, or too large for a site file
+        raise ConfigError(path, "-", f"{e}: not a site file") from None
     return raw.decode("utf-8").removeprefix("\ufeff")
 
 
