@@ -431,6 +431,30 @@ def test_live_processing_warns_once_about_conjugated_data_as_process_does(monkey
     assert len(located) == 4  # the warning withholds nothing: the cycles are still processed
 
 
+def test_a_cycle_cut_short_after_two_heights_is_measured_live_as_process_measures_it(monkeypatch):
+    """A push between heights (register map section 13, item 2) leaves a cycle with some heights: two or more
+    locate the plates, as `uwbcl process` uses them (batch.group_cycles); one is INCOMPLETE_CYCLE."""
+    from uwbcl.acquisition import live
+
+    located = []
+    monkeypatch.setattr(live.pipeline, "locate_cycle",
+                        lambda passes, settings: located.append(passes) or SimpleNamespace(plates=[]))
+    monkeypatch.setattr(live.chain.RigChain, "add", lambda self, cycle: None)
+    monkeypatch.setattr(live.geo, "doppler_wrong_side", lambda scan: None)  # the stand-ins have no echo
+    monkeypatch.setattr(live.pipeline, "apply_range_delay", lambda scan, delay_s: scan)
+    proc = live.LiveProcessor(live.processing_settings("numpy"))
+    try:
+        two = [SimpleNamespace(cycle=7, geometry=SimpleNamespace(height_m=h)) for h in (0.15, 0.45)]
+        cut_two = proc._process(7, two, False, "")
+        cut_one = proc._process(8, two[:1], False, "")
+    finally:
+        proc.close()
+    assert len(located) == 1 and located[0] == two
+    assert [r["status"] for r in cut_two] == ["reference"]  # measured (the first cycle is the reference)
+    assert [r["status"] for r in cut_one] == ["incomplete_cycle"]
+    assert cut_one[0]["status_code"] == R.ResultStatus.INCOMPLETE_CYCLE
+
+
 def test_sigint_mid_pass_stops_cleanly_without_a_partial_archive(tmp_path):
     slow = dataclasses.replace(FAST_DEVICE, time_scale=2.0, first_cycle_after_s=1e6)  # a pass lasts 1.5 s
     with RigServer(RigController(slow), LOOPBACK, 0) as server:

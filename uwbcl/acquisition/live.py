@@ -117,9 +117,13 @@ class LiveProcessor:
 
     def _process(self, cycle: int, passes, complete: bool, start_time) -> list[dict]:
         """The cycle's result, then the earlier cycles it resolved (the chain's second look: revision 1)."""
-        if not complete or len({p.geometry.height_m for p in passes}) < 2:
+        # as `uwbcl process` does (batch.group_cycles): two heights locate the plates, whether or not the scan
+        # was cut short (a push between heights, a height given up)
+        if len({p.geometry.height_m for p in passes}) < 2:
             log.warning("cycle %d: incomplete (%d passes); no displacement", cycle, len(passes))
             return [self._row(cycle, start_time, None, R.ResultStatus.INCOMPLETE_CYCLE, "incomplete_cycle")]
+        if not complete:
+            log.warning("cycle %d: cut short; measured from the %d passes completed", cycle, len(passes))
         self._check_q_sign(cycle, passes)
         located = pipeline.locate_cycle(passes, self.settings)
         log.info("cycle %d: %d plates located", cycle, len(located.plates))

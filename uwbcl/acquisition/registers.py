@@ -325,7 +325,7 @@ ENUM_DOCS = {
     "ResultStatus.OK": "a trustworthy estimate",
     "ResultStatus.AMBIGUOUS": "another plate correspondence explains the data as well",
     "ResultStatus.TOO_FEW_TARGETS": "not enough plates matched between the two cycles: no estimate",
-    "ResultStatus.INCOMPLETE_CYCLE": "not every height of the cycle could be acquired: no estimate",
+    "ResultStatus.INCOMPLETE_CYCLE": "fewer than two heights of the cycle could be acquired: no estimate",
     "ResultStatus.PROCESSING_ERROR": "the processing failed: no estimate",
     "ResultStatus.FLAGGED": "an estimate the processing flags for another reason (e.g. low confidence)",
     "RecordFlag.FIRST": "first pulse of the pass",
