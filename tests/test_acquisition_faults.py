@@ -463,3 +463,27 @@ def test_a_direction_the_positions_contradict_is_never_archived(tmp_path):
         report = run_session(settings_for(server, tmp_path, cycles=1, max_attempts=2))
     assert report.passes_written == [] and len(report.passes_failed) == 2, report
     assert all("PASS.DIRECTION is" in r for r in report.passes_incomplete)
+
+
+class _BusyAtSetUp(RigController):
+    """Answers the first reads of STATUS with exception 06 (device busy), so the client's first connection
+    fails its set-up reads and is made again."""
+
+    def __init__(self, config, n_busy: int):
+        super().__init__(config)
+        self.n_busy = n_busy
+
+    def read(self, now, table, address, count):
+        if table is R.Table.INPUT and address == R.STATUS.address and self.n_busy > 0:
+            self.n_busy -= 1
+            raise ModbusFault(6, "busy at set-up")
+        return super().read(now, table, address, count)
+
+
+def test_a_connection_made_again_after_failed_set_up_reads_is_counted_as_a_reconnect(tmp_path):
+    device = _BusyAtSetUp(FAST_DEVICE, n_busy=12)  # more than one connection's set-up tries (10)
+    with RigServer(device, LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, cycles=1))
+    assert device.n_busy == 0
+    assert report.ok and len(report.passes_written) == 2, report
+    assert report.faults.reconnects >= 1 and report.faults.exceptions >= 12

@@ -253,16 +253,17 @@ class RigLink:
             if self.stop.is_set():
                 raise Interrupted()
             if self.client.connect():
+                # every connection after the first is a reconnect, also one whose set-up reads then failed
+                if self._ever_connected:
+                    self.counts.reconnects += 1
+                    log.info("reconnected to %s:%d", self.host, self.port)
+                self._ever_connected = True
                 try:
                     status = self._read_block_once(R.STATUS)
                     identity, radar = self._describe_once()
                 except (_NoReply, LinkDown):
                     self.client.close()
                 else:
-                    if self._ever_connected:
-                        self.counts.reconnects += 1
-                        log.info("reconnected to %s:%d", self.host, self.port)
-                    self._ever_connected = True
                     self.identity, self.radar = identity, radar
                     self.first_status = self.first_status or status
                     rebooted = self.boot_id is not None and status["BOOT_ID"] != self.boot_id
@@ -653,14 +654,14 @@ class AcquisitionSession:
                 try:
                     scan, token, boot = self._run_pass(cycle, height)
                 except CycleSuperseded as exc:
-                    log.warning("cycle %d superseded during its scan (%s): %d of %d heights acquired; not "
-                                "processed", cycle, exc, len(passes), len(self.settings.heights_m))
+                    log.warning("cycle %d superseded during its scan (%s): %d of %d heights acquired", cycle,
+                                exc, len(passes), len(self.settings.heights_m))
                     self.report.cycles_incomplete.append(cycle)
                     self._submit(cycle, passes, complete=False, start_time=start_time)
                     return exc.counter
                 except (PassIncomplete, DeviceRebooted, LinkDown) as exc:  # fault class PASS: ABORT, re-run
                     self._abort_quietly()
-                    reason = str(exc) or "controller rebooted mid-pass"
+                    reason = str(exc) or "controller rebooted before the pass was stored"  # its buffer is gone
                     self.report.passes_incomplete.append(f"{name} attempt {attempt}: {reason}")
                     log.warning("pass %s attempt %d incomplete: %s; %s", name, attempt, reason,
                                 "re-running it" if attempt < self.settings.max_attempts else "giving up")
