@@ -661,7 +661,7 @@ class AcquisitionSession:
                     return exc.counter
                 except (PassIncomplete, DeviceRebooted, LinkDown) as exc:  # fault class PASS: ABORT, re-run
                     self._abort_quietly()
-                    reason = str(exc) or "controller rebooted before the pass was stored"  # its buffer is gone
+                    reason = str(exc) or "controller rebooted before the pass was stored"
                     self.report.passes_incomplete.append(f"{name} attempt {attempt}: {reason}")
                     log.warning("pass %s attempt %d incomplete: %s; %s", name, attempt, reason,
                                 "re-running it" if attempt < self.settings.max_attempts else "giving up")
