@@ -22,6 +22,16 @@ def test_simulate_writes_one_archive_per_pass_and_the_truth(simulated):
     assert truth["cycles"][1]["creep_m"] == pytest.approx(0.10)
 
 
+def test_simulate_names_the_rigs_after_rig_id_for_a_paper_scenario_and_a_shift(simulated, tmp_path):
+    assert json.loads((simulated / "truth.json").read_text())["rig_id"] == "sim-rig"
+    assert {p.name.split("_c")[0] for p in simulated.rglob("*.h5")} == {"sim-rig"}
+    assert main(["simulate", str(tmp_path), "--scenario", "shift", "--rigs", "2", "--cycles", "1",
+                 "--rig-id", "LW104"]) == 0
+    assert {p.name.split("_c")[0] for p in tmp_path.rglob("*.h5")} == {"LW104-1", "LW104-2"}
+    with (tmp_path / "truth.csv").open() as f:
+        assert {r["rig_id"] for r in csv.DictReader(f)} == {"LW104-1", "LW104-2"}
+
+
 def test_process_writes_the_displacement_of_each_cycle_after_the_first(simulated, tmp_path):
     assert main(["process", str(simulated), "--out", str(tmp_path)]) == 0
     rows = list(csv.DictReader((tmp_path / "displacements.csv").open()))

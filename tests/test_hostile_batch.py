@@ -348,6 +348,12 @@ def test_a_kill_at_every_rename_leaves_one_complete_set_and_a_rerun_gives_the_un
     shutil.copytree(ref / batch.CACHE_DIR, out / batch.CACHE_DIR)
     template, full = tmp_path / "template", tmp_path / "full"
     shutil.copytree(out, template, symlinks=True)
+    # the uninterrupted run over the same old set (its rows' revisions count from the old set's)
+    uninterrupted = tmp_path / "uninterrupted"
+    shutil.copytree(template, uninterrupted, symlinks=True)
+    batch.process_directory(extra, uninterrupted, SETTINGS, options())
+    new = outputs_of(uninterrupted)
+    assert old != new
     script = tmp_path / "kill.py"
     script.write_text(KILL_AT)
 

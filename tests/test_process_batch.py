@@ -505,3 +505,96 @@ def test_one_blas_thread_keeps_what_the_user_set():
     added = threads.one_blas_thread(env)
     assert env["MKL_NUM_THREADS"] == "4" and "MKL_NUM_THREADS" not in added
     assert all(env[v] == "1" for v in added) and len(added) == len(threads.BLAS_THREAD_VARIABLES) - 1
+
+
+# ----------------------------------------------------------------------------------------------- revisions
+def _rows_by_cycle(out: Path) -> dict[int, dict]:
+    return {int(r["cycle"]): r for r in rows(out / "displacements.csv")}
+
+
+def test_a_published_row_that_changes_gets_the_next_revision_and_revisions_never_go_back(
+        archive_dir, clean, tmp_path):
+    out = warm_out(clean[0], tmp_path)
+    first = batch.process_directory(archive_dir, out, SETTINGS, options())
+    assert {r["revision"] for r in first.rows} == {0}
+    wider = dataclasses.replace(SETTINGS, association=dataclasses.replace(SETTINGS.association,
+                                                                          range_sigma_m=0.01))
+    batch.process_directory(archive_dir, out, wider, options())  # every bound changes
+    changed = _rows_by_cycle(out)
+    assert {c: r["revision"] for c, r in changed.items()} == {1: "1", 2: "1"}
+    batch.process_directory(archive_dir, out, wider, options())  # nothing changes: the revisions stay
+    assert _rows_by_cycle(out) == changed
+    batch.process_directory(archive_dir, out, SETTINGS, options())  # the first values again, a new revision
+    back = _rows_by_cycle(out)
+    assert {c: r["revision"] for c, r in back.items()} == {1: "2", 2: "2"}
+    first_text = {int(r["cycle"]): r for r in rows(clean[0] / "displacements.csv")}
+    for c, r in back.items():
+        assert {k: v for k, v in r.items() if k != "revision"} == \
+            {k: v for k, v in first_text[c].items() if k != "revision"}
+
+
+def test_a_published_cycle_whose_archives_are_removed_stays_as_a_withdrawn_row_until_they_return(
+        archive_dir, clean, tmp_path, capsys):
+    src = copy_archive(archive_dir, tmp_path)
+    out = warm_out(clean[0], tmp_path)
+    batch.process_directory(src, out, SETTINGS, options())
+    published = _rows_by_cycle(out)
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    originals = _cycle_files(src, 2)
+    for f in originals:
+        f.rename(moved / f.name)
+    assert main(["process", str(src), "--out", str(out), "--backend", "numpy", "--jobs", "1",
+                 "--no-progress", "--web-depth", "0.9"]) == 0
+    assert "1 displacements (0 flagged, 1 withdrawn rows kept)" in capsys.readouterr().out
+    gone = _rows_by_cycle(out)
+    assert gone[1] == published[1]
+    w = gone[2]
+    assert (w["status"], w["revision"], w["chain"], w["from_cycle"]) == ("withdrawn", "1", "-1", "1")
+    assert w["start_time"] == published[2]["start_time"]
+    assert all(w[k] == "nan" for k in ("retreat_m", "creep_m", "cumulative_retreat_m", "retreat_bound_m"))
+    with h5py.File(out / "displacements.h5") as f:
+        assert [s.decode() for s in f["displacements/status"][:]] == ["ok", "withdrawn"]
+    batch.process_directory(src, out, SETTINGS, options())
+    assert _rows_by_cycle(out) == gone  # a tombstone is carried unchanged
+    for f in originals:
+        (moved / f.name).rename(f)
+    batch.process_directory(src, out, SETTINGS, options())
+    back = _rows_by_cycle(out)
+    assert back[2]["revision"] == "2"
+    assert {k: v for k, v in back[2].items() if k != "revision"} == \
+        {k: v for k, v in published[2].items() if k != "revision"}
+
+
+def test_an_archive_directory_that_yields_no_pass_keeps_the_published_set_and_exits_1(
+        archive_dir, clean, tmp_path, capsys):
+    out = warm_out(clean[0], tmp_path)
+    batch.process_directory(archive_dir, out, SETTINGS, options())
+    before = snapshot(out)
+    empty = tmp_path / "unmounted"
+    empty.mkdir()
+    args = ["--out", str(out), "--backend", "numpy", "--jobs", "1", "--no-progress"]
+    assert main(["process", str(empty), *args]) == 1
+    err = capsys.readouterr().err
+    assert "no archive could be read; nothing published, the previous outputs are intact" in err
+    assert "no archive (*.h5) under" in err
+    assert snapshot(out) == before
+    (empty / "rig-1_c000009_h0150.h5").write_bytes(b"not hdf5")  # only unreadable archives: the same
+    assert main(["process", str(empty), *args]) == 1
+    assert snapshot(out) == before
+    fresh = tmp_path / "fresh"  # nothing published before: the problem is written, exit 1
+    (empty / "rig-1_c000009_h0150.h5").unlink()
+    assert main(["process", str(empty), "--out", str(fresh), "--backend", "numpy", "--no-progress"]) == 1
+    assert [(r["file"], r["kind"]) for r in rows(fresh / "errors.csv")] == [(".", "no_archives")]
+    assert rows(fresh / "displacements.csv") == []
+
+
+def test_a_published_set_that_cannot_be_read_back_is_logged_and_the_run_goes_on(
+        archive_dir, clean, tmp_path, caplog):
+    out = warm_out(clean[0], tmp_path)
+    batch.process_directory(archive_dir, out, SETTINGS, options())
+    published = (out / "displacements.csv").resolve()
+    published.write_bytes(b"\xff\xfe garbage \x00" * 10)
+    batch.process_directory(archive_dir, out, SETTINGS, options())
+    assert "the published displacements cannot be read" in caplog.text
+    assert snapshot(out) == snapshot(clean[0])  # revisions from the chain, as in a fresh directory

@@ -48,6 +48,7 @@ from .records import (
     Detection,
     DetectionSettings,
     LimitExceeded,
+    NothingRead,
     PassRecord,
     PassTooSmall,
     Problem,
@@ -796,7 +797,13 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
                 log.warning("rig %s cycle %d: %s (%d plates matched, runner-up %d)", r.cycle.rig_id,
                             r.cycle.cycle, r.displacement.status, r.displacement.n_targets,
                             r.displacement.runner_up_targets)
+        if not files and not problems:  # (a problem of the walk already says why nothing was found)
+            problems.append(Problem(".", "no_archives", f"no archive (*.h5) under {in_dir}"))
+            log.error("%s: no archive (*.h5) found", in_dir)
         problems.sort(key=lambda p: (p.file, p.kind, p.reason))
+        if not records and outputs.previous_displacements(out_dir):
+            raise NothingRead(f"{in_dir}: no archive could be read; nothing published, the previous "
+                              "outputs are intact", problems)
         interrupt.check()  # never publish a run that was asked to stop
         rows = outputs.write_all(out_dir, rows_series, cycles, problems, out_opts, groups=groups,
                                  in_dir=in_dir, settings=settings)

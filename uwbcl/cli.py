@@ -17,10 +17,10 @@ from .threads import one_blas_thread
 # Before numpy loads (the imports below): BLAS on one thread in this process and the workers it starts.
 one_blas_thread()
 
-from . import __version__, archive, batch, config, geometry, interrupt  # noqa: E402
+from . import __version__, archive, batch, config, geometry, interrupt, outputs  # noqa: E402
 from .atomic import write_text_atomic  # noqa: E402
 from .importers import OptionError, RecordingError, passes, registry  # noqa: E402
-from .records import ALGORITHMS, BACKENDS, BatchError, ConfigError, OutputError  # noqa: E402
+from .records import ALGORITHMS, BACKENDS, BatchError, ConfigError, NothingRead, OutputError  # noqa: E402
 from .scenarios import SCENARIOS  # noqa: E402
 
 
@@ -29,12 +29,16 @@ def _simulate_shift(args: argparse.Namespace) -> int:
 
     cfg = shift.ShiftConfig(cycles=args.cycles, rigs=args.rigs, first_cycle=args.first_cycle, seed=args.seed,
                             snr_db=args.snr_db, speed_jitter=args.speed_jitter,
-                            **({"heights_m": config.parse_heights(args.heights)} if args.heights else {}))
+                            **({"heights_m": config.parse_heights(args.heights)} if args.heights else {}),
+                            **({"rig_prefix": args.rig_id} if args.rig_id else {}))
     written = shift.write_shift(args.out_dir, cfg, overwrite=args.overwrite,
                                 created_by=f"uwbcl {__version__} simulate --scenario shift")
     print(f"wrote {len(written)} passes ({cfg.rigs} rigs, cycles {cfg.first_cycle}-"
           f"{cfg.first_cycle + cfg.cycles - 1}), truth.csv and truth_plates.csv to {args.out_dir}")
     return 0
+
+
+SIMULATED_RIG_ID = "sim-rig"  # a paper scenario's rig
 
 
 def _simulate(args: argparse.Namespace) -> int:
@@ -44,7 +48,7 @@ def _simulate(args: argparse.Namespace) -> int:
     out = Path(args.out_dir)
     heights = config.parse_heights(args.heights)
     passes = scenario.simulate(snr_db=args.snr_db, speed_jitter=args.speed_jitter, seed=args.seed,
-                               heights_m=heights, rig_id=args.rig_id)
+                               heights_m=heights, rig_id=args.rig_id or SIMULATED_RIG_ID)
     written = []
     for scan in passes:
         path = out / archive.default_relative_path(scan)
@@ -54,7 +58,7 @@ def _simulate(args: argparse.Namespace) -> int:
     truth = {
         "scenario": scenario.name, "seed": args.seed, "snr_db": args.snr_db,
         "speed_jitter": args.speed_jitter,
-        "rig_id": args.rig_id, "heights_m": list(heights or scenario.heights_m),
+        "rig_id": args.rig_id or SIMULATED_RIG_ID, "heights_m": list(heights or scenario.heights_m),
         "target_names": list(scenario.target_names),
         "targets_roadway_m": scenario.targets_roadway_m.tolist(),
         "cycles": [{
@@ -115,21 +119,28 @@ def _process(args: argparse.Namespace) -> int:
     except OutputError as exc:
         print(f"uwbcl process: {exc}", file=sys.stderr)
         return 1
+    except NothingRead as exc:
+        print(f"uwbcl process: {exc}", file=sys.stderr)
+        for p in exc.problems:
+            print(f"  {p.file}: {p.reason}", file=sys.stderr)
+        return 1
     except interrupt.Interrupted as exc:
         print(f"uwbcl process: stopped by {exc.name}; workers stopped, partial work discarded, the previous "
               "outputs are intact", file=sys.stderr)
         return 128 + exc.signum
     if args.profile:
         _print_profile(settings)
-    flagged = sum(r["status"] != "ok" for r in report.rows)
+    withdrawn = sum(r["status"] == outputs.WITHDRAWN for r in report.rows)
+    flagged = sum(r["status"] not in ("ok", outputs.WITHDRAWN) for r in report.rows)
     unread = report.n_passes - report.n_detected - report.n_cached
     extra = "".join([f", {unread} not read or not focused" if unread else "",
                      f", {len(report.warnings)} warnings" if report.warnings else "",
                      f", {report.n_cache_damaged} damaged cache entries recomputed" if report.n_cache_damaged
                      else ""])
+    kept = f", {withdrawn} withdrawn rows kept" if withdrawn else ""
     print(f"{report.n_passes} passes ({report.n_detected} focused, {report.n_cached} from the cache{extra}), "
-          f"{len(report.cycles)} cycles located, {len(report.rows)} displacements ({flagged} flagged) "
-          f"written to {out_dir}")
+          f"{len(report.cycles)} cycles located, {len(report.rows) - withdrawn} displacements ({flagged} "
+          f"flagged{kept}) written to {out_dir}")
     if report.errors:
         print(f"{len(report.errors)} problems, see {Path(args.out) / 'errors.csv'}:", file=sys.stderr)
         for p in report.errors:
@@ -603,7 +614,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--rigs", type=int, default=3, help="shift: rigs (default 3)")
     s.add_argument("--first-cycle", type=int, default=0,
                    help="shift: first cycle to write, to append a later shift to an archive tree")
-    s.add_argument("--rig-id", default="sim-rig")
+    s.add_argument("--rig-id", help=f"the rig's id (default {SIMULATED_RIG_ID}); shift: the prefix of its "
+                   "rigs' ids, ID-1, ID-2, ... (default rig)")
     s.add_argument("--overwrite", action="store_true", help="replace existing archives")
     s.set_defaults(func=_simulate)
 

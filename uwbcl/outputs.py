@@ -6,10 +6,12 @@ errors.csv: every problem; plots/ (on request): time series per rig and focused 
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import importlib.util
 import io
 import logging
+import math
 import os
 import shutil
 import sys
@@ -18,7 +20,14 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__, archive, pipeline
-from .atomic import PARTIAL_SUFFIX, atomic_path, csv_bytes, fsync_directory, write_bytes_atomic
+from .atomic import (
+    PARTIAL_SUFFIX,
+    atomic_path,
+    csv_bytes,
+    fsync_directory,
+    read_regular_file,
+    write_bytes_atomic,
+)
 from .names import MAX_NAME_LENGTH, safe_name  # noqa: F401  (MAX_NAME_LENGTH: tests)
 from .records import TRUSTED_STATUSES, BatchError, CycleResult, OutputError, Problem, SeriesRow
 from .utc import parse_utc
@@ -85,6 +94,87 @@ def displacement_records(rows: list[SeriesRow]) -> list[dict]:
 
 def _text(records: list[dict]) -> list[dict]:
     return [{k: _m(v) if isinstance(v, float) else v for k, v in rec.items()} for rec in records]
+
+
+# ------------------------------------------------------------------------------------ revisions across runs
+# A row already published is never changed silently: each run compares its rows with the published set's and
+# raises `revision` where a row's values changed; a published cycle that is no longer measured (its archives
+# removed or no longer usable) stays as a `withdrawn` row (docs/outputs.md section 2.1, "revision").
+WITHDRAWN = "withdrawn"
+MAX_PREVIOUS_BYTES = 64 << 20  # the published displacements.csv read back (about 200 000 rows)
+
+
+def previous_displacements(out_dir: Path) -> dict[tuple[str, int], dict]:
+    """The published set's displacements.csv rows (text) by (rig_id, cycle); {} when there is none. A file
+    that cannot be read or parsed is logged and taken as none: revisions then start again from the chain's."""
+    path = out_dir / CURRENT_LINK / "displacements.csv"
+    try:
+        text = read_regular_file(path, MAX_PREVIOUS_BYTES).decode("utf-8")
+        rows = list(csv.DictReader(io.StringIO(text, newline="")))
+    except FileNotFoundError:
+        return {}
+    except (OSError, ValueError, csv.Error) as e:  # UnicodeDecodeError is a ValueError
+        log.warning("%s: the published displacements cannot be read (%s); revisions are not carried over",
+                    path, e)
+        return {}
+    previous, bad = {}, 0
+    for r in rows:
+        try:
+            key = (r["rig_id"], int(r["cycle"]))
+            int(r.get("revision") or 0)
+        except (KeyError, TypeError, ValueError):
+            bad += 1
+            continue
+        if key[0] is None or r.get("status") is None:
+            bad += 1
+            continue
+        previous[key] = r
+    if bad:
+        log.warning("%s: %d published rows cannot be read; their revisions are not carried over", path, bad)
+    return previous
+
+
+def _withdrawn(p: dict) -> dict:
+    """The tombstone of a published row whose cycle is no longer measured."""
+    rec = {c: math.nan for c in DISPLACEMENT_COLUMNS}
+    try:
+        from_cycle = int(p.get("from_cycle") or -1)
+    except ValueError:
+        from_cycle = -1
+    revision = int(p.get("revision") or 0)
+    rec.update(rig_id=p["rig_id"], cycle=int(p["cycle"]), from_cycle=from_cycle,
+               start_time=p.get("start_time") or "", chain=-1, n_targets=0, n_plates=0, runner_up_targets=0,
+               phase_looks=0, status=WITHDRAWN)
+    rec["revision"] = revision if p["status"] == WITHDRAWN else revision + 1
+    return rec
+
+
+def carry_revisions(records: list[dict], previous: dict[tuple[str, int], dict]) -> list[dict]:
+    """`records` (displacement_records) with the revisions of the published set carried over: a row whose
+    values (every column both sets have, but `revision`) are unchanged keeps its revision, a changed one gets
+    the published revision + 1 (at least the chain's), and a published row without a record now becomes a
+    `withdrawn` row. Revisions never decrease; the rows stay sorted by rig_id (code points), then cycle."""
+    if not previous:
+        return records
+    out = []
+    for rec in records:
+        p = previous.pop((rec["rig_id"], rec["cycle"]), None)
+        if p is not None:
+            text = _text([rec])[0]
+            published = int(p.get("revision") or 0)
+            same = all(str(text[k]) == v for k, v in p.items() if k in text and k != "revision")
+            rec = {**rec, "revision": max(published if same else published + 1, rec["revision"])}
+            if not same:
+                log.info("rig %s cycle %d: revision %d: changed since the published set (%s)", rec["rig_id"],
+                         rec["cycle"], rec["revision"], ", ".join(
+                             k for k, v in p.items() if k in text and k != "revision" and str(text[k]) != v))
+        out.append(rec)
+    for (rig, cycle), p in previous.items():
+        if p["status"] != WITHDRAWN:
+            log.warning("rig %s cycle %d: withdrawn: published before, no longer measured (its archives are "
+                        "gone or no longer usable)", rig, cycle)
+        out.append(_withdrawn(p))
+    return sorted(out, key=lambda r: (r["rig_id"], r["cycle"]))
 
 
 def write_displacements_csv(path: Path, rows: list[SeriesRow]) -> list[dict]:
@@ -169,13 +259,15 @@ def write_all(out_dir: Path, rows: list[SeriesRow], cycles: list[CycleResult], p
     """
     try:
         _adopt_plain_outputs(out_dir)  # first: the old set's generation is then numbered before the new one
+        previous = previous_displacements(out_dir)
         gen = new_generation(out_dir)
     except OSError as e:
         raise OutputError(f"cannot write the outputs: {e.filename or out_dir}: {e.strerror or e}; the "
                           "previous outputs are intact") from e
     try:
-        disp = displacement_records(rows)
-        disp_text = write_displacements_csv(gen / "displacements.csv", rows)
+        disp = carry_revisions(displacement_records(rows), previous)
+        disp_text = _text(disp)
+        write_bytes_atomic(gen / "displacements.csv", csv_bytes(DISPLACEMENT_COLUMNS, disp_text))
         targets = target_records(rows, cycles) if (opts.targets or opts.hdf5) else []
         if opts.targets:
             write_bytes_atomic(gen / "targets.csv", csv_bytes(TARGET_COLUMNS, _text(targets)))

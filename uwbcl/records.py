@@ -58,6 +58,15 @@ class OutputError(RuntimeError):
     place."""
 
 
+class NothingRead(RuntimeError):
+    """No archive could be read, and a published set exists: publishing would withdraw every row of it (an
+    input share that did not mount), so it is kept. `problems` are the run's problems."""
+
+    def __init__(self, message: str, problems: list) -> None:
+        super().__init__(message)
+        self.problems = problems
+
+
 # ----------------------------------------------------------------------------------------------- settings
 @dataclasses.dataclass(frozen=True)
 class DetectionSettings:

@@ -54,6 +54,7 @@ class ShiftConfig:
     seed: int = 0
     snr_db: float | None = None
     speed_jitter: float = 0.0
+    rig_prefix: str = "rig"  # the rigs' ids are <prefix>-1, <prefix>-2, ...
     # A 3 m rail at 0.25 m/s and 20 Hz: 241 pulses, the cost of a paper pass (sim 1: 267), and a 3 m window
     # along the rib, so consecutive cycles still share ~2 m of plates after a 1 m web (2 m would leave ~1 m).
     aperture_length_m: float = 3.0
@@ -87,8 +88,8 @@ class CycleTruth:
     reference_point_m: np.ndarray  # (3,) radar frame, where the rig believes its reference plate is
 
 
-def rig_id(rig: int) -> str:
-    return f"rig-{rig + 1}"
+def rig_id(rig: int, prefix: str = "rig") -> str:
+    return f"{prefix}-{rig + 1}"
 
 
 def _rng(cfg: ShiftConfig, rig: int, *purpose: int) -> np.random.Generator:
@@ -189,7 +190,8 @@ def cycle_truths(cfg: ShiftConfig, rig: int, rib_: Rib | None = None) -> list[Cy
             wall = float(np.median(-believed_radar[:, 1]))
             ref = np.array([wall * math.tan(math.radians(cfg.look_angle_deg)), -wall, model.row_heights_m[0]])
         angle = geo.rotation_table_angle_for(ref, 0.0)
-        out.append(CycleTruth(rig_id(rig), c, _format_time(when), rig_pos.copy(), advance, angle, ref))
+        out.append(CycleTruth(rig_id(rig, cfg.rig_prefix), c, _format_time(when), rig_pos.copy(), advance,
+                              angle, ref))
     return out
 
 
@@ -282,8 +284,8 @@ def plate_rows(cfg: ShiftConfig) -> list[dict]:
     for rig in range(cfg.rigs):
         r = rib(cfg, rig, _x_max(cfg, cfg.first_cycle + cfg.cycles))
         for i, (p, a) in enumerate(zip(r.plates_m, r.plate_amplitudes)):
-            rows.append({"rig_id": rig_id(rig), "plate": i, "x_m": f"{p[0]:.6f}", "y_m": f"{p[1]:.6f}",
-                         "z_m": f"{p[2]:.6f}", "amplitude": f"{a:.6f}"})
+            rows.append({"rig_id": rig_id(rig, cfg.rig_prefix), "plate": i, "x_m": f"{p[0]:.6f}",
+                         "y_m": f"{p[1]:.6f}", "z_m": f"{p[2]:.6f}", "amplitude": f"{a:.6f}"})
     return rows
 
 
