@@ -121,8 +121,8 @@ def test_a_linked_directory_is_reported_not_followed_and_followed_on_request_wit
 
 # ----------------------------------------------------------------------------------------------- the cache
 @pytest.mark.parametrize("damage", ["null", "not_a_list", "string_field", "directory", "cache_is_a_file",
-                                    "link_to_dev_zero", "fifo", "huge"])
-def test_a_damaged_cache_is_recomputed_and_counted_never_fatal(tree, clean, damage):
+                                    "link_to_dev_zero", "fifo", "huge", "empty_object", "other_sha"])
+def test_a_damaged_cache_is_recomputed_and_counted_never_fatal(tree, clean, damage, caplog):
     src, out = tree
     key_dir = next((out / batch.CACHE_DIR).iterdir())
     entry = sorted(key_dir.glob("*.json"))[0]
@@ -145,6 +145,10 @@ def test_a_damaged_cache_is_recomputed_and_counted_never_fatal(tree, clean, dama
         os.mkfifo(entry)
     elif damage == "huge":
         entry.write_text(json.dumps({**record, "pad": "x" * (batch.MAX_CACHE_ENTRY_BYTES + 1)}))
+    elif damage == "empty_object":
+        entry.write_text("{}")
+    elif damage == "other_sha":
+        entry.write_text(json.dumps({**record, "sha256": "0" * 64}))
     else:
         shutil.rmtree(out / batch.CACHE_DIR)
         (out / batch.CACHE_DIR).write_text("not a directory")
@@ -153,6 +157,12 @@ def test_a_damaged_cache_is_recomputed_and_counted_never_fatal(tree, clean, dama
     assert (out / "displacements.csv").read_bytes() == (clean[0] / "displacements.csv").read_bytes()
     if damage != "cache_is_a_file":
         assert report.n_cache_damaged == 1 and report.n_detected == 1
+        assert "damaged cache entry" in caplog.text
+        # the entry was replaced: the next run takes every pass from the cache
+        again = batch.process_directory(src, out, SETTINGS, options())
+        assert again.n_cache_damaged == 0 and again.n_detected == 0
+    else:  # left aside for the run, not taken for a damaged entry per pass
+        assert report.n_cache_damaged == 0 and "is not a directory: left aside" in caplog.text
 
 
 # ----------------------------------------------------------------------------------------------- the outputs

@@ -25,6 +25,7 @@ import logging
 import math
 import multiprocessing
 import os
+import shutil
 import signal
 import stat
 import sys
@@ -233,6 +234,10 @@ class PassCache:
         self.dir = out_dir / CACHE_DIR / settings_key(settings)
         self.enabled = enabled
         self.damaged = 0  # entries found damaged and recomputed in this run
+        for d in (out_dir / CACHE_DIR, self.dir):  # (a link in their place stopped the run: `_exclusive`)
+            if enabled and (d.exists() or d.is_symlink()) and not d.is_dir():
+                log.warning("cache %s is not a directory: left aside for this run", d)
+                self.enabled = False
 
     def get(self, file: str, sha: str) -> PassRecord | None:
         """The cached record of a file's content, or None (absent, or damaged: then recomputed, never
@@ -244,8 +249,11 @@ class PassCache:
             entry = json.loads(_read_cache_entry(path))
             if not isinstance(entry, dict):
                 raise ValueError("not a JSON object")
-            if entry.get("cache_version") != CACHE_VERSION or entry.get("sha256") != sha:
-                return None
+            # the settings key holds the code's hash: an entry of another version or file here is damage
+            if entry.get("cache_version") != CACHE_VERSION:
+                raise ValueError(f"cache_version {entry.get('cache_version')!r}, not {CACHE_VERSION}")
+            if entry.get("sha256") != sha:
+                raise ValueError("sha256 is not its file's")
             return _record(file, sha, entry)
         except FileNotFoundError:
             return None
@@ -259,8 +267,13 @@ class PassCache:
             return
         try:
             self.dir.mkdir(parents=True, exist_ok=True)
+            path = self.dir / f"{sha}.json"
+            if path.is_dir() and not path.is_symlink():  # a damaged entry (get() counted it) is replaced
+                shutil.rmtree(path)
+            elif path.is_symlink() or (path.exists() and not path.is_file()):
+                path.unlink()
             # JSON floats round-trip float64 exactly, so a cached pass gives bit-identical results downstream.
-            write_text_atomic(self.dir / f"{sha}.json",
+            write_text_atomic(path,
                               json.dumps({"cache_version": CACHE_VERSION, "sha256": sha, **entry},
                                          sort_keys=True))
         except OSError as e:  # a cache that cannot be written costs time next run, never this run's results
