@@ -316,7 +316,7 @@ def test_passes_of_one_cycle_may_each_have_their_own_reference_point_prf_and_mea
 
 
 def test_a_rig_whose_data_were_conjugated_is_warned_about_the_q_sign_and_a_clean_one_is_not(
-        archive_dir, clean, tmp_path, monkeypatch):
+        archive_dir, clean, tmp_path, monkeypatch, caplog):
     # a shared_peaks warning for every rig handed to it: the conjugated rig must not be handed over
     monkeypatch.setattr(batch, "shared_peak_warnings", lambda cycles: [
         batch.Problem(f"rig {c.rig_id}", "shared_peaks", "stand-in") for c in cycles])
@@ -327,6 +327,8 @@ def test_a_rig_whose_data_were_conjugated_is_warned_about_the_q_sign_and_a_clean
     report = _run(src, tmp_path / "out")
     (warning,) = [w for w in report.warnings if w.kind == "q_sign"]
     assert "conjugated" in warning.reason and warning.file == pass_files(src)[0].relative_to(src).as_posix()
+    # logged with its name first, as `uwbcl check` prints it (a log monitor keys on it)
+    assert f"q_sign: {warning.file}: {warning.reason}" in [r.getMessage() for r in caplog.records]
     assert not [w for w in report.warnings if w.kind == "shared_peaks"]  # unfocused: says nothing of heights
     assert [w for w in _run(archive_dir, tmp_path / "clean").warnings if w.kind == "shared_peaks"]
     assert not [r for r in report.rows if r["status"] == "ok"]

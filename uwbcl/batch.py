@@ -787,7 +787,7 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
         q_sign = q_sign_warnings(records, in_dir, settings)
         warnings += suspicious(records) + q_sign
         for w in warnings:
-            log.warning("%s: %s", w.file, w.reason)
+            log.warning("%s: %s: %s", w.kind, w.file, w.reason)
         groups, group_problems = group_cycles(records, options)
         problems += group_problems
         for p in group_problems:
@@ -801,7 +801,7 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
         # a conjugated rig's peaks are those of unfocused data: its shared_peaks warning would mislead
         conjugated = {r.rig_id for r in records if r.file in {w.file for w in q_sign}}
         for w in shared_peak_warnings([c for c in cycles if c.rig_id not in conjugated]):
-            log.warning("%s: %s", w.file, w.reason)
+            log.warning("%s: %s: %s", w.kind, w.file, w.reason)
             warnings.append(w)
         rows_series = chain.series(cycles, settings.association, options.max_bridge_cycles,
                                    rib_registration(groups, in_dir, settings))
