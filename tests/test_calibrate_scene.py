@@ -133,7 +133,9 @@ def test_a_rail_search_misses_the_reflectors_beyond_the_rail_ends(scene):
                                                                                search="rail"))
     found = pipeline.detect_pass(scan, settings)
     assert not any(abs(d.x_m - x) < 0.05 for d in found for x in REFLECTORS_M[:, 0])
-    assert all(d.beyond_rail_m == 0.0 and locate.look_sigma_factor(d) == 1.0 for d in found)
+    # sought on the rail; a peak refined a little past its end carries how far (eq. L3), and only those
+    assert all(d.beyond_rail_m <= 0.1 for d in found)
+    assert all((locate.look_sigma_factor(d) == 1.0) == (d.beyond_rail_m == 0.0) for d in found)
 
 
 def test_the_default_search_looks_past_a_short_rails_ends_and_only_along_a_long_one(scene):

@@ -158,7 +158,8 @@ def test_a_cache_entry_from_before_beyond_rail_m_is_read_with_its_default_not_re
     for entry in (out / batch.CACHE_DIR).rglob("*.json"):
         record = json.loads(entry.read_text())
         for d in record["detections"]:
-            assert d.pop("beyond_rail_m") == 0.0  # a rail search's
+            if d["beyond_rail_m"] == 0.0:  # on the rail: what an entry from before the field meant
+                del d["beyond_rail_m"]
         entry.write_text(json.dumps(record))
     report = batch.process_directory(archive_dir, out, SETTINGS, options())
     assert report.n_detected == 0

@@ -262,9 +262,9 @@ class Detection:
     # One of the two plates of a peak that held two (detect.split, eq. S2): the (x, R_c) distance to the other
     # (m); NaN when the peak held one. Such a look counts as 3x less precise (locate, eq. S3).
     split_separation_m: float = math.nan
-    # Found by a search beyond the rail (detection.search "footprint" or "main_lobe"): how far past the rail's
-    # nearer end (m, along the rail) the antenna was when the plate crossed the beam centre; 0 on the rail or
-    # with the rail search. Seen through part of the aperture, such a look counts as less precise (eq. L3).
+    # How far past the rail's nearer end (m, along the rail) the antenna was when the plate crossed the beam
+    # centre (a search beyond the rail, or a rail search's peak refined past the end); 0 on the rail. Seen
+    # through part of the aperture, such a look counts as less precise (eq. L3).
     beyond_rail_m: float = 0.0
 
 
