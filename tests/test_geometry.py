@@ -164,3 +164,18 @@ def test_the_echos_doppler_centroid_says_plus_one_for_a_written_pass_and_minus_o
     rng = np.random.default_rng(0)
     small = rng.standard_normal((21, 32)) + 1j * rng.standard_normal((21, 32))
     assert geo.doppler_step_ratio(small, 0.0075 * (np.arange(21) - 10), 30.0, args[2]) is None
+
+
+def test_the_doppler_side_is_decided_at_a_45_degree_squint_whose_step_is_beyond_a_quarter_turn():
+    """An independent tester's 45 deg squint, 4.3 GHz, 12.5 mm rail step: 1.59 rad per pulse, just past the
+    earlier cap of pi / 2, left conjugated data without a q_sign warning."""
+    from uwbcl import shift
+
+    cfg = shift.ShiftConfig(rigs=1, cycles=1, seed=5, snr_db=5.0, look_angle_deg=45.0)
+    scan = next(iter(shift.simulate_shift(cfg)))
+    args = (scan.pulse_position_m, scan.geometry.rotation_table_angle_deg, scan.radar.wavelength_m)
+    dx_m = np.diff(scan.pulse_position_m).mean()
+    step = 4 * math.pi / args[2] * math.sin(math.radians(args[1])) * dx_m
+    assert 0.5 * math.pi < abs(step) <= geo.DOPPLER_CHECK_MAX_STEP_RAD
+    assert geo.doppler_step_ratio(scan.echo, *args) == pytest.approx(1.0, abs=0.3)
+    assert geo.doppler_step_ratio(np.conj(scan.echo), *args) == pytest.approx(-1.0, abs=0.3)

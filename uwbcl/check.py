@@ -173,6 +173,7 @@ def rig_lines(report: CheckReport, options: BatchOptions | None = None) -> list[
             "  Doppler side (about +1 by the format's conventions): "
             + (f"{min(ratios):+.2f} to {max(ratios):+.2f} over {len(ratios)} passes" if ratios else
                "not decided (squint under "
-               f"{geo.DOPPLER_CHECK_MIN_SQUINT_DEG:g} deg, too few pulses or no coherent echo)"),
+               f"{geo.DOPPLER_CHECK_MIN_SQUINT_DEG:g} deg, a rail step too long for it, too few pulses or "
+               "no coherent echo)"),
         ]
     return out
