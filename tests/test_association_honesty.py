@@ -198,6 +198,28 @@ def test_a_plate_whose_passes_do_not_meet_at_one_point_is_as_uncertain_as_its_mi
     np.testing.assert_allclose(cov, plain * chain.misfit_scale(after, 0.003))
 
 
+def test_a_plate_past_the_rails_end_is_as_uncertain_along_track_from_every_height_together():
+    """Eq. L3b: the heights of a plate that crossed the beam centre past the rail's end share its truncated
+    aperture, so L3's excess does not average out over them (an independent tester's plate 0.05 m past the
+    end: all four heights 5-12 mm off one way, a single-plate ok row 14 mm off against a 3.2 mm bound)."""
+    from uwbcl.records import Detection
+
+    def located(beyond_m):
+        rc = [float(np.hypot(2.5, 1.3 - h)) for h in HEIGHTS_3]  # looks that meet at the plate: no misfit
+        looks = tuple((h, Detection(1.0, r, 0.0, r, 1.0, r, 1.0, 30.0, beyond_rail_m=beyond_m))
+                      for h, r in zip(HEIGHTS_3, rc))
+        return dataclasses.replace(_located_3h(np.array([1.0, -2.5, 1.3])), looks=looks)
+
+    on_rail, past = (chain.plate_covariances(CycleResult("r", 1, "", HEIGHTS_3, [located(b)]), 0.003)[0]
+                     for b in (0.0, 0.05))
+    factor = 1.0 + 3.0 * np.sqrt(0.05)  # eq. L3
+    independent = (0.003 * factor) ** 2 / 3  # three looks of L3's sigma
+    common = 0.003**2 * (factor**2 - 1.0) * (1.0 - 1.0 / 3)
+    assert on_rail[0, 0] == pytest.approx(0.003**2 / 3)
+    assert past[0, 0] == pytest.approx(independent + common)
+    assert np.sqrt(past[0, 0]) > 2.0 * np.sqrt(on_rail[0, 0])
+
+
 def test_a_row_of_plates_a_metre_above_is_told_apart_by_the_rigs_vertical_step_prior():
     """Eq. M2v: three plates seen again 0.9 m back, and a second row 0.7 m above that lines up just as well.
     The data alone cannot choose the row, only the retreat and the creep, which both rows give (M3a: the

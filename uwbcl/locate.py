@@ -76,7 +76,12 @@ def look_sigma_factor(det: Detection) -> float:
     two plates of a split peak (eq. S3), times 1 + BEYOND_RAIL_SIGMA_PER_SQRT_M sqrt(b) for a plate found b m
     beyond the rail's end (eq. L3)."""
     split = 1.0 if math.isnan(det.split_separation_m) else SPLIT_SIGMA_FACTOR
-    return split * (1.0 + BEYOND_RAIL_SIGMA_PER_SQRT_M * math.sqrt(det.beyond_rail_m))
+    return split * beyond_rail_factor(det)
+
+
+def beyond_rail_factor(det: Detection) -> float:
+    """Eq. L3: 1 + BEYOND_RAIL_SIGMA_PER_SQRT_M sqrt(b / 1 m) for a look b m past the rail's end (1 on it)."""
+    return 1.0 + BEYOND_RAIL_SIGMA_PER_SQRT_M * math.sqrt(det.beyond_rail_m)
 
 
 def misfit_scale(plate: Located, range_sigma_m: float) -> float:
