@@ -162,12 +162,11 @@ def carry_revisions(records: list[dict], previous: dict[tuple[str, int], dict]) 
         if p is not None:
             text = _text([rec])[0]
             published = int(p.get("revision") or 0)
-            same = all(str(text[k]) == v for k, v in p.items() if k in text and k != "revision")
-            rec = {**rec, "revision": max(published if same else published + 1, rec["revision"])}
-            if not same:
+            changed = [k for k, v in p.items() if k in text and k != "revision" and str(text[k]) != v]
+            rec = {**rec, "revision": max(published + 1 if changed else published, rec["revision"])}
+            if changed:
                 log.info("rig %s cycle %d: revision %d: changed since the published set (%s)", rec["rig_id"],
-                         rec["cycle"], rec["revision"], ", ".join(
-                             k for k, v in p.items() if k in text and k != "revision" and str(text[k]) != v))
+                         rec["cycle"], rec["revision"], ", ".join(changed))
         out.append(rec)
     for (rig, cycle), p in previous.items():
         if p["status"] != WITHDRAWN:
