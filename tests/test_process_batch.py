@@ -291,6 +291,7 @@ def test_passes_of_one_cycle_with_different_radar_parameters_are_not_combined(ar
     mismatched = sorted(p.file for p in report.errors if p.kind == "mismatched_parameters")
     assert mismatched == sorted(p.relative_to(src).as_posix() for p in (a, b))
     assert all("carrier_frequency_hz" in p.reason for p in report.errors)
+    assert any("carrier_frequency_hz (4.1e+09 vs " in p.reason for p in report.errors)  # the values named
     assert [r["cycle"] for r in report.rows] == [1]  # cycle 2 is not used; cycle 1 is untouched
     assert rows(out / "displacements.csv") == rows(clean[0] / "displacements.csv")[:1]
 

@@ -105,17 +105,25 @@ def write_csv_atomic(path: Path, columns, rows) -> None:
     write_bytes_atomic(path, csv_bytes(columns, rows))
 
 
-def read_regular_file(path, max_bytes: int, *, follow_symlinks: bool = True) -> bytes:
-    """The bytes of a regular file of at most `max_bytes`. Opened without blocking and checked before it is
-    read, so a FIFO (which would block) or a device such as /dev/zero (which never ends) is refused, not read;
-    with follow_symlinks=False a symbolic link is refused too. OSError when it cannot be opened, ValueError
-    for anything but a regular file of at most `max_bytes`."""
+def open_regular_file(path, *, follow_symlinks: bool = True) -> io.BufferedReader:
+    """`path` opened for reading in binary, without blocking and checked before anything is read, so a FIFO
+    (which would block) or a device such as /dev/zero (which never ends) is refused, not read; with
+    follow_symlinks=False a symbolic link is refused too. OSError when it cannot be opened, ValueError for
+    anything but a regular file."""
     flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0)
     if not follow_symlinks:
         flags |= getattr(os, "O_NOFOLLOW", 0)
-    with os.fdopen(os.open(path, flags), "rb") as f:
-        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
-            raise ValueError("not a regular file (a FIFO, a device or a directory); not read")
+    f = os.fdopen(os.open(path, flags), "rb")
+    if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+        f.close()
+        raise ValueError("not a regular file (a FIFO, a device or a directory); not read")
+    return f
+
+
+def read_regular_file(path, max_bytes: int, *, follow_symlinks: bool = True) -> bytes:
+    """The bytes of a regular file of at most `max_bytes` (`open_regular_file`). OSError when it cannot be
+    opened, ValueError for anything but a regular file of at most `max_bytes`."""
+    with open_regular_file(path, follow_symlinks=follow_symlinks) as f:
         raw = f.read(max_bytes + 1)
     if len(raw) > max_bytes:
         raise ValueError(f"larger than {max_bytes >> 20} MiB")

@@ -349,6 +349,10 @@ def _params_differ(a: dict, b: dict) -> list[str]:
     return out
 
 
+def _number_text(v) -> str:
+    return f"{v:.6g}" if isinstance(v, float) else str(v)
+
+
 def _expected_height(r: PassRecord, options: BatchOptions) -> Problem | None:
     if options.heights_m is None or any(abs(r.height_m - h) <= options.height_tolerance_m
                                         for h in options.heights_m):
@@ -398,7 +402,8 @@ def _agreeing_majority(kept: dict[int, PassRecord], where: str, problems: list[P
         if g is majority:
             continue
         ref = (groups[1] if g is groups[0] else groups[0])[0]
-        fields = ", ".join(_params_differ(ref.parameters, g[0].parameters))
+        fields = ", ".join(f"{k} ({_number_text(g[0].parameters[k])} vs {_number_text(ref.parameters[k])})"
+                           for k in _params_differ(ref.parameters, g[0].parameters))
         for r in g:
             problems.append(Problem(r.file, "mismatched_parameters",
                                     f"{where}: differs from {ref.file} in {fields}"

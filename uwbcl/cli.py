@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import io
 import json
 import logging
 import math
+import os
 import signal
 import sys
 from pathlib import Path
@@ -398,7 +400,8 @@ _IMPORT_FLAGS = {
     "reference_point_m": "--reference-point", "antenna_aperture_m": "--aperture-m",
     "pulse_repetition_frequency_hz": "--prf-hz", "range_delay_s": "--range-delay-s", "rig_id": "--rig-id",
     "cycle": "--cycle", "pass_start_time": "--pass-start-time", "carrier_frequency_hz": "--carrier-hz",
-    "decimation": "--decimation", "min_step_m": "--min-step-m", "keep_raw_rf": "--no-raw-rf",
+    "bandwidth_hz": "--bandwidth-hz", "decimation": "--decimation", "min_step_m": "--min-step-m",
+    "keep_raw_rf": "--no-raw-rf",
     "pulse": "--pulse", "pulse_window_start_m": "--pulse-window-m", "pulse_window_stop_m": "--pulse-window-m",
     "speed_m_s": "--speed-m-s", "time_offset_s": "--time-offset-s",
 }
@@ -426,7 +429,8 @@ def _import_options(args: argparse.Namespace) -> tuple[passes.ImportOptions, dic
              "antenna_aperture_m": args.aperture_m, "pulse_repetition_frequency_hz": args.prf_hz,
              "range_delay_s": args.range_delay_s, "rig_id": args.rig_id, "cycle": args.cycle,
              "pass_start_time": args.pass_start_time, "carrier_frequency_hz": args.carrier_hz,
-             "decimation": args.decimation, "min_step_m": args.min_step_m,
+             "bandwidth_hz": args.bandwidth_hz, "decimation": args.decimation,
+             "min_step_m": args.min_step_m,
              "keep_raw_rf": False if args.no_raw_rf else None, "pulse": args.pulse,
              "pulse_window_start_m": args.pulse_window_m[0] if args.pulse_window_m else None,
              "pulse_window_stop_m": args.pulse_window_m[1] if args.pulse_window_m else None}
@@ -524,6 +528,10 @@ def _print_import_summary(source, recording, track, result, options, *, aligned:
     print(f"spectrum: centre {band.centre_hz / 1e9:.3f} GHz, -10 dB band {band.low_hz / 1e9:.3f}-"
           f"{band.high_hz / 1e9:.3f} GHz ({band.bandwidth_hz / 1e9:.3f} GHz), "
           f"peak {band.peak_hz / 1e9:.3f} GHz")
+    fixed = [f"{what} {v / 1e9:.4f} GHz" for what, v in (("carrier", options.carrier_frequency_hz),
+                                                       ("-10 dB bandwidth", options.bandwidth_hz)) if v]
+    if fixed:
+        print(f"written: {', '.join(fixed)} (given, not measured)")
     print(f"baseband: {scan.radar.sample_rate_hz / 1e9:.4g} GHz complex (RF / {result.decimation}), "
           f"{scan.samples_per_pulse} samples x {scan.n_pulses} pulses, x {scan.pulse_position_m[0]:+.3f} to "
           f"{scan.pulse_position_m[-1]:+.3f} m")
@@ -584,6 +592,9 @@ def _add_import_commands(sub) -> None:
         r.add_argument("--cycle", type=int)
         r.add_argument("--pass-start-time", help="ISO 8601 UTC (default: file time minus the recording)")
         r.add_argument("--carrier-hz", type=float, help="mix-down frequency (default: measured band centre)")
+        r.add_argument("--bandwidth-hz", type=float,
+                       help="the archive's -10 dB bandwidth (default: measured); fix it, as --carrier-hz, "
+                            "where a cycle's heights come from separate recordings")
         r.add_argument("--decimation", type=int,
                        help="complex rate = RF rate / this (default: from the band)")
         r.add_argument("--min-step-m", type=float, help="smaller moves per scan are rest (default 1e-4)")
@@ -712,6 +723,12 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f"uwbcl {args.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # whoever read our output went away (`uwbcl focus ... | head`): stop quietly, as the shell's tools do;
+        # stdout to /dev/null so that the interpreter's last flush does not complain again
+        with contextlib.suppress(OSError, ValueError, io.UnsupportedOperation):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141  # 128 + SIGPIPE
 
 
 if __name__ == "__main__":

@@ -239,6 +239,7 @@ def to_baseband(
 
 PULSE_FFT_SAMPLES = 256  # the measured pulse's spectrum: this many samples across the complex band
 PULSE_WINDOW_TAPER = 0.25  # raised-cosine fraction of the reference window at each end
+PULSE_MIN_SNR = 10.0  # the reference echo's mean over the scans must peak this far (20 dB) above its noise
 
 
 def measure_pulse(echo: np.ndarray, sample_rate_hz: float, window_start_s: float, carrier_hz: float,
@@ -259,7 +260,18 @@ def measure_pulse(echo: np.ndarray, sample_rate_hz: float, window_start_s: float
     if inside.size < 4:
         raise OptionError("pulse_window_start_m", f"the pulse's reference window {start_m}-{stop_m} m holds "
                                                   f"{inside.size} samples of the echo; {advice}")
-    s = echo[:, inside].mean(axis=0)
+    ref = echo[:, inside]
+    s = ref.mean(axis=0)
+    # The mean's own noise, from the scan-to-scan spread: a window of noise alone (no echo there) averages to
+    # a few times it, and a pulse measured from it would put phantom targets in every image.
+    noise = math.sqrt(float(np.mean(ref.var(axis=0))) / ref.shape[0])
+    peak_abs = float(np.max(np.abs(s)))
+    if peak_abs <= PULSE_MIN_SNR * noise:
+        level = f"{20 * math.log10(peak_abs / noise):.1f} dB" if peak_abs > 0 else "nothing"
+        raise OptionError("pulse_window_start_m", (
+            f"the pulse's reference window {start_m}-{stop_m} m holds no stationary echo: the mean of its "
+            f"{ref.shape[0]} scans peaks {level} above that mean's noise "
+            f"({20 * math.log10(PULSE_MIN_SNR):.0f} dB needed); {advice}"))
     n = inside.size
     edge = max(1, int(PULSE_WINDOW_TAPER * n))
     w = np.ones(n)

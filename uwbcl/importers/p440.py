@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import open_regular_file
 from . import RawRecording, RecordingError
 
 log = logging.getLogger("uwbcl")
@@ -48,6 +49,7 @@ _TIMESTAMP_WRAP_MS = 1 << 32
 # and are put back in the radar's time order; a longer step back is a restarted radar clock or two
 # recordings in one file, which no order repairs.
 MAX_REORDER_MS = 1000
+LISTED_DROPS = 10  # incomplete scans named one by one in the log; the rest are counted in one line
 _RECORDS_PER_READ = 4096  # ~6 MB per read: bounded memory whatever the file size
 
 _CONFIG_FIELDS = ("node_id", "scan_start_ps", "scan_stop_ps", "scan_res", "pii")
@@ -90,8 +92,12 @@ class P440Reader:
     def read(self, path: str | os.PathLike[str]) -> RawRecording:
         """Every complete scan of ``path``; RecordingError (file, byte offset, reason) for a bad record."""
         path = Path(path)
-        size = path.stat().st_size
-        with path.open("rb") as f:
+        try:
+            f = open_regular_file(path)
+        except ValueError as exc:
+            raise RecordingError(path, None, str(exc)) from None
+        size = os.fstat(f.fileno()).st_size
+        with f:
             head = f.read(CONFIG.size)
             if len(head) < CONFIG.size:
                 raise RecordingError(
@@ -139,6 +145,9 @@ class _StreamState:
         self.ids: list[int] = []
         self.offsets: list[int] = []  # byte offset of each complete scan's message 0, for messages
         self.shape: tuple | None = None  # (scan_start, scan_stop, scan_res, n_total, n_messages) of the file
+        self.source: tuple[int, int] | None = None  # (node_id, antenna_id) of the file's scans
+        self.orphan: int | None = None  # the scan counter of messages skipped for want of their message 0
+        self.first_drop = ""  # why the first incomplete scan was dropped (for a file with none complete)
         self.scan: _Scan | None = None
         self.n_complete = 0
         self.n_dropped = 0
@@ -151,7 +160,7 @@ class _StreamState:
         (
             mtype,
             mid,
-            _node,
+            node,
             stamp,
             _r0,
             _r1,
@@ -162,7 +171,7 @@ class _StreamState:
             res,
             _stype,
             _r,
-            _ant,
+            antenna,
             _op,
             n_msg,
             n_total,
@@ -183,18 +192,7 @@ class _StreamState:
             )
         if res <= 0 or stop <= start:
             self.fail(offset, f"scan_res {res}, scan window {start}..{stop} ps is not a scan")
-        shape = (start, stop, res, n_total, n_messages)
-        if self.shape is None:
-            self.shape = shape
-            # At most one scan per n_messages records: the output never grows.
-            self.rf = np.empty((self.n_records // n_messages + 1, n_total), dtype=np.int32)
-        elif shape != self.shape:
-            self.fail(
-                offset,
-                f"scan configuration changed mid-file: (scan_start, scan_stop, scan_res, "
-                f"num_samples_total, num_messages_total) {shape}, was {self.shape}",
-            )
-
+        self.same_scans(offset, (start, stop, res, n_total, n_messages), (node, antenna))
         scan = self.scan
         if index == 0:
             if scan is not None:
@@ -203,20 +201,16 @@ class _StreamState:
                     f"{scan.next_index - 1} of {scan.n_messages}"
                 )
             scan = self.scan = _Scan(mid, stamp, n_messages, offset)
+            self.orphan = None
         elif scan is None or index != scan.next_index or mid != scan.message_id:
             if scan is not None:
                 self.drop(
                     f"scan {scan.message_id} at byte {scan.offset} is interrupted at byte {offset} by "
                     f"message {index} of scan {mid}"
                 )
-            else:
-                log.warning(
-                    "%s: message %d of scan %d at byte %d has no message 0; skipped",
-                    self.path,
-                    index,
-                    mid,
-                    offset,
-                )
+            if mid != self.orphan:  # a scan whose message 0 is lost (or came first elsewhere): dropped once
+                self.orphan = mid
+                self.drop(f"message {index} of scan {mid} at byte {offset} has no message 0")
             self.scan = None
             return
         else:
@@ -233,6 +227,27 @@ class _StreamState:
             self.offsets.append(scan.offset)
             self.n_complete += 1
             self.scan = None
+
+    def same_scans(self, offset: int, shape: tuple, source: tuple[int, int]) -> None:
+        """The first message sets the file's scan configuration and radar (node_id, antenna_id); a message
+        with another is a RecordingError at its offset."""
+        if self.shape is None:
+            self.shape, self.source = shape, source
+            # At most one scan per n_messages records: the output never grows.
+            self.rf = np.empty((self.n_records // shape[4] + 1, shape[3]), dtype=np.int32)
+        elif shape != self.shape:
+            self.fail(
+                offset,
+                f"scan configuration changed mid-file: (scan_start, scan_stop, scan_res, "
+                f"num_samples_total, num_messages_total) {shape}, was {self.shape}",
+            )
+        elif source != self.source:
+            # Two radars on one logger, or an alternating-antenna mode (two phase centres, two delays): their
+            # scans interleaved are not one aperture.
+            self.fail(offset, f"node_id {source[0]}, antenna_id {source[1]}: the file's scans so far came "
+                              f"from node_id {self.source[0]}, antenna_id {self.source[1]}; scans of two "
+                              "radars or antennas in one file are not one pass (split the file by node and "
+                              "antenna)")
 
     def time_order(self, ms: np.ndarray, rf: np.ndarray) -> np.ndarray | None:
         """The scans to keep, in the radar's time order (None: all of them, as read).
@@ -275,7 +290,9 @@ class _StreamState:
 
     def drop(self, why: str) -> None:
         self.n_dropped += 1
-        log.warning("%s: dropped an incomplete scan: %s", self.path, why)
+        self.first_drop = self.first_drop or why
+        if self.n_dropped <= LISTED_DROPS:
+            log.warning("%s: dropped an incomplete scan: %s", self.path, why)
 
     def finish(self, cfg: dict) -> RawRecording:
         if self.scan is not None:
@@ -289,9 +306,15 @@ class _StreamState:
                 s.next_index,
                 s.n_messages,
             )
+        if self.n_dropped > LISTED_DROPS:
+            log.warning("%s: %d more incomplete scans dropped (not listed)", self.path,
+                        self.n_dropped - LISTED_DROPS)
         if self.n_complete == 0:
-            raise RecordingError(self.path, None, "no complete scan in the file")
+            why = (f"; {self.n_dropped} incomplete scan(s) dropped, the first because {self.first_drop}"
+                   if self.n_dropped else "")
+            raise RecordingError(self.path, None, f"no complete scan in the file{why}")
         start, stop, res, n_total, _ = self.shape
+        self.check_header(cfg)
         ms = unwrap_timestamps_ms(self.times_ms)
         rf = self.rf[: self.n_complete]
         self.rf = None
@@ -312,6 +335,23 @@ class _StreamState:
             scan_id=np.asarray(self.ids, dtype=np.int64),
             metadata=metadata,
         )
+
+
+    def check_header(self, cfg: dict) -> None:
+        """Warnings for a file that contradicts itself where the messages win: a configuration header whose
+        scan window differs from the messages' (another firmware, or a header of another recording), and a
+        scan window whose length is not num_samples_total bins (scan_start and scan_res place the samples)."""
+        start, stop, res, n_total, _ = self.shape
+        header = (cfg["scan_start_ps"], cfg["scan_stop_ps"], cfg["scan_res"])
+        if header != (start, stop, res):
+            log.warning("%s: the configuration header's scan window (scan_start, scan_stop, scan_res) %s "
+                        "differs from the messages' %s; the messages' is used", self.path, header,
+                        (start, stop, res))
+        bins = (stop - start) * 1e-12 / bin_period_s(res)
+        if abs(bins - n_total) > 1.0:
+            log.warning("%s: the scan window %d..%d ps holds %.1f bins of %.3f ps, the messages carry %d "
+                        "samples; the samples are placed from scan_start by scan_res", self.path, start,
+                        stop, bins, 1e12 * bin_period_s(res), n_total)
 
 
 def unwrap_timestamps_ms(stamps) -> np.ndarray:

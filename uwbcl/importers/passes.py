@@ -17,6 +17,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import datetime as dt
+import io
 import logging
 import math
 import os
@@ -25,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..archive import MAX_RAIL_DEVIATION_M
+from ..atomic import open_regular_file
 from ..config import MAX_RANGE_DELAY_S
 from ..model import SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters, RawRF, ScanPass
 from ..records import ConfigError
@@ -35,6 +37,8 @@ log = logging.getLogger("uwbcl")
 
 DEFAULT_REFERENCE_RANGE_M = 3.0  # the scene centre's range when the recording's window holds it
 MOTION_THRESHOLD_M = 0.002  # a position this far from the first one has moved (about where the echo shows it)
+LONG_RAIL_M = 20.0  # a pass longer than this is warned about (positions in mm for m?)
+BANDWIDTH_WARN_FRACTION = 0.2  # a given bandwidth this far off the measured one is warned about
 _REST_SCANS = 8  # scans at the start assumed at rest for the radar's motion detector
 
 
@@ -57,6 +61,9 @@ class ImportOptions:
     cycle: int = 0
     pass_start_time: str | None = None  # ISO 8601 UTC; default: file modification time minus the duration
     carrier_frequency_hz: float | None = None  # default: the measured -10 dB band centre
+    # default: the measured -10 dB width; fixed by a site whose heights are imported from separate recordings,
+    # whose measured widths differ by about 1 % (a cycle's passes must agree within 1 %)
+    bandwidth_hz: float | None = None
     oversampling: float = baseband.DEFAULT_OVERSAMPLING
     decimation: int | None = None  # default: baseband.choose_decimation
     min_step_m: float = 1e-4  # smaller steps per scan count as standing still
@@ -89,14 +96,25 @@ def read_positions_csv(path: str | os.PathLike[str]) -> Positions:
     ignored). RecordingError naming the file and line for a missing column, a non-number or a time that does
     not increase."""
     path = Path(path)
-    with path.open(newline="") as f:
-        rows = list(csv.reader(f))
+    try:
+        raw = open_regular_file(path)
+    except ValueError as exc:
+        raise RecordingError(path, None, str(exc)) from None
+    # utf-8-sig: a spreadsheet's "CSV UTF-8" starts with a byte-order mark, which is not part of the header
+    with io.TextIOWrapper(raw, encoding="utf-8-sig", newline="") as f:
+        try:
+            rows = list(csv.reader(f))
+        except (UnicodeDecodeError, csv.Error) as exc:
+            raise RecordingError(path, None, f"not a UTF-8 CSV file: {exc}") from None
     if not rows:
         raise RecordingError(path, None, "empty positions file (expected a header: time_s,x_m[,y_m,z_m])")
     header = [h.strip() for h in rows[0]]
     for name in ("time_s", "x_m"):
         if name not in header:
-            raise RecordingError(path, None, f"line 1: no column {name!r} (header: {', '.join(header)})")
+            hint = ("; the columns must be separated by commas" if len(header) == 1 and
+                    any(sep in header[0] for sep in ";\t") else "")
+            raise RecordingError(path, None,
+                                 f"line 1: no column {name!r} (header: {', '.join(header)}){hint}")
     cols = {name: header.index(name) for name in ("time_s", "x_m", "y_m", "z_m") if name in header}
     values = {name: [] for name in cols}
     lines = []
@@ -157,17 +175,41 @@ def positions_first_motion_s(positions: Positions) -> float | None:
     return float(t0 + (MOTION_THRESHOLD_M - x0) / (x1 - x0) * (t1 - t0)) if i > 0 else float(t0)
 
 
-def moving_segment(x_m: np.ndarray, min_step_m: float) -> slice:
-    """The longest run of samples whose position moves strictly one way by > min_step_m each step."""
+def moving_runs(x_m: np.ndarray, min_step_m: float) -> list[slice]:
+    """Every run of samples whose position moves strictly one way by > min_step_m each step, in order."""
     dx = np.diff(x_m)
     sign = np.where(dx > min_step_m, 1, np.where(dx < -min_step_m, -1, 0))
-    best, start = (0, 0), 0
+    runs, start = [], 0
     for k in range(1, len(sign) + 1):
         if k == len(sign) or sign[k] != sign[start] or sign[k] == 0:
-            if sign[start] != 0 and k - start > best[1] - best[0]:
-                best = (start, k)
+            if sign[start] != 0:
+                runs.append(slice(start, k + 1))
             start = k
-    return slice(best[0], best[1] + 1) if best[1] > best[0] else slice(0, 0)
+    return runs
+
+
+def moving_segment(x_m: np.ndarray, min_step_m: float) -> slice:
+    """The longest run of samples whose position moves strictly one way by > min_step_m each step (the
+    first of equals)."""
+    return max(moving_runs(x_m, min_step_m), key=lambda r: r.stop - r.start, default=slice(0, 0))
+
+
+OTHER_PASS_FRACTION = 0.5  # a second run over this fraction of the kept pass's length is another pass
+
+
+def _warn_other_passes(source: str, x_m: np.ndarray, t_s: np.ndarray, runs: list[slice], kept: slice) -> None:
+    """A warning naming each run of the recording (t_s on the positions' clock), besides the one kept, that
+    travels at least OTHER_PASS_FRACTION of the kept pass's length: a second pass (another height, the way
+    back) that the import leaves out, and how to import it."""
+    length = abs(float(x_m[kept.stop - 1] - x_m[kept.start]))
+    for r in runs:
+        span = float(x_m[r.stop - 1] - x_m[r.start])
+        if r != kept and abs(span) >= OTHER_PASS_FRACTION * length:
+            log.warning("%s: the recording holds another pass, not imported: %d scans at %.3f-%.3f s on the "
+                        "positions' clock, x %+.3f to %+.3f m (the pass kept travels %.3f m); one archive is "
+                        "one pass: to import that one, give a positions log that covers only its time",
+                        source, r.stop - r.start, t_s[r.start], t_s[r.stop - 1], x_m[r.start],
+                        x_m[r.stop - 1], length)
 
 
 @dataclasses.dataclass
@@ -218,7 +260,10 @@ def track_from_positions(
         return None if v is None else np.interp(t[inside], positions.time_s, v)
 
     x = at(positions.x_m)
-    seg = moving_segment(x, min_step_m)
+    runs = moving_runs(x, min_step_m)
+    seg = max(runs, key=lambda r: r.stop - r.start, default=slice(0, 0))
+    if seg.stop - seg.start >= 2:
+        _warn_other_passes(recording.source, x, t[inside], runs, seg)
     if seg.stop - seg.start < 2:
         raise RecordingError(
             recording.source,
@@ -295,7 +340,13 @@ def build_pass(
     dz = None if track.z_m is None else track.z_m - height
     times = recording.scan_time_s[track.scans]
     _check_deviations(track, times, dy, dz, height)
-    rf = recording.samples[track.scans]
+    scans = track.scans  # the kept scans are one run as a rule: a view, not a copy of the recording
+    contiguous = bool(np.all(np.diff(scans) == 1))
+    rf = recording.samples[scans[0]:scans[-1] + 1] if contiguous else recording.samples[scans]
+    if not np.any(rf != rf[:, :1]):
+        raise RecordingError(recording.source, None, (
+            f"no signal: every kept scan is constant ({int(rf[0, 0]) if rf.dtype.kind in 'iu' else rf[0, 0]} "
+            "in every sample), a receiver or antenna that was not connected?"))
     rf_rate_hz = 1.0 / recording.bin_period_s
     band = band or baseband.measure_band(rf, recording.bin_period_s)
     baseband.check_band(rf, rf_rate_hz, band, recording.source, options.oversampling)
@@ -317,13 +368,24 @@ def build_pass(
                 0.5 * SPEED_OF_LIGHT_M_S * (window_start_s + (echo.shape[1] - 1) / rate))
     reference = _reference_point(x_centre, options, height, window_m, notes)
     _warn_undersampled(recording.source, track.x_m, carrier)
+    extent_m = abs(float(track.x_m[-1] - track.x_m[0]))
+    if extent_m > LONG_RAIL_M:
+        log.warning("%s: the pass spans %.1f m along the rail, more than any face-end rail (%g m): are the "
+                    "positions in metres (x_m)?", track.positions.source if track.positions else
+                    recording.source, extent_m, LONG_RAIL_M)
     measured = None
     if options.pulse == "measured":
         measured = baseband.measure_pulse(echo, rate, window_start_s, carrier, options.pulse_window_start_m,
                                           options.pulse_window_stop_m, recording.source)
+    bandwidth = options.bandwidth_hz or band.bandwidth_hz
+    if abs(bandwidth / band.bandwidth_hz - 1.0) > BANDWIDTH_WARN_FRACTION:
+        log.warning("%s: the bandwidth given, %.4g Hz, is %.0f %% off the measured -10 dB width %.4g Hz: "
+                    "the archive's pulse model will not fit the echo (another radar's value?)",
+                    recording.source, bandwidth, 100 * abs(bandwidth / band.bandwidth_hz - 1.0),
+                    band.bandwidth_hz)
     radar = RadarParameters(
         carrier_frequency_hz=carrier,
-        bandwidth_hz=band.bandwidth_hz,
+        bandwidth_hz=bandwidth,
         sample_rate_hz=rate,
         pulse_repetition_frequency_hz=prf,
         antenna_aperture_m=options.antenna_aperture_m,
@@ -517,6 +579,7 @@ def check_options(options: ImportOptions) -> None:
         "min_step_m",
         "pulse_repetition_frequency_hz",
         "carrier_frequency_hz",
+        "bandwidth_hz",
     ):
         value = getattr(options, key)
         if value is not None and not (math.isfinite(value) and value > 0):
