@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from uwbcl import archive, cli
-from uwbcl.importers import RecordingError, p440, passes, synthetic
+from uwbcl.importers import RecordingError, baseband, p440, passes, synthetic
 
 TARGETS_M = np.array([[0.786, -2.4, 0.3], [1.986, -2.4, 0.3]])
 
@@ -221,3 +221,25 @@ def test_a_broken_pipe_on_stdout_ends_quietly_without_a_traceback(monkeypatch, c
     monkeypatch.setattr(cli, "_devices", closed)
     assert cli.main(["devices"]) == 141
     assert "Traceback" not in capsys.readouterr().err
+
+
+def test_a_coarse_scan_res_whose_pulse_fits_under_nyquist_converts_although_its_kept_band_reaches_past_it():
+    # scan_res 48: 91.6 ps bins, RF Nyquist 5.46 GHz; a 1.5 GHz pulse at 4.0 GHz (-20 dB band 2.94-5.06 GHz)
+    # fits, the 2.4 x B complex band around it (2.2-5.8 GHz) does not: the part past Nyquist is empty.
+    t_bin = p440.bin_period_s(48)
+    t0, n = 10e-9, 500
+    t = t0 + np.arange(n) * t_bin
+    sigma = np.sqrt(np.log(10.0)) / (np.pi * 1.5e9)
+    tau = t0 + 20e-9
+
+    def envelope(tt, fc):
+        return 1000.0 * np.exp(-0.5 * ((tt - tau) / sigma) ** 2 + 2j * np.pi * 4.0e9 * (tt - tau)
+                               - 2j * np.pi * fc * tt)
+    rf = np.real(envelope(t, 0.0))[None, :]
+    band = baseband.measure_band(rf, t_bin)
+    baseband.check_band(rf, 1 / t_bin, band)  # not refused
+    d = baseband.choose_decimation(1 / t_bin, band)
+    assert band.centre_hz + 0.5 / (d * t_bin) > 0.5 / t_bin  # the kept band does reach past Nyquist
+    z, rate = baseband.to_baseband(rf, t_bin, t0, band.centre_hz, d)
+    ref = envelope(t0 + np.arange(z.shape[1]) / rate, band.centre_hz)
+    assert 20 * np.log10(np.abs(z[0] - ref).max() / np.abs(ref).max()) < -40.0

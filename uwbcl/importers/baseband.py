@@ -131,17 +131,19 @@ def required_rate_hz(band: Band, oversampling: float = DEFAULT_OVERSAMPLING,
     return max(oversampling * band.bandwidth_hz, 2.0 * half_20 / (1.0 - taper))
 
 
+BAND_EDGE_MARGIN_HZ = 50e6  # the -20 dB band must end this far inside 0..Nyquist (the spectrum's smoothing)
 SPIKE_FACTOR = 100.0  # a sample this many times the 99.9th percentile of |RF| is named a spike by check_band
 SPIKED_SCANS_LISTED = 5
 
 
-def check_band(rf: np.ndarray, rf_rate_hz: float, band: Band, source: str = "",
-               oversampling: float = DEFAULT_OVERSAMPLING) -> None:
-    """RecordingError naming the file for a spectrum no pulse has: one so wide that the complex band it needs
-    (`required_rate_hz`, about its centre) does not fit between 0 and the RF Nyquist frequency. A corrupt
-    sample or a clipped spike does that (its spectrum is flat); the message gives the largest sample."""
-    need_hz = required_rate_hz(band, oversampling)
-    if band.centre_hz - need_hz / 2 > 0 and band.centre_hz + need_hz / 2 < rf_rate_hz / 2:
+def check_band(rf: np.ndarray, rf_rate_hz: float, band: Band, source: str = "") -> None:
+    """RecordingError naming the file for a spectrum no pulse has: one that is not 20 dB down at 0 or at the
+    RF Nyquist frequency (within BAND_EDGE_MARGIN_HZ), so that its -20 dB band does not fit between them. A
+    corrupt sample or a clipped spike does that (its spectrum is flat); the message gives the largest
+    sample. A pulse whose -20 dB band fits is converted even where the complex band `choose_decimation`
+    wants reaches past Nyquist (a coarse scan_res): the analytic signal has nothing there."""
+    nyquist_hz = rf_rate_hz / 2
+    if band.low_20db_hz > BAND_EDGE_MARGIN_HZ and band.high_20db_hz < nyquist_hz - BAND_EDGE_MARGIN_HZ:
         return
     a = np.abs(rf.astype(np.int64) if rf.dtype.kind in "iu" else rf)  # |int32 min| overflows int32
     scan, sample = np.unravel_index(int(np.argmax(a)), a.shape)
@@ -152,9 +154,9 @@ def check_band(rf: np.ndarray, rf_rate_hz: float, band: Band, source: str = "",
     raise RecordingError(source, None, (
         f"the measured spectrum is implausibly wide for a radar pulse: -10 dB band {band.low_hz / 1e9:.3f}-"
         f"{band.high_hz / 1e9:.3f} GHz ({band.bandwidth_hz / 1e9:.3f} GHz), -20 dB band "
-        f"{band.low_20db_hz / 1e9:.3f}-{band.high_20db_hz / 1e9:.3f} GHz, needing a complex band of "
-        f"{need_hz / 1e9:.3f} GHz that does not fit between 0 and the RF Nyquist frequency "
-        f"{rf_rate_hz / 2e9:.3f} GHz. A corrupt sample or a clipped spike flattens the spectrum: the largest "
+        f"{band.low_20db_hz / 1e9:.3f}-{band.high_20db_hz / 1e9:.3f} GHz, which does not fit between 0 and "
+        f"the RF Nyquist frequency {nyquist_hz / 1e9:.3f} GHz (the spectrum is never 20 dB down at an end). "
+        f"A corrupt sample or a clipped spike flattens the spectrum: the largest "
         f"|sample| is {peak:.6g} (scan {scan}, sample {sample}), {peak / max(typical, 1):.3g} x the 99.9th "
         f"percentile {typical:.6g}; {spiked.size} scan(s) hold a sample over {SPIKE_FACTOR:g} x it"
         + (f" (scans {listed})" if spiked.size else "")))
@@ -206,11 +208,11 @@ def to_baseband(
     # Kept bins k0 - M/2 .. k0 + M/2 (integer bins; the fractional part of k0 is mixed in the time domain).
     k_lo = math.floor(k0) - m // 2
     bins = k_lo + np.arange(m)
-    if bins[0] < 1 or bins[-1] >= n_pad // 2:
-        raise ValueError(
-            f"carrier {carrier_hz:.4g} Hz +- {rf_rate / decimation / 2:.4g} Hz does not fit between "
-            f"0 and the RF Nyquist frequency {rf_rate / 2:.4g} Hz"
-        )
+    if not 0 < carrier_hz < rf_rate / 2:
+        raise ValueError(f"carrier {carrier_hz:.4g} Hz is not between 0 and the RF Nyquist frequency "
+                         f"{rf_rate / 2:.4g} Hz")
+    # Kept bins beyond 0..Nyquist (a coarse RF rate) are zero: the analytic signal has nothing there.
+    valid = (bins >= 1) & (bins < n_pad // 2)
     f_rel = (bins - k0) * df  # baseband frequency of each kept bin
     half = 0.5 * m * df
     flat = (1.0 - taper) * half
@@ -231,7 +233,8 @@ def to_baseband(
     out = np.empty((n_scans, n_out), dtype=np.complex128)
     for i in range(0, n_scans, block):
         x = rf[i : i + block].astype(np.float64)
-        spec = np.fft.rfft(x, n=n_pad, axis=1)[:, bins] * gain
+        spec = np.zeros((x.shape[0], m), dtype=np.complex128)
+        spec[:, valid] = np.fft.rfft(x, n=n_pad, axis=1)[:, bins[valid]] * gain[valid]
         z = np.fft.ifft(np.roll(spec, -shift, axis=1), axis=1)[:, :n_out]
         out[i : i + block] = z * residual
     return out, rf_rate / decimation

@@ -349,7 +349,7 @@ def build_pass(
             "in every sample), a receiver or antenna that was not connected?"))
     rf_rate_hz = 1.0 / recording.bin_period_s
     band = band or baseband.measure_band(rf, recording.bin_period_s)
-    baseband.check_band(rf, rf_rate_hz, band, recording.source, options.oversampling)
+    baseband.check_band(rf, rf_rate_hz, band, recording.source)
     carrier = options.carrier_frequency_hz or band.centre_hz
     decimation = options.decimation or baseband.choose_decimation(rf_rate_hz, band, options.oversampling)
     _check_kept_band(band, carrier, decimation, rf_rate_hz)
