@@ -243,3 +243,20 @@ def test_a_coarse_scan_res_whose_pulse_fits_under_nyquist_converts_although_its_
     z, rate = baseband.to_baseband(rf, t_bin, t0, band.centre_hz, d)
     ref = envelope(t0 + np.arange(z.shape[1]) / rate, band.centre_hz)
     assert 20 * np.log10(np.abs(z[0] - ref).max() / np.abs(ref).max()) < -40.0
+
+
+def test_a_recording_too_short_to_focus_is_imported_with_a_warning_and_an_hdf5_file_gets_the_hint(
+        tmp_path, capsys):
+    t = np.arange(700) * p440.bin_period_s(32)
+    echo = np.rint(9000 * synthetic.rf_pulse(t - 20e-9, 4.0e9, 1.5e9)).astype(np.int32)
+    short = p440.write_p440_stream(tmp_path / "three.p440", np.repeat(echo[None], 3, axis=0),
+                                   1000 + 20 * np.arange(3), scan_start_ps=9000)
+    assert cli.main(["import", "p440", str(short), "--out", str(tmp_path / "out"), "--speed-m-s", "0.1",
+                     "--height-m", "0.3"]) == 0
+    assert "warning: 3 pulses: too few to focus (at least 6)" in capsys.readouterr().err
+    h5 = tmp_path / "pass.h5"
+    with h5py.File(h5, "w") as f:
+        f["x"] = np.zeros(100)
+    assert cli.main(["import", "p440", str(h5), "--out", str(tmp_path / "out2"), "--speed-m-s", "0.1",
+                     "--height-m", "0.3"]) == 1
+    assert "(not a PulsON 440 scan file?)" in capsys.readouterr().err

@@ -22,6 +22,7 @@ one_blas_thread()
 from . import __version__, archive, batch, config, geometry, interrupt, outputs  # noqa: E402
 from .atomic import write_text_atomic  # noqa: E402
 from .importers import OptionError, RecordingError, passes, registry  # noqa: E402
+from .pipeline import MIN_FOCUS_PULSES  # noqa: E402
 from .records import ALGORITHMS, BACKENDS, BatchError, ConfigError, NothingRead, OutputError  # noqa: E402
 from .scenarios import SCENARIOS  # noqa: E402
 
@@ -537,6 +538,9 @@ def _print_import_summary(source, recording, track, result, options, *, aligned:
           f"{scan.pulse_position_m[-1]:+.3f} m")
     for note in result.notes:
         print(note)
+    if scan.n_pulses < MIN_FOCUS_PULSES:
+        print(f"warning: {scan.n_pulses} pulses: too few to focus (at least {MIN_FOCUS_PULSES}); the archive "
+              "is written, but `uwbcl focus`, `check` and `process` will refuse it", file=sys.stderr)
     gaps = geometry.track_gaps(scan.pulse_position_m)
     if len(gaps):
         print(f"warning: {geometry.describe_gaps(gaps)}", file=sys.stderr)

@@ -112,7 +112,8 @@ class P440Reader:
                     path,
                     0,
                     f"configuration header: scan_res {cfg['scan_res']}, scan window "
-                    f"{cfg['scan_start_ps']}..{cfg['scan_stop_ps']} ps is not a scan",
+                    f"{cfg['scan_start_ps']}..{cfg['scan_stop_ps']} ps is not a scan (not a PulsON 440 scan "
+                    "file?)",
                 )
             n_records, tail = divmod(size - CONFIG.size, RECORD_BYTES)
             state = _StreamState(path, n_records)
