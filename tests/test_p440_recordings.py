@@ -260,3 +260,17 @@ def test_a_recording_too_short_to_focus_is_imported_with_a_warning_and_an_hdf5_f
     assert cli.main(["import", "p440", str(h5), "--out", str(tmp_path / "out2"), "--speed-m-s", "0.1",
                      "--height-m", "0.3"]) == 1
     assert "(not a PulsON 440 scan file?)" in capsys.readouterr().err
+
+
+def test_a_scan_lost_whole_is_counted_by_the_radars_scan_counter(tmp_path, capsys):
+    t = np.arange(700) * p440.bin_period_s(32)
+    echo = np.rint(9000 * synthetic.rf_pulse(t - 20e-9, 4.0e9, 1.5e9)).astype(np.int32)
+    path = p440.write_p440_stream(tmp_path / "gap.p440", np.repeat(echo[None], 12, axis=0),
+                                  1000 + 20 * np.arange(12), scan_start_ps=9000)
+    data = path.read_bytes()
+    path.write_bytes(data[:_record(10)] + data[_record(12):])  # both messages of scan 5: never received
+    assert cli.main(["import", "p440", str(path), "--out", str(tmp_path / "out"), "--speed-m-s", "0.1",
+                     "--height-m", "0.3"]) == 0
+    out = capsys.readouterr().out
+    assert ("11 complete scans read, 0 incomplete dropped, 1 lost whole (the radar's scan counter skips them)"
+            in out)
