@@ -536,9 +536,11 @@ def shared_peak_warnings(cycles: list[CycleResult]) -> list[Problem]:
                 counts[(c.rig_id, h)][1] += 1
     return [Problem(f"rig {rig}", "shared_peaks",
                     f"at rail height {h / 1000:.3f} m, {n_shared} of {n} located plates shared their peak "
-                    "with a neighbour's: from this height the plates of a column are closer in range than "
-                    "the detector separates, so their peaks merge; a height further from the rows' "
-                    "mid-height separates them (docs/method.md section 5, choosing rail heights)")
+                    "with a neighbour's: from this height two plates of a column are closer in range than "
+                    "the detector separates and their peaks merge, which a height further from the rows' "
+                    "mid-height undoes (docs/method.md section 5, choosing rail heights); where the rows are "
+                    "staggered or resolved at this height, the neighbour is a plate's own edges or bolt head "
+                    "or a clutter point, and moving the height will not help")
             for (rig, h), (n_shared, n) in sorted(counts.items())
             if n_shared >= SHARED_PEAKS_WARN_MIN and n_shared >= SHARED_PEAKS_WARN_FRACTION * n]
 
