@@ -487,3 +487,33 @@ def test_a_connection_made_again_after_failed_set_up_reads_is_counted_as_a_recon
     assert device.n_busy == 0
     assert report.ok and len(report.passes_written) == 2, report
     assert report.faults.reconnects >= 1 and report.faults.exceptions >= 12
+
+
+class _WrongLengthWindowOnce(RigServer):
+    """A server whose first reply to a full-size read of the pulse window (IR 1024+125) carries `delta`
+    registers more or fewer, once: Modbus-valid (its byte count agrees), the wrong length (an independent
+    controller's fault, map section 9: DAMAGED)."""
+
+    def __init__(self, *args, delta: int, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.delta, self.sent = delta, False
+
+    def _trace_pdu(self, sending: bool, pdu):
+        pdu = super()._trace_pdu(sending, pdu)
+        regs = getattr(pdu, "registers", None)
+        if sending and not self.sent and pdu.function_code == 4 and regs and len(regs) == \
+                R.MAX_REGISTERS_PER_READ:
+            self.sent = True
+            pdu.registers = list(regs[:self.delta]) if self.delta < 0 else list(regs) + [0] * self.delta
+        return pdu
+
+
+@pytest.mark.parametrize("delta", [-2, 2])
+def test_one_wrong_length_reply_to_the_window_read_is_read_again_not_a_stop(delta, tmp_path, caplog):
+    caplog.set_level(logging.WARNING, logger="uwbcl")
+    with _WrongLengthWindowOnce(RigController(FAST_DEVICE), LOOPBACK, 0, delta=delta) as server:
+        report = run_session(settings_for(server, tmp_path, cycles=1))
+    assert server.sent
+    assert report.ok and len(report.passes_written) == 2, report
+    assert "registers came back; re-reading the window" in caplog.text
+    assert_archives_match_device(report, server)

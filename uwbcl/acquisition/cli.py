@@ -224,7 +224,8 @@ def _acquire(args: argparse.Namespace) -> int:
 def _print_summary(report, out) -> None:
     f = report.faults
     print(f"{len(report.passes_written)} passes written to {out}; {len(report.passes_incomplete)} incomplete "
-          f"and re-run; {len(report.passes_failed)} failed; cycles complete {len(report.cycles_complete)}, "
+          f"attempts (each run again, up to --max-attempts); {len(report.passes_failed)} failed; cycles "
+          f"complete {len(report.cycles_complete)}, "
           f"incomplete {len(report.cycles_incomplete)}, missed {report.cycles_missed}")
     print(f"faults seen: {f.no_reply} lost replies, {f.disconnects} dropped connections, {f.exceptions} "
           f"exception replies, {f.corrupt} corrupted replies, {f.reboots} controller reboots ({f.reconnects} "

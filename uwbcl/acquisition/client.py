@@ -254,16 +254,20 @@ class RigLink:
                 raise Interrupted()
             if self.client.connect():
                 # every connection after the first is a reconnect, also one whose set-up reads then failed
-                if self._ever_connected:
-                    self.counts.reconnects += 1
-                    log.info("reconnected to %s:%d", self.host, self.port)
+                # (counted); the log says so only of one that got through them (a booting controller may
+                # accept and drop connections, map section 9)
+                again = self._ever_connected
+                self.counts.reconnects += again
                 self._ever_connected = True
                 try:
                     status = self._read_block_once(R.STATUS)
                     identity, radar = self._describe_once()
                 except (_NoReply, LinkDown):
+                    log.debug("connection to %s:%d dropped before its set-up reads", self.host, self.port)
                     self.client.close()
                 else:
+                    if again:
+                        log.info("reconnected to %s:%d", self.host, self.port)
                     self.identity, self.radar = identity, radar
                     self.first_status = self.first_status or status
                     rebooted = self.boot_id is not None and status["BOOT_ID"] != self.boot_id
@@ -358,7 +362,8 @@ class RigLink:
                              fn).registers
         if len(regs) != count:
             self.counts.corrupt += 1
-            raise _Corrupt(f"read {address}+{count}: {len(regs)} registers came back")
+            raise _Corrupt(f"read {'IR' if table is R.Table.INPUT else 'HR'} {address}+{count}: {len(regs)} "
+                           "registers came back")
         return list(regs)
 
     def _read_block_once(self, block: R.Block) -> dict:
@@ -760,12 +765,12 @@ class AcquisitionSession:
             if self.stop.is_set():
                 raise Interrupted()
             self._check_watchdog(asm, d)
-            first = self.link.read(R.Table.INPUT, R.WINDOW_ADDRESS,
-                                   min(R.MAX_REGISTERS_PER_READ, window_regs))
-            try:
+            try:  # a wrong-length reply (_Corrupt) to the first read is damage as much as a bad CRC
+                first = self.link.read(R.Table.INPUT, R.WINDOW_ADDRESS,
+                                       min(R.MAX_REGISTERS_PER_READ, window_regs))
                 head, records = self._decode_window(asm, first, window_regs)
             except R.RegisterError as exc:
-                self.link.counts.corrupt += 1
+                self.link.counts.corrupt += 0 if isinstance(exc, _Corrupt) else 1  # read() counted its own
                 d.corrupt_in_a_row += 1
                 log.warning("fault: %s; re-reading the window", exc)
                 if d.corrupt_in_a_row > RigLink.MAX_CRC_RETRIES:
