@@ -517,7 +517,7 @@ def _print_import_summary(source, recording, track, result, options, *, aligned:
     `aligned`: the clocks were aligned on the first motion (no --time-offset-s)."""
     band, scan = result.band, result.scan
     repeated = f", {recording.n_repeated} repeated dropped" if recording.n_repeated else ""
-    lost = _lost_by_counter(recording)
+    lost = recording.n_lost
     lost_text = f", {lost} lost whole (the radar's scan counter skips them)" if lost else ""
     print(f"{source}: {recording.n_scans + recording.n_repeated} complete scans read, "
           f"{recording.n_dropped} incomplete dropped{repeated}{lost_text}")
@@ -551,17 +551,6 @@ def _print_import_summary(source, recording, track, result, options, *, aligned:
     if options.range_delay_s == 0.0:
         print("warning: range_delay_s = 0 (uncalibrated): ranges include the radar's internal delay",
               file=sys.stderr)
-
-
-def _lost_by_counter(recording) -> int:
-    """Scans the radar counted but the file does not hold at all: the numbers its scan counter (u16, wrapping)
-    skips between the complete scans, less the incomplete scans dropped (they skip numbers too)."""
-    ids = recording.scan_id
-    if ids is None or len(ids) < 2:
-        return 0
-    steps = [(int(b) - int(a)) % 65536 for a, b in zip(ids[:-1], ids[1:])]
-    skipped = sum(k - 1 for k in steps if 1 < k < 32768)
-    return max(0, skipped - recording.n_dropped)
 
 
 def _remove_empty(directories: list[Path]) -> None:

@@ -16,6 +16,7 @@ from typing import Protocol
 
 import numpy as np
 
+from ..atomic import open_regular_file
 from ..records import ConfigError
 
 
@@ -67,6 +68,9 @@ class RawRecording:
         Incomplete scans that were dropped (a truncated last scan, lost messages).
     n_repeated : int
         Scans dropped as repeats of the scan before them (same timestamp, counter and samples).
+    n_lost : int
+        Scans lost whole: numbers the radar's scan counter skips between the complete scans, less the
+        incomplete ones dropped (0 for a radar without a counter).
     scan_id : ndarray, (n_scans,) int64
         The radar's scan counter, where it has one (gaps show lost scans).
     carrier_frequency_hz : float or None
@@ -83,6 +87,7 @@ class RawRecording:
     radar: str = ""
     n_dropped: int = 0
     n_repeated: int = 0
+    n_lost: int = 0
     scan_id: np.ndarray | None = None
     carrier_frequency_hz: float | None = None
     metadata: dict = dataclasses.field(default_factory=dict)
@@ -98,6 +103,15 @@ class RawRecording:
     @property
     def is_real_rf(self) -> bool:
         return not np.iscomplexobj(self.samples)
+
+
+def open_recording(path: str | os.PathLike[str]):
+    """A recording or positions file opened for reading in binary; RecordingError naming it for anything but a
+    regular file (a FIFO would block the import, a device never end: `atomic.open_regular_file`)."""
+    try:
+        return open_regular_file(path)
+    except ValueError as exc:
+        raise RecordingError(path, None, str(exc)) from None
 
 
 class Reader(Protocol):

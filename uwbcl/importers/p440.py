@@ -32,8 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import open_regular_file
-from . import RawRecording, RecordingError
+from . import RawRecording, RecordingError, open_recording
 
 log = logging.getLogger("uwbcl")
 
@@ -49,6 +48,7 @@ _TIMESTAMP_WRAP_MS = 1 << 32
 # and are put back in the radar's time order; a longer step back is a restarted radar clock or two
 # recordings in one file, which no order repairs.
 MAX_REORDER_MS = 1000
+COUNTER_WRAP = 1 << 16  # message_id, the scan counter, is a u16
 LISTED_DROPS = 10  # incomplete scans named one by one in the log; the rest are counted in one line
 _RECORDS_PER_READ = 4096  # ~6 MB per read: bounded memory whatever the file size
 
@@ -92,10 +92,7 @@ class P440Reader:
     def read(self, path: str | os.PathLike[str]) -> RawRecording:
         """Every complete scan of ``path``; RecordingError (file, byte offset, reason) for a bad record."""
         path = Path(path)
-        try:
-            f = open_regular_file(path)
-        except ValueError as exc:
-            raise RecordingError(path, None, str(exc)) from None
+        f = open_recording(path)
         size = os.fstat(f.fileno()).st_size
         with f:
             head = f.read(CONFIG.size)
@@ -324,6 +321,8 @@ class _StreamState:
             rf, ms = rf[order], ms[order]
             self.ids = [self.ids[i] for i in order]
         metadata = dict(cfg, scan_stop_ps=stop, num_samples_total=n_total)
+        steps = np.diff(np.asarray(self.ids, dtype=np.int64)) % COUNTER_WRAP  # u16 message_id, wrapping
+        skipped = int(np.sum(steps[(steps > 1) & (steps < COUNTER_WRAP // 2)] - 1))
         return RawRecording(
             samples=rf,
             scan_time_s=ms * 1e-3,
@@ -333,10 +332,10 @@ class _StreamState:
             radar="p440",
             n_dropped=self.n_dropped,
             n_repeated=self.n_repeated,
+            n_lost=max(0, skipped - self.n_dropped),  # the incomplete scans skip counter numbers too
             scan_id=np.asarray(self.ids, dtype=np.int64),
             metadata=metadata,
         )
-
 
     def check_header(self, cfg: dict) -> None:
         """Warnings for a file that contradicts itself where the messages win: a configuration header whose

@@ -26,12 +26,11 @@ from pathlib import Path
 import numpy as np
 
 from ..archive import MAX_RAIL_DEVIATION_M
-from ..atomic import open_regular_file
 from ..config import MAX_RANGE_DELAY_S
 from ..model import SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters, RawRF, ScanPass
 from ..records import ConfigError
 from ..utc import parse_utc
-from . import OptionError, RawRecording, RecordingError, baseband
+from . import OptionError, RawRecording, RecordingError, baseband, open_recording
 
 log = logging.getLogger("uwbcl")
 
@@ -96,10 +95,7 @@ def read_positions_csv(path: str | os.PathLike[str]) -> Positions:
     ignored). RecordingError naming the file and line for a missing column, a non-number or a time that does
     not increase."""
     path = Path(path)
-    try:
-        raw = open_regular_file(path)
-    except ValueError as exc:
-        raise RecordingError(path, None, str(exc)) from None
+    raw = open_recording(path)
     # utf-8-sig: a spreadsheet's "CSV UTF-8" starts with a byte-order mark, which is not part of the header
     with io.TextIOWrapper(raw, encoding="utf-8-sig", newline="") as f:
         try:
