@@ -184,10 +184,14 @@ def moving_runs(x_m: np.ndarray, min_step_m: float) -> list[slice]:
     return runs
 
 
+def longest_run(runs: list[slice]) -> slice:
+    """The longest of `moving_runs` (the first of equals); an empty slice for none."""
+    return max(runs, key=lambda r: r.stop - r.start, default=slice(0, 0))
+
+
 def moving_segment(x_m: np.ndarray, min_step_m: float) -> slice:
-    """The longest run of samples whose position moves strictly one way by > min_step_m each step (the
-    first of equals)."""
-    return max(moving_runs(x_m, min_step_m), key=lambda r: r.stop - r.start, default=slice(0, 0))
+    """The longest run of samples whose position moves strictly one way by > min_step_m each step."""
+    return longest_run(moving_runs(x_m, min_step_m))
 
 
 OTHER_PASS_FRACTION = 0.5  # a second run over this fraction of the kept pass's length is another pass
@@ -257,7 +261,7 @@ def track_from_positions(
 
     x = at(positions.x_m)
     runs = moving_runs(x, min_step_m)
-    seg = max(runs, key=lambda r: r.stop - r.start, default=slice(0, 0))
+    seg = longest_run(runs)
     if seg.stop - seg.start >= 2:
         _warn_other_passes(recording.source, x, t[inside], runs, seg)
     if seg.stop - seg.start < 2:
