@@ -517,3 +517,30 @@ def test_one_wrong_length_reply_to_the_window_read_is_read_again_not_a_stop(delt
     assert report.ok and len(report.passes_written) == 2, report
     assert "registers came back; re-reading the window" in caplog.text
     assert_archives_match_device(report, server)
+
+
+class _WrongEchoOnce(RigServer):
+    """A server whose reply to the first FC16 write of the COMMAND block echoes another address, once (an
+    independent controller's fault, map section 9: DAMAGED); the write itself was executed."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.sent = False
+
+    def _trace_pdu(self, sending: bool, pdu):
+        pdu = super()._trace_pdu(sending, pdu)
+        if sending and not self.sent and pdu.function_code == 16 and pdu.address == R.COMMAND.address:
+            self.sent = True
+            pdu.address += 1
+        return pdu
+
+
+def test_a_write_reply_echoing_another_address_is_written_again_and_counted(tmp_path, caplog):
+    caplog.set_level(logging.WARNING, logger="uwbcl")
+    with _WrongEchoOnce(RigController(FAST_DEVICE), LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, cycles=1))
+    assert server.sent
+    assert report.ok and len(report.passes_written) == 2, report
+    assert f"the reply echoes HR {R.COMMAND.address + 1}+" in caplog.text
+    assert report.faults.corrupt >= 1
+    assert_archives_match_device(report, server)

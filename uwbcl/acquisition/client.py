@@ -401,9 +401,21 @@ class RigLink:
         raise LinkDown(f"{block.name}: corrupted {self.MAX_CRC_RETRIES} times in a row")
 
     def write_block(self, block: R.Block, values: dict) -> None:
+        """One FC16 write of the whole block. The reply echoes the address and quantity; a reply that echoes
+        others answers some other request or was damaged (DAMAGED): the write is repeated, which every block
+        of the map allows (section 7), up to MAX_CRC_RETRIES times."""
         regs = block.encode(values)
-        self._request(f"write {block.name}", lambda: self.client.write_registers(block.address, regs,
-                                                                                 device_id=self.unit_id))
+        desc = f"write {block.name} (HR {block.address}+{len(regs)})"
+        for _ in range(self.MAX_CRC_RETRIES):
+            reply = self._request(desc, lambda: self.client.write_registers(block.address, regs,
+                                                                            device_id=self.unit_id))
+            echo = (getattr(reply, "address", block.address), getattr(reply, "count", len(regs)))
+            if echo == (block.address, len(regs)):
+                return
+            self.counts.corrupt += 1
+            log.warning("fault: %s: the reply echoes HR %d+%d; writing again", desc, *echo)
+        self.counts.requests_failed += 1
+        raise LinkDown(f"{desc}: the reply echoed another address or quantity {self.MAX_CRC_RETRIES} times")
 
 
 def _incompatible(identity: dict) -> str:
