@@ -274,3 +274,17 @@ def test_a_scan_lost_whole_is_counted_by_the_radars_scan_counter(tmp_path, capsy
     out = capsys.readouterr().out
     assert ("11 complete scans read, 0 incomplete dropped, 1 lost whole (the radar's scan counter skips them)"
             in out)
+
+
+def test_a_scan_counter_that_stays_put_is_warned_about_since_scans_lost_whole_cannot_be_counted(tmp_path,
+                                                                                                 caplog):
+    t = np.arange(700) * p440.bin_period_s(32)
+    echo = np.rint(9000 * synthetic.rf_pulse(t - 20e-9, 4.0e9, 1.5e9)).astype(np.int32)
+    path = p440.write_p440_stream(tmp_path / "stuck.p440", np.repeat(echo[None], 12, axis=0),
+                                  1000 + 20 * np.arange(12), scan_start_ps=9000)
+    for k in range(24):  # a firmware that numbers every scan 7 (both messages of each of the 12 scans)
+        _patch(path, _record(k) + 2, ">H", 7)
+    with caplog.at_level(logging.WARNING, logger="uwbcl"):
+        assert cli.main(["import", "p440", str(path), "--out", str(tmp_path / "out"), "--speed-m-s", "0.1",
+                         "--height-m", "0.3"]) == 0
+    assert "scan counter (message_id) stays or goes back at 11 of 11 scans" in caplog.text

@@ -323,6 +323,10 @@ class _StreamState:
         metadata = dict(cfg, scan_stop_ps=stop, num_samples_total=n_total)
         steps = np.diff(np.asarray(self.ids, dtype=np.int64)) % COUNTER_WRAP  # u16 message_id, wrapping
         skipped = int(np.sum(steps[(steps > 1) & (steps < COUNTER_WRAP // 2)] - 1))
+        astray = int(np.sum((steps == 0) | (steps >= COUNTER_WRAP // 2)))  # a counter stuck or going back
+        if astray:
+            log.warning("%s: the radar's scan counter (message_id) stays or goes back at %d of %d scans: the "
+                        "scans lost whole cannot all be counted", self.path, astray, steps.size)
         return RawRecording(
             samples=rf,
             scan_time_s=ms * 1e-3,
