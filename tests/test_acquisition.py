@@ -376,10 +376,17 @@ def test_a_reply_slower_than_the_timeout_counts_as_lost_and_is_recovered(tmp_pat
     assert_archives_match_device(report, server)
 
 
-def test_live_processing_publishes_retreat_and_creep_in_the_result_registers(tmp_path):
+@pytest.mark.parametrize("results_file_blocked", [False, True])
+def test_live_processing_publishes_retreat_and_creep_in_the_result_registers(results_file_blocked, tmp_path,
+                                                                            caplog):
+    # Blocked: a directory where the results file goes (an unwritable output), which is logged; the
+    # registers and the archives are published all the same.
     from pymodbus.client import ModbusTcpClient
 
-    from uwbcl.acquisition.live import LiveProcessor, processing_settings
+    from uwbcl.acquisition.live import RESULTS_FILE, LiveProcessor, processing_settings
+
+    if results_file_blocked:
+        (tmp_path / RESULTS_FILE).mkdir()
 
     # The second cycle signal comes as soon as the first cycle's two passes are done, however
     # loaded the machine.
@@ -398,7 +405,10 @@ def test_live_processing_publishes_retreat_and_creep_in_the_result_registers(tmp
     truth = device.campaign.rig_position_m(k) - device.campaign.rig_position_m(k0)
     assert result["RETREAT"] == pytest.approx(truth[0], abs=0.005)
     assert result["CREEP"] == pytest.approx(truth[1], abs=0.005)
-    assert (tmp_path / "acquire-results.csv").read_text().count("\n") == 3  # header + 2 cycles
+    if results_file_blocked:
+        assert "cannot write the results file" in caplog.text
+    else:
+        assert (tmp_path / RESULTS_FILE).read_text().count("\n") == 3  # header + 2 cycles
     assert report.ok and processor.q_sign_warning == ""
 
 

@@ -26,6 +26,15 @@ FILE_MODE = 0o666 & ~_umask()  # what open() would give; mkstemp's 0600 would hi
 PARTIAL_SUFFIX = ".partial"  # temporary files are ".<name>.<random>.partial" beside the final name
 
 
+def file_in_the_way(directory: Path) -> Path | None:
+    """The file that keeps `directory` from being made: it, or a folder above it, exists and is not a
+    directory (None: nothing in the way)."""
+    for parent in (directory, *directory.parents):
+        if parent.exists() and not parent.is_dir():
+            return parent
+    return None
+
+
 def fsync_directory(directory: Path) -> None:
     """Make a rename in `directory` durable (POSIX: the rename lives in the directory's own blocks); some
     filesystems cannot open or fsync a directory, which is not an error."""

@@ -20,7 +20,7 @@ from .threads import one_blas_thread
 one_blas_thread()
 
 from . import __version__, archive, batch, config, geometry, interrupt, outputs  # noqa: E402
-from .atomic import write_text_atomic  # noqa: E402
+from .atomic import file_in_the_way, write_text_atomic  # noqa: E402
 from .importers import OptionError, RecordingError, passes, registry  # noqa: E402
 from .pipeline import MIN_FOCUS_PULSES  # noqa: E402
 from .records import ALGORITHMS, BACKENDS, BatchError, ConfigError, NothingRead, OutputError  # noqa: E402
@@ -197,10 +197,9 @@ def _focus(args: argparse.Namespace) -> int:
         print(f"uwbcl focus: {exc}", file=sys.stderr)
         return 2
     out_dir = Path(args.out)
-    for parent in (out_dir, *out_dir.parents):
-        if parent.exists() and not parent.is_dir():
-            print(f"uwbcl focus: --out {out_dir}: {parent} is not a directory", file=sys.stderr)
-            return 2
+    if problem := _out_problem(out_dir):
+        print(f"uwbcl focus: {problem}", file=sys.stderr)
+        return 2
     if settings.backend == "opencl" and not _engine_ready(settings.device):
         return 2
     try:
@@ -321,13 +320,18 @@ def _read_archives(paths: list[str], limits, name: str) -> list | None:
     return scans
 
 
+def _out_problem(out_dir: Path) -> str:
+    """Why --out cannot be a directory ("" when it can): it, or a folder above it, is a file."""
+    blocker = file_in_the_way(out_dir)
+    return f"--out {out_dir}: {blocker} is not a directory" if blocker else ""
+
+
 def _directories_problem(in_dir: Path, out_dir: Path) -> str:
     """Why ARCHIVE_DIR and --out cannot be used together ("" when they can)."""
     if not in_dir.is_dir():
         return f"{in_dir}: not a directory"
-    for parent in (out_dir, *out_dir.parents):
-        if parent.exists() and not parent.is_dir():
-            return f"--out {out_dir}: {parent} is not a directory"
+    if problem := _out_problem(out_dir):
+        return problem
     real_in, real_out = in_dir.resolve(), out_dir.resolve()
     if real_in == real_out:
         return f"--out {out_dir} is the archive directory itself; give the outputs a directory of their own"
@@ -480,6 +484,9 @@ def _import(args: argparse.Namespace) -> int:
         print(f"{name}: {exc}", file=sys.stderr)
         return 2
     source, out = Path(args.scan_file), Path(args.out)
+    if problem := _out_problem(out):
+        print(f"{name}: {problem}", file=sys.stderr)
+        return 2
     made = []  # the directories this import creates, removed again if it fails
     try:
         recording = registry.get_reader(args.reader).read(source)

@@ -15,6 +15,7 @@ import threading
 import time
 from pathlib import Path
 
+from ..atomic import file_in_the_way
 from ..config import parse_heights
 from ..scenarios import SCENARIOS
 
@@ -205,6 +206,9 @@ def _acquire(args: argparse.Namespace) -> int:
     except (ConfigError, ValueError, TypeError) as exc:
         print(f"uwbcl acquire: {exc}", file=sys.stderr)
         return 2
+    if blocker := file_in_the_way(Path(settings.out)):
+        print(f"uwbcl acquire: archive root {settings.out}: {blocker} is not a directory", file=sys.stderr)
+        return 2
     processor = None
     if settings.process:
         proc_settings = processing_settings(settings.backend, settings.web_depth_m)
@@ -255,6 +259,9 @@ def _demo(args: argparse.Namespace) -> int:
 
     if args.cycles < 2:
         print("uwbcl demo: --cycles must be >= 2 (a displacement needs two cycles)", file=sys.stderr)
+        return 2
+    if args.out and (blocker := file_in_the_way(Path(args.out))):
+        print(f"uwbcl demo: --out {args.out}: {blocker} is not a directory", file=sys.stderr)
         return 2
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="uwbcl-demo-"))
     t_start = time.monotonic()

@@ -992,7 +992,11 @@ class AcquisitionSession:
             except queue.Empty:
                 return
             self.report.results.append(result)
-            self.processor.write_csv(self.out, self.report.results)
+            try:  # the results file is rewritten whole each time: a failed write is made good by the next
+                self.processor.write_csv(self.out, self.report.results)
+            except OSError as exc:
+                log.error("cannot write the results file under %s: %s; the RESULT block is still published",
+                          self.out, exc.strerror or exc)
             if result.get("status_code") is None or result.get("revision", 0):
                 continue  # the reference cycle: nothing to publish yet; a re-issue goes to the CSV only
             self._result_seq = self._result_seq % 0xFFFFFFFF + 1
