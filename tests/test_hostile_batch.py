@@ -520,3 +520,25 @@ def test_a_controller_rig_id_that_looks_like_a_path_cannot_place_an_archive_outs
         assert (tmp_path / "root") in path.resolve().parents
     safe = archive.default_relative_path(scan)
     assert safe.parts[0] == scan.rig_id  # a safe id is used as it is
+
+
+_FILE_TOO_LARGE = """
+import resource, sys
+from pathlib import Path
+from uwbcl import outputs
+resource.setrlimit(resource.RLIMIT_FSIZE, (20000, 20000))
+rows = [{"x_m": float(i), "cycle": i} for i in range(20000)]
+try:
+    outputs.write_h5_atomic(Path(sys.argv[1]), {"t": (("x_m", "cycle"), rows)})
+except OSError as exc:
+    print("OSError", exc.errno)
+"""
+
+
+def test_an_hdf5_output_past_the_file_size_limit_is_an_os_error_not_a_crash(tmp_path):
+    # The HDF5 library failing its own writes (EFBIG under `ulimit -f`, EIO) crashed the interpreter while
+    # h5py freed its objects; the file is now made in memory and written as bytes.
+    done = subprocess.run([sys.executable, "-c", _FILE_TOO_LARGE, str(tmp_path / "t.h5")], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.strip() == f"OSError {errno.EFBIG}", done.stderr[-2000:]
+    assert "Traceback" not in done.stderr and list(tmp_path.iterdir()) == []

@@ -12,8 +12,9 @@ import io
 import os
 import stat
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 
 def _umask() -> int:
@@ -95,6 +96,19 @@ def write_bytes_atomic(path: Path, data: bytes) -> None:
 
 def write_text_atomic(path: Path, text: str) -> None:
     write_bytes_atomic(path, text.encode())
+
+
+def write_hdf5_atomic(path: Path, fill: Callable[[Any], None]) -> None:
+    """An HDF5 output file (format v110, creation order tracked), made in memory by `fill(h5py.File)` and
+    written as bytes: a write that fails (disk full, file too large, EIO) is then an OSError from `write`,
+    never an HDF5 library error while h5py closes or frees its objects (which can crash the interpreter).
+    For outputs that fit in memory (tables, one image); archives are written by `archive.write_pass`."""
+    import h5py
+
+    buf = io.BytesIO()
+    with h5py.File(buf, "w", libver=("v110", "v110"), track_order=True) as f:
+        fill(f)
+    write_bytes_atomic(path, buf.getvalue())
 
 
 def csv_text(columns, rows) -> str:

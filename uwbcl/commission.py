@@ -19,7 +19,7 @@ import numpy as np
 
 from . import __version__, archive, detect, pipeline
 from . import geometry as geo
-from .atomic import atomic_path, write_csv_atomic
+from .atomic import write_csv_atomic, write_hdf5_atomic
 from .focus import nlcs
 from .model import SPEED_OF_LIGHT_M_S
 from .outputs import _pyplot, _save, safe_name
@@ -196,10 +196,8 @@ IMAGE_FORMAT_VERSION = 1
 def write_image_h5(path: Path, scan, products, settings: ProcessingSettings, label: str) -> None:
     """One pass's focused complex image and its axes, atomically (docs/outputs.md section 7): a pass out of
     uwbcl for a radar engineer's own tools, in the coordinates of detections.csv."""
-    import h5py
-
     az, rg = image_axes(products)
-    with atomic_path(path) as tmp, h5py.File(tmp, "w", libver=("v110", "v110"), track_order=True) as f:
+    def fill(f) -> None:
         f.attrs.update({"format": IMAGE_FORMAT, "format_version": np.int64(IMAGE_FORMAT_VERSION),
                         "created_by": f"uwbcl {__version__} focus", "source": label,
                         "algorithm": settings.algorithm, "backend": settings.backend,
@@ -214,6 +212,8 @@ def write_image_h5(path: Path, scan, products, settings: ProcessingSettings, lab
         ds.attrs.update({"units": "arb", "axes": "azimuth_m,range_m"})
         for name, axis in (("azimuth_m", az), ("range_m", rg)):
             f.create_dataset(name, data=np.asarray(axis, dtype=np.float64)).attrs["units"] = "m"
+
+    write_hdf5_atomic(path, fill)
 
 
 def focus_one(path: Path, png: Path, settings: ProcessingSettings, label: str,

@@ -22,11 +22,11 @@ import numpy as np
 from . import __version__, archive, pipeline
 from .atomic import (
     PARTIAL_SUFFIX,
-    atomic_path,
     csv_bytes,
     fsync_directory,
     read_regular_file,
     write_bytes_atomic,
+    write_hdf5_atomic,
 )
 from .names import MAX_NAME_LENGTH, safe_name  # noqa: F401  (MAX_NAME_LENGTH: tests)
 from .records import TRUSTED_STATUSES, BatchError, CycleResult, OutputError, Problem, SeriesRow
@@ -229,7 +229,7 @@ def write_h5_atomic(path: Path, tables: dict[str, tuple[tuple[str, ...], list[di
     """One group per table, one 1-D dataset per column with a `units` attribute; deterministic bytes."""
     import h5py
 
-    with atomic_path(path) as tmp, h5py.File(tmp, "w", libver=("v110", "v110"), track_order=True) as f:
+    def fill(f) -> None:
         f.attrs["format"] = H5_FORMAT
         f.attrs["format_version"] = np.int64(H5_FORMAT_VERSION)
         f.attrs["created_by"] = f"uwbcl {__version__}"
@@ -247,6 +247,8 @@ def write_h5_atomic(path: Path, tables: dict[str, tuple[tuple[str, ...], list[di
                     data = np.array(values, dtype=np.float64)
                 ds = g.create_dataset(col, data=data, shape=(len(values),))
                 ds.attrs["units"] = unit
+
+    write_hdf5_atomic(path, fill)
 
 
 def write_all(out_dir: Path, rows: list[SeriesRow], cycles: list[CycleResult], problems: list[Problem], opts,
