@@ -538,7 +538,7 @@ except OSError as exc:
 def test_an_hdf5_output_past_the_file_size_limit_is_an_os_error_not_a_crash(tmp_path):
     # The HDF5 library failing its own writes (EFBIG under `ulimit -f`, EIO) crashed the interpreter while
     # h5py freed its objects; the file is now made in memory and written as bytes.
-    done = subprocess.run([sys.executable, "-c", _FILE_TOO_LARGE, str(tmp_path / "t.h5")], capture_output=True,
-                          text=True, timeout=120)
+    done = subprocess.run([sys.executable, "-c", _FILE_TOO_LARGE, str(tmp_path / "t.h5")],
+                          capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and done.stdout.strip() == f"OSError {errno.EFBIG}", done.stderr[-2000:]
     assert "Traceback" not in done.stderr and list(tmp_path.iterdir()) == []

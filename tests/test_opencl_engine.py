@@ -709,3 +709,46 @@ def test_an_engine_without_fp64_phases_builds_says_so_and_stays_near_the_referen
     assert rel_err(single.nlcs_focus(jittery_pass).image, ref) < 1e-2  # docs/opencl.md: ~4e-3, over budget
     ref_bp = bp.backprojection_focus(jittery_pass).image
     assert rel_err(single.backprojection_focus(jittery_pass).image, ref_bp) < 1e-3
+
+
+# ------------------------------------------------------------------------------------ a runtime that fails
+def test_kernels_that_do_not_build_stop_process_with_one_line_and_exit_2(tmp_path, monkeypatch, capsys):
+    # PoCL fails clBuildProgram when it cannot write its kernel cache (a service account's full or read-only
+    # home); a broken kernel file fails the same way. Either is one line naming the cause, not a traceback.
+    import shutil
+
+    from uwbcl import cli
+    from uwbcl.focus import engine as engine_module
+
+    kernels = tmp_path / "kernels"
+    shutil.copytree(opencl.kernel_dir(), kernels)
+    (kernels / "common.cl").write_text((kernels / "common.cl").read_text() + "\nthis is not OpenCL C;\n")
+    monkeypatch.setenv("UWBCL_KERNEL_DIR", str(kernels))
+    monkeypatch.setattr(engine_module, "_ENGINES", {})  # no engine built before this test
+    (tmp_path / "arch").mkdir()
+    code = cli.main(["process", str(tmp_path / "arch"), "--out", str(tmp_path / "out"),
+                     "--backend", "opencl"])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert "building the kernels on" in err and "POCL_CACHE_DIR" in err
+
+
+def test_an_opencl_platform_without_devices_is_not_called_a_missing_driver(monkeypatch):
+    class Platform:
+        name = "Portable Computing Language"
+
+        def get_devices(self):
+            return []  # what PoCL offers with an unwritable kernel cache
+
+    class FakeCl:
+        Error = RuntimeError
+
+        @staticmethod
+        def get_platforms():
+            return [Platform()]
+
+    monkeypatch.setattr(opencl, "_cl", lambda: FakeCl)
+    with pytest.raises(opencl.OpenClUnavailable) as info:
+        opencl.list_devices()
+    assert "Portable Computing Language offer no device" in str(info.value)
+    assert "POCL_CACHE_DIR" in str(info.value) and "install" not in str(info.value)

@@ -25,6 +25,13 @@ FFT_HINT = (
 )
 
 
+CACHE_HINT = (
+    "PoCL (the CPU runtime) offers no device, and fails to build kernels, when it cannot write its kernel "
+    "cache: check that POCL_CACHE_DIR (default ~/.cache/pocl, or $XDG_CACHE_HOME/pocl) is writable and not "
+    "full"
+)
+
+
 class OpenClUnavailable(RuntimeError):
     """The OpenCL backend cannot run here; the message says what to install."""
 
@@ -88,18 +95,23 @@ def list_devices() -> list[DeviceInfo]:
         platforms = cl.get_platforms()
     except cl.Error as exc:  # LogicError PLATFORM_NOT_FOUND_KHR when no ICD is installed
         raise OpenClUnavailable(INSTALL_HINT) from exc
-    out = []
+    out, empty = [], []
     for ip, platform in enumerate(platforms):
         try:
             devices = platform.get_devices()
         except cl.Error:
-            continue
+            devices = []
+        if not devices:
+            empty.append(platform.name.strip())
         for idev, d in enumerate(devices):
             out.append(DeviceInfo(
                 spec=f"{ip}:{idev}", platform=platform.name.strip(), name=d.name.strip(),
                 kind=device_kind(cl, d.type), compute_units=d.max_compute_units,
                 global_memory_bytes=d.global_mem_size, fp64=bool(d.double_fp_config),
             ))
+    if not out and empty:  # installed, yet no device: not a missing driver
+        raise OpenClUnavailable(f"the OpenCL platform(s) {', '.join(empty)} offer no device. {CACHE_HINT}; "
+                                "meanwhile every command works with `--backend numpy`.")
     if not out:
         raise OpenClUnavailable(INSTALL_HINT)
     return out

@@ -21,6 +21,7 @@ knows about radar.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import re
 from collections.abc import Callable
@@ -28,6 +29,8 @@ from collections.abc import Callable
 import numpy as np
 
 from .. import opencl
+
+log = logging.getLogger("uwbcl")
 
 REAL = "real"  # a BufferSpec dtype: real_t of the build (float64 with fp64 phases, else float32)
 
@@ -305,7 +308,13 @@ class OpenclProcessing:
         if not fp64:  # unsuffixed constants as float, as on a device without fp64, also where it has fp64
             options.append("-cl-single-precision-constant")
         source = opencl.kernel_source(*kernel_files)
-        self.program = cl.Program(self.context, source).build(options=options)
+        try:
+            self.program = cl.Program(self.context, source).build(options=options)
+        except cl.Error as exc:  # a runtime that cannot compile or cache kernels: one message, no traceback
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            log.debug("kernel build log:\n%s", exc)
+            raise opencl.OpenClUnavailable(f"building the kernels on {device.name.strip()} failed ({first}). "
+                                           f"{opencl.CACHE_HINT}") from exc
         self.signatures = parse_kernel_signatures(source, self.defines)
         self._launchers = {k.function_name: _Launcher(k, self.signatures[k.function_name])
                            for k in self.program.all_kernels()}
