@@ -67,3 +67,29 @@ def test_method_md_has_the_corrections_to_the_paper_and_the_derivations_sections
     text = METHOD.read_text(encoding="utf-8")
     assert re.search(r"^## \d+\. Corrections to the paper$", text, re.MULTILINE)
     assert re.search(r"^## \d+\. Derivations$", text, re.MULTILINE)
+
+
+def _documented_columns(heading: str) -> list[str]:
+    """The column names of the first table after `heading` in docs/outputs.md whose header cell is "Column",
+    in the table's order (a row naming several columns, `a`, `b`, gives them in that order)."""
+    lines = (REPO / "docs" / "outputs.md").read_text(encoding="utf-8").splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("#") and heading in line)
+    table = next(i for i in range(start, len(lines)) if re.match(r"\|\s*column\s*\|", lines[i], re.I))
+    names = []
+    for line in lines[table + 2:]:
+        if not line.startswith("|"):
+            break
+        names += re.findall(r"`([a-z0-9_]+)`", line.split("|")[1])
+    return names
+
+
+def test_every_output_table_of_outputs_md_lists_the_columns_the_code_writes_in_its_order():
+    from uwbcl import commission, outputs
+    from uwbcl.acquisition import live
+
+    assert _documented_columns("2.1 `displacements.csv`") == list(outputs.DISPLACEMENT_COLUMNS)
+    assert _documented_columns("2.3 `targets.csv`") == list(outputs.TARGET_COLUMNS)
+    assert _documented_columns("7. uwbcl focus") == list(commission.COLUMNS)
+    assert _documented_columns("9. `acquire-results.csv`") == list(live.RESULT_COLUMNS)
+    assert "Columns `file`, `kind`, `reason`." in (REPO / "docs" / "outputs.md").read_text(encoding="utf-8")
+    assert outputs.ERROR_COLUMNS == ("file", "kind", "reason")

@@ -28,8 +28,8 @@ from . import registers as R
 
 log = logging.getLogger("uwbcl.acquire")
 
-RESULT_COLUMNS = ("rig_id", "cycle", "previous_cycle", "start_time", "retreat_m", "creep_m", "vertical_m",
-                  "n_targets", "residual_m", "status", "revision")
+RESULT_COLUMNS = ("rig_id", "cycle", "start_time", "previous_cycle", "retreat_m", "creep_m", "vertical_m",
+                  "residual_m", "n_targets", "status", "revision")  # docs/outputs.md section 9, in its order
 RESULTS_FILE = "acquire-results.csv"
 # The chain measures a cycle from at most this many cycles back (bridges, the second look): their passes are
 # kept for the rib registration (a few MB each).
