@@ -570,6 +570,22 @@ def test_a_published_cycle_whose_archives_are_removed_stays_as_a_withdrawn_row_u
         {k: v for k, v in published[2].items() if k != "revision"}
 
 
+def test_a_cycle_whose_plates_change_but_not_its_values_gets_the_next_revision(archive_dir, clean, tmp_path):
+    # A reader that keeps (rig_id, cycle, revision) sees every change, targets.csv's too (docs/outputs.md 2.1).
+    src = copy_archive(archive_dir, tmp_path)
+    out = warm_out(clean[0], tmp_path)
+    batch.process_directory(src, out, SETTINGS, options())
+    published, plates = _rows_by_cycle(out), rows(out / "targets.csv")
+    with h5py.File(_cycle_files(src, 2)[0], "r+") as f:  # the same scene, twice as strong: new amplitudes
+        f["echo"][...] = 2 * f["echo"][()]
+    batch.process_directory(src, out, SETTINGS, options())
+    now = _rows_by_cycle(out)
+    assert rows(out / "targets.csv") != plates
+    assert {k: v for k, v in now[2].items() if k != "revision"} == \
+        {k: v for k, v in published[2].items() if k != "revision"}
+    assert (now[1]["revision"], now[2]["revision"]) == ("0", "1")
+
+
 def test_an_archive_directory_that_yields_no_pass_keeps_the_published_set_and_exits_1(
         archive_dir, clean, tmp_path, capsys):
     out = warm_out(clean[0], tmp_path)

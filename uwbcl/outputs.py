@@ -134,6 +134,45 @@ def previous_displacements(out_dir: Path) -> dict[tuple[str, int], dict]:
     return previous
 
 
+def previous_targets(out_dir: Path) -> dict[tuple[str, int], list[dict]] | None:
+    """The published set's targets.csv rows (text) by (rig_id, cycle), in file order; None when the set has
+    none or it cannot be read (then a cycle's plates cannot be compared: only its row's values are)."""
+    path = out_dir / CURRENT_LINK / "targets.csv"
+    try:
+        text = read_regular_file(path, MAX_PREVIOUS_BYTES).decode("utf-8")
+        rows = list(csv.DictReader(io.StringIO(text, newline="")))
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, csv.Error) as e:
+        log.warning("%s: the published targets cannot be read (%s); their changes do not raise revisions",
+                    path, e)
+        return None
+    by_cycle: dict[tuple[str, int], list[dict]] = {}
+    for r in rows:
+        try:
+            by_cycle.setdefault((r["rig_id"], int(r["cycle"])), []).append(r)
+        except (KeyError, TypeError, ValueError):
+            continue
+    return by_cycle
+
+
+def changed_targets(targets: list[dict], previous: dict[tuple[str, int], list[dict]] | None
+                    ) -> set[tuple[str, int]]:
+    """The (rig_id, cycle) whose targets.csv rows differ from the published set's (any column both sets have,
+    the number of rows, their order): their displacement rows are re-issued (docs/outputs.md section 2.1)."""
+    if previous is None:
+        return set()
+    now: dict[tuple[str, int], list[dict]] = {}
+    for r in _text(targets):
+        now.setdefault((r["rig_id"], int(r["cycle"])), []).append(r)
+    changed = set()
+    for key in set(now) | set(previous):
+        a, b = now.get(key, []), previous.get(key, [])
+        if len(a) != len(b) or any(str(x[k]) != y[k] for x, y in zip(a, b) for k in y if k in x):
+            changed.add(key)
+    return changed
+
+
 def _withdrawn(p: dict) -> dict:
     """The tombstone of a published row whose cycle is no longer measured."""
     rec = {c: math.nan for c in DISPLACEMENT_COLUMNS}
@@ -149,11 +188,13 @@ def _withdrawn(p: dict) -> dict:
     return rec
 
 
-def carry_revisions(records: list[dict], previous: dict[tuple[str, int], dict]) -> list[dict]:
+def carry_revisions(records: list[dict], previous: dict[tuple[str, int], dict],
+                    plates_changed: set[tuple[str, int]] = frozenset()) -> list[dict]:
     """`records` (displacement_records) with the revisions of the published set carried over: a row whose
-    values (every column both sets have, but `revision`) are unchanged keeps its revision, a changed one gets
-    the published revision + 1 (at least the chain's), and a published row without a record now becomes a
-    `withdrawn` row. Revisions never decrease; the rows stay sorted by rig_id (code points), then cycle."""
+    values (every column both sets have, but `revision`) and whose cycle's plates (`plates_changed`,
+    `changed_targets`) are unchanged keeps its revision, a changed one gets the published revision + 1 (at
+    least the chain's), and a published row without a record now becomes a `withdrawn` row. Revisions never
+    decrease; the rows stay sorted by rig_id (code points), then cycle."""
     if not previous:
         return records
     out = []
@@ -163,6 +204,7 @@ def carry_revisions(records: list[dict], previous: dict[tuple[str, int], dict]) 
             text = _text([rec])[0]
             published = int(p.get("revision") or 0)
             changed = [k for k, v in p.items() if k in text and k != "revision" and str(text[k]) != v]
+            changed += ["targets.csv"] if (rec["rig_id"], rec["cycle"]) in plates_changed else []
             rec = {**rec, "revision": max(published + 1 if changed else published, rec["revision"])}
             if changed:
                 log.info("rig %s cycle %d: revision %d: changed since the published set (%s)", rec["rig_id"],
@@ -261,15 +303,17 @@ def write_all(out_dir: Path, rows: list[SeriesRow], cycles: list[CycleResult], p
     try:
         _adopt_plain_outputs(out_dir)  # first: the old set's generation is then numbered before the new one
         previous = previous_displacements(out_dir)
+        published_targets = previous_targets(out_dir) if opts.targets else None
         gen = new_generation(out_dir)
     except OSError as e:
         raise OutputError(f"cannot write the outputs: {e.filename or out_dir}: {e.strerror or e}; the "
                           "previous outputs are intact") from e
     try:
-        disp = carry_revisions(displacement_records(rows), previous)
+        targets = target_records(rows, cycles) if (opts.targets or opts.hdf5) else []
+        disp = carry_revisions(displacement_records(rows), previous,
+                               changed_targets(targets, published_targets))
         disp_text = _text(disp)
         write_bytes_atomic(gen / "displacements.csv", csv_bytes(DISPLACEMENT_COLUMNS, disp_text))
-        targets = target_records(rows, cycles) if (opts.targets or opts.hdf5) else []
         if opts.targets:
             write_bytes_atomic(gen / "targets.csv", csv_bytes(TARGET_COLUMNS, _text(targets)))
         if opts.hdf5:
