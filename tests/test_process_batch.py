@@ -548,9 +548,13 @@ def test_a_published_cycle_whose_archives_are_removed_stays_as_a_withdrawn_row_u
     originals = _cycle_files(src, 2)
     for f in originals:
         f.rename(moved / f.name)
-    assert main(["process", str(src), "--out", str(out), "--backend", "numpy", "--jobs", "1",
-                 "--no-progress", "--web-depth", "0.9"]) == 0
-    assert "1 displacements (0 flagged, 1 withdrawn rows kept)" in capsys.readouterr().out
+    args = ["process", str(src), "--out", str(out), "--backend", "numpy", "--jobs", "1", "--no-progress",
+            "--web-depth", "0.9"]
+    assert main(args) == 1  # published data disappeared: the nightly job's exit status says so
+    std = capsys.readouterr()
+    assert "1 displacements (0 flagged, 1 withdrawn rows kept)" in std.out
+    assert "rig rig-1: 1 published row(s) withdrawn (cycle 2)" in std.err
+    assert [(r["file"], r["kind"]) for r in rows(out / "errors.csv")] == [(".", "withdrawn")]
     gone = _rows_by_cycle(out)
     assert gone[1] == published[1]
     w = gone[2]
@@ -559,8 +563,8 @@ def test_a_published_cycle_whose_archives_are_removed_stays_as_a_withdrawn_row_u
     assert all(w[k] == "nan" for k in ("retreat_m", "creep_m", "cumulative_retreat_m", "retreat_bound_m"))
     with h5py.File(out / "displacements.h5") as f:
         assert [s.decode() for s in f["displacements/status"][:]] == ["ok", "withdrawn"]
-    batch.process_directory(src, out, SETTINGS, options())
-    assert _rows_by_cycle(out) == gone  # a tombstone is carried unchanged
+    assert main(args) == 0  # the tombstone is carried unchanged, and reported once
+    assert _rows_by_cycle(out) == gone and rows(out / "errors.csv") == []
     for f in originals:
         (moved / f.name).rename(f)
     batch.process_directory(src, out, SETTINGS, options())

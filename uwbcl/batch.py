@@ -820,10 +820,15 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
         if not files and not problems:  # (a problem of the walk already says why nothing was found)
             problems.append(Problem(".", "no_archives", f"no archive (*.h5) under {in_dir}"))
             log.error("%s: no archive (*.h5) found", in_dir)
-        problems.sort(key=lambda p: (p.file, p.kind, p.reason))
-        if not records and outputs.previous_displacements(out_dir):
+        published = outputs.previous_displacements(out_dir)
+        if not records and published:
+            problems.sort(key=lambda p: (p.file, p.kind, p.reason))
             raise NothingRead(f"{in_dir}: no archive could be read; nothing published, the previous "
                               "outputs are intact", problems)
+        for p in outputs.newly_withdrawn(published, rows_series):
+            log.error("%s: %s", p.file, p.reason)
+            problems.append(p)
+        problems.sort(key=lambda p: (p.file, p.kind, p.reason))
         interrupt.check()  # never publish a run that was asked to stop
         rows = outputs.write_all(out_dir, rows_series, cycles, problems, out_opts, groups=groups,
                                  in_dir=in_dir, settings=settings)

@@ -188,6 +188,24 @@ def _withdrawn(p: dict) -> dict:
     return rec
 
 
+def newly_withdrawn(previous: dict[tuple[str, int], dict], rows: list[SeriesRow]) -> list[Problem]:
+    """One `withdrawn` problem (errors.csv, exit 1) per rig whose published rows this run withdraws: their
+    cycles are no longer measured (an unmounted share, archives removed). Rows already withdrawn are not
+    counted again, so the next run over the same archives is quiet."""
+    measured = {(r.cycle.rig_id, r.cycle.cycle) for r in rows}
+    gone: dict[str, list[int]] = {}
+    for (rig, cycle), p in previous.items():
+        if p["status"] != WITHDRAWN and (rig, cycle) not in measured:
+            gone.setdefault(rig, []).append(cycle)
+    problems = []
+    for rig, cycles in sorted(gone.items()):
+        listed = ", ".join(str(c) for c in sorted(cycles)[:10]) + (", ..." if len(cycles) > 10 else "")
+        problems.append(Problem(".", WITHDRAWN, f"rig {rig}: {len(cycles)} published row(s) withdrawn (cycle "
+                                f"{listed}): no longer measured, their archives gone or no longer usable; "
+                                "kept as `withdrawn` rows until they return"))
+    return problems
+
+
 def carry_revisions(records: list[dict], previous: dict[tuple[str, int], dict],
                     plates_changed: set[tuple[str, int]] = frozenset()) -> list[dict]:
     """`records` (displacement_records) with the revisions of the published set carried over: a row whose
@@ -212,7 +230,7 @@ def carry_revisions(records: list[dict], previous: dict[tuple[str, int], dict],
         out.append(rec)
     for (rig, cycle), p in previous.items():
         if p["status"] != WITHDRAWN:
-            log.warning("rig %s cycle %d: withdrawn: published before, no longer measured (its archives are "
+            log.info("rig %s cycle %d: withdrawn: published before, no longer measured (its archives are "
                         "gone or no longer usable)", rig, cycle)
         out.append(_withdrawn(p))
     return sorted(out, key=lambda r: (r["rig_id"], r["cycle"]))
