@@ -401,6 +401,39 @@ def test_a_focused_image_per_pass_marks_its_detections(tmp_path):
     assert [p.name for p in images] == ["c000000_h0200.png", "c000000_h0600.png"]
 
 
+def test_focused_images_are_carried_only_while_their_archive_and_settings_are_those_drawn(tmp_path):
+    # An image drawn once is carried into later sets (refocusing is slow), but never one of a pass whose
+    # archive was replaced or removed, or drawn with other focusing settings.
+    pytest.importorskip("matplotlib")
+    src, out = tmp_path / "in", tmp_path / "out"
+    shift.write_shift(src, shift.ShiftConfig(rigs=1, cycles=2, seed=5))
+    with_images = options(outputs=OutputOptions(cycle_images=True))
+    batch.process_directory(src, out, SETTINGS, with_images)
+    cycles = out / "plots" / "cycles" / "rig-1"
+
+    def inodes():
+        return {p.name: p.stat().st_ino for p in sorted(cycles.glob("*.png"))}
+
+    first = inodes()
+    assert len(first) == 4 and json.loads((out / "plots" / "cycles" / "images.json").read_text())
+    batch.process_directory(src, out, SETTINGS, with_images)
+    assert inodes() == first  # the same files, carried
+    replaced, removed = _cycle_files(src, 1)[0], _cycle_files(src, 0)[0]
+    with h5py.File(replaced, "r+") as f:
+        f["echo"][...] = 2 * f["echo"][()]
+    removed.unlink()
+    batch.process_directory(src, out, SETTINGS, with_images)
+    now = inodes()
+    name = f"c000001_{replaced.stem.split('_')[-1]}.png"  # the archive's name ends in its height, _h0200
+    assert now[name] != first[name]  # drawn again from the new bytes
+    gone = f"c000000_{removed.stem.split('_')[-1]}.png"
+    assert gone not in now
+    assert all(now[k] == first[k] for k in now if k != name)
+    delayed = dataclasses.replace(SETTINGS, range_delay_s=1e-10)
+    batch.process_directory(src, out, delayed, with_images)
+    assert not set(inodes().items()) & set(now.items())  # other focusing: every image drawn again
+
+
 def test_plots_without_matplotlib_stop_the_run_before_it_starts(archive_dir, tmp_path, monkeypatch):
     import importlib.util
 

@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import hashlib
 import importlib.util
 import io
+import json
 import logging
 import math
 import os
@@ -27,6 +29,7 @@ from .atomic import (
     read_regular_file,
     write_bytes_atomic,
     write_hdf5_atomic,
+    write_text_atomic,
 )
 from .names import MAX_NAME_LENGTH, safe_name  # noqa: F401  (MAX_NAME_LENGTH: tests)
 from .records import TRUSTED_STATUSES, BatchError, CycleResult, OutputError, Problem, SeriesRow
@@ -343,8 +346,8 @@ def write_all(out_dir: Path, rows: list[SeriesRow], cycles: list[CycleResult], p
         if opts.plots:
             plot_time_series(gen / "plots", disp)
         if opts.cycle_images:
-            _reuse_cycle_images(out_dir, gen)
-            plot_cycle_images(gen / "plots" / "cycles", groups, in_dir, settings)
+            plot_cycle_images(gen / "plots" / "cycles", groups, in_dir, settings,
+                              carried_from=out_dir / CURRENT_LINK / "plots" / "cycles")
         publish(out_dir, gen)
     except OSError as e:
         shutil.rmtree(gen, ignore_errors=True)
@@ -460,20 +463,6 @@ def prune_generations(out_dir: Path) -> None:
             shutil.rmtree(p, ignore_errors=True)
 
 
-def _reuse_cycle_images(out_dir: Path, gen: Path) -> None:
-    """Focused-image PNGs of the current set carried into the new one (hard links: refocusing is slow)."""
-    current = out_dir / CURRENT_LINK / "plots" / "cycles"
-    if not current.is_dir():
-        return
-    for src in current.rglob("*.png"):
-        dst = gen / "plots" / "cycles" / src.relative_to(current)
-        dst.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            os.link(src, dst)
-        except OSError:
-            shutil.copy2(src, dst)
-
-
 # ----------------------------------------------------------------------------------------------- plots
 MPL_CONFIG_DIR = ".uwbcl-matplotlib"  # matplotlib's config and font cache, inside OUT
 
@@ -531,20 +520,59 @@ def plot_time_series(plot_dir: Path, records: list[dict]) -> None:
         plt.close(fig)
 
 
-def plot_cycle_images(plot_dir: Path, groups: dict, in_dir: Path, settings) -> None:
-    """plots/cycles/<rig>/c<cycle>_h<mm>.png: |image| in dB with the detections marked; existing files are
-    kept.
+IMAGE_INDEX = "images.json"  # plots/cycles/: each image's archive digest and settings
 
-    Refocuses every pass with the numpy reference (the engine's image is the same within its tolerance), as
-    `uwbcl process` focused it: the site's delay, background subtraction and search extent of `settings`.
+
+def _image_key(rec, settings) -> str:
+    """What a pass's image depends on: the archive's bytes, the settings that shape focusing (not the
+    association's) and the detections it marks."""
+    shaping = {k: v for k, v in dataclasses.asdict(settings).items() if k != "association"}
+    marks = [(d.image_azimuth_m, d.image_range_m) for d in rec.detections]
+    text = json.dumps({"archive": rec.sha256, "uwbcl": __version__, "settings": shaping, "marks": marks},
+                      sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _carried_images(carried_from: Path | None) -> dict[str, str]:
+    """The published images' index (relative PNG path -> `_image_key`); {} when there is none or it cannot
+    be read (every image is then drawn again)."""
+    if carried_from is None:
+        return {}
+    try:
+        index = json.loads(read_regular_file(carried_from / IMAGE_INDEX, MAX_PREVIOUS_BYTES))
+    except (OSError, ValueError):
+        return {}
+    return {k: v for k, v in index.items() if isinstance(k, str) and isinstance(v, str)} \
+        if isinstance(index, dict) else {}
+
+
+def plot_cycle_images(plot_dir: Path, groups: dict, in_dir: Path, settings,
+                      carried_from: Path | None = None) -> None:
+    """plots/cycles/<rig>/c<cycle>_h<mm>.png: |image| in dB with the detections marked, and
+    plots/cycles/images.json indexing them by archive and settings.
+
+    An image of `carried_from` (the published set's plots/cycles) is carried over (hard link: refocusing is
+    slow) when its pass's archive and the settings are those it was drawn from; every other image is drawn:
+    the pass refocused with the numpy reference (the engine's image is the same within its tolerance), as
+    `uwbcl process` focused it. Images of passes no longer in `groups` are not carried.
     """
-    plt = _pyplot()
     settings = dataclasses.replace(settings, backend="numpy")
+    published, index, plt = _carried_images(carried_from), {}, None
     for (rig, cycle), recs in sorted(groups.items()):
         for hmm, rec in sorted(recs.items()):
-            path = plot_dir / safe_name(rig) / f"c{cycle:06d}_h{hmm:04d}.png"
-            if path.exists():
-                continue
+            name = f"{safe_name(rig)}/c{cycle:06d}_h{hmm:04d}.png"
+            path, index[name] = plot_dir / name, _image_key(rec, settings)
+            if published.get(name) == index[name]:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                try:
+                    os.link(carried_from / name, path)
+                    continue
+                except FileNotFoundError:
+                    pass  # indexed but gone: drawn again
+                except OSError:
+                    shutil.copy2(carried_from / name, path)
+                    continue
+            plt = plt or _pyplot()
             scan = archive.read_pass(in_dir / rec.file)
             prod = pipeline.focus_only(scan, settings)
             if settings.algorithm == "bp":
@@ -565,3 +593,4 @@ def plot_cycle_images(plot_dir: Path, groups: dict, in_dir: Path, settings) -> N
             ax.set_title(f"{rig} cycle {cycle} h {hmm} mm: {len(rec.detections)} detections")
             _save(fig, path)
             plt.close(fig)
+    write_text_atomic(plot_dir / IMAGE_INDEX, json.dumps(index, indent=1, sort_keys=True) + "\n")
