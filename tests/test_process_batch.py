@@ -608,7 +608,7 @@ def test_a_published_cycle_whose_archives_are_removed_stays_as_a_withdrawn_row_u
 
 
 def test_a_cycle_whose_plates_change_but_not_its_values_gets_the_next_revision(archive_dir, clean, tmp_path):
-    # A reader that keeps (rig_id, cycle, revision) sees every change, targets.csv's too (docs/outputs.md 2.1).
+    # A reader that keeps (rig_id, cycle, revision) sees every change, targets.csv's too (outputs.md 2.1).
     src = copy_archive(archive_dir, tmp_path)
     out = warm_out(clean[0], tmp_path)
     batch.process_directory(src, out, SETTINGS, options())

@@ -5,6 +5,7 @@ and untrusted rows re-issued (revision 1) once a later cycle resolves them (chai
 from __future__ import annotations
 
 import dataclasses
+import logging
 from types import SimpleNamespace
 
 import numpy as np
@@ -91,12 +92,15 @@ def test_steps_that_differ_by_the_webs_variation_are_one_learned_step_not_rivals
     assert 0.78 <= step[0] <= 0.92
 
 
-def test_a_chain_started_again_after_an_ambiguous_first_row_joins_it_once_later_cycles_give_the_step():
+def test_a_chain_started_again_after_an_ambiguous_first_row_joins_it_once_later_cycles_give_the_step(
+        caplog):
     """No prior, two plates in common: the first row is ambiguous, the chain starts again at cycle 1; once the
     later pairs (not 0 -> 1) give a step, 0 -> 1 is measured with it, re-issued, and the later rows join
-    chain 0 with cumulative values from cycle 0 (re-issued too)."""
+    chain 0 with cumulative values from cycle 0 (re-issued too). The log's warnings end as the rows do."""
     cycles, rigs = noisy_cycles(6, seed=5, window=(0.0, 3.0))
-    rc, first_issue, reissued = fed(cycles)
+    with caplog.at_level(logging.WARNING, logger="uwbcl"):
+        rc, first_issue, reissued = fed(cycles)
+    assert "the restart above undone" in caplog.records[-1].getMessage()
     assert first_issue[1] == "ambiguous" and 1 in reissued
     assert [r.displacement.status for r in rc.rows] == ["ok"] * 5
     assert [r.chain for r in rc.rows] == [0] * 5 and rc.rows[0].revision == 1

@@ -625,9 +625,10 @@ class RigChain:
             else:
                 self._extend_old_chain(links, [*between, b])
                 return
-        log.info("rig %s: cycles %s joined to cycle %d by the later cycles' step; chain %d continues "
-                 "chain %d (re-issued as revision 1)", b.rig_id, ", ".join(str(y.cycle) for _, y, _ in links),
-                 a.cycle, self._chain, chain_a)
+        # a warning, as the restart it undoes was: the log then ends with what the outputs say
+        log.warning("rig %s: cycles %s joined to cycle %d by the later cycles' step; chain %d continues "
+                    "chain %d, the restart above undone (re-issued as revision 1)", b.rig_id,
+                    ", ".join(str(y.cycle) for _, y, _ in links), a.cycle, self._chain, chain_a)
         cum, var = cum_a, var_a
         fresh = {}
         for x, y, d in links:
