@@ -655,3 +655,10 @@ def test_a_published_set_that_cannot_be_read_back_is_logged_and_the_run_goes_on(
     batch.process_directory(archive_dir, out, SETTINGS, options())
     assert "the published displacements cannot be read" in caplog.text
     assert snapshot(out) == snapshot(clean[0])  # revisions from the chain, as in a fresh directory
+
+
+def test_a_negative_zero_is_written_as_zero_so_an_unchanged_value_keeps_its_text():
+    from uwbcl.outputs import number_text
+
+    assert [number_text(v) for v in (-0.0, -1e-9, 1e-9, -0.0000005, -0.0000006, 0.1234564)] == \
+        ["0.000000", "0.000000", "0.000000", "0.000000", "-0.000001", "0.123456"]

@@ -469,7 +469,7 @@ def rib_registration(groups: dict, in_dir: Path, settings: ProcessingSettings
         except (archive.ArchiveError, OSError) as exc:
             log.warning("%s: not read for the rib registration (%s)", rec.file, exc)
             return None
-        return pipeline.apply_range_delay(scan, settings.range_delay_s)
+        return pipeline.apply_range_delay(scan, settings.range_delay_s, quiet=True)  # warned when focused
 
     return registration.RibRegistration(load, pipeline.association_focuser(settings))
 

@@ -67,8 +67,11 @@ UNITS = {"_m": "m", "cycle": "1", "from_cycle": "1", "chain": "1", "n_targets": 
          "association_margin": "ln(likelihood ratio)"}
 
 
-def _m(v: float) -> str:
-    return f"{v:.6f}"  # micrometres: far below the measurement's resolution, stable text
+def number_text(v: float) -> str:
+    """A float as the CSV outputs write it: 6 decimals (micrometres: far below the measurement's resolution,
+    stable text), a negative zero as 0.000000 (no sign flip between runs where nothing changed)."""
+    text = f"{v:.6f}"
+    return text[1:] if text == "-0.000000" else text
 
 
 def displacement_records(rows: list[SeriesRow]) -> list[dict]:
@@ -96,7 +99,7 @@ def displacement_records(rows: list[SeriesRow]) -> list[dict]:
 
 
 def _text(records: list[dict]) -> list[dict]:
-    return [{k: _m(v) if isinstance(v, float) else v for k, v in rec.items()} for rec in records]
+    return [{k: number_text(v) if isinstance(v, float) else v for k, v in rec.items()} for rec in records]
 
 
 # ------------------------------------------------------------------------------------ revisions across runs

@@ -50,11 +50,12 @@ BP_PIXEL_M = 0.01  # backprojection image pixel (backprojection.backprojection_f
 BP_RANGE_MARGIN_M = 0.1
 
 
-def apply_range_delay(scan: ScanPass, site_delay_s: float | None) -> ScanPass:
+def apply_range_delay(scan: ScanPass, site_delay_s: float | None, *, quiet: bool = False) -> ScanPass:
     """The pass with the site's calibrated delay in place of the one its archive records
     (docs/configuration.md [radar]): the window start moves earlier by site - recorded, so an echo's range is
     that of the radar's axis less the site's delay. None: the pass as recorded. An archive that records no
-    delay (0: a 1.0 file, or an uncalibrated import) gets the site's delay in full, with a warning. Logged.
+    delay (0: a 1.0 file, or an uncalibrated import) gets the site's delay in full, with a warning (`quiet`:
+    at debug level, for a pass read again after it was focused). Logged.
     ValueError when the site's delay would put the window's start behind the antenna."""
     if site_delay_s is None or site_delay_s == scan.range_delay_s:
         return scan
@@ -67,7 +68,7 @@ def apply_range_delay(scan: ScanPass, site_delay_s: float | None) -> ScanPass:
             f"{0.5 * SPEED_OF_LIGHT_M_S * (shift_s - scan.range_window_start_s):.2f} m behind the antenna "
             "(a delay for another radar, or in the wrong unit?)")
     if scan.range_delay_s == 0.0:
-        log.warning("%s records no range_delay_s: the site's %.4f ns applied in full (window start %+.4f ns, "
+        (log.debug if quiet else log.warning)("%s records no range_delay_s: the site's %.4f ns applied in full (window start %+.4f ns, "
                     "ranges %+.4f m)", scan.source or "pass", site_delay_s * 1e9, -shift_s * 1e9,
                     -0.5 * SPEED_OF_LIGHT_M_S * shift_s)
     else:

@@ -22,6 +22,7 @@ from .. import chain, pipeline, registration
 from .. import geometry as geo
 from ..archive import height_mm
 from ..atomic import write_csv_atomic
+from ..outputs import number_text
 from ..records import ProcessingSettings
 from ..utc import utc_seconds
 from . import registers as R
@@ -169,7 +170,7 @@ class LiveProcessor:
     def write_csv(out_dir: Path, results: list[dict]) -> Path:
         rows = []
         for r in results:
-            rows.append({k: (f"{r[k]:.6f}" if isinstance(r[k], float) and math.isfinite(r[k]) else
+            rows.append({k: (number_text(r[k]) if isinstance(r[k], float) and math.isfinite(r[k]) else
                              ("" if isinstance(r[k], float) or r[k] is None else r[k]))
                          for k in RESULT_COLUMNS})
         path = Path(out_dir) / RESULTS_FILE
