@@ -68,9 +68,10 @@ def apply_range_delay(scan: ScanPass, site_delay_s: float | None, *, quiet: bool
             f"{0.5 * SPEED_OF_LIGHT_M_S * (shift_s - scan.range_window_start_s):.2f} m behind the antenna "
             "(a delay for another radar, or in the wrong unit?)")
     if scan.range_delay_s == 0.0:
-        (log.debug if quiet else log.warning)("%s records no range_delay_s: the site's %.4f ns applied in full (window start %+.4f ns, "
-                    "ranges %+.4f m)", scan.source or "pass", site_delay_s * 1e9, -shift_s * 1e9,
-                    -0.5 * SPEED_OF_LIGHT_M_S * shift_s)
+        say = log.debug if quiet else log.warning
+        say("%s records no range_delay_s: the site's %.4f ns applied in full (window start %+.4f ns, ranges "
+            "%+.4f m)", scan.source or "pass", site_delay_s * 1e9, -shift_s * 1e9,
+            -0.5 * SPEED_OF_LIGHT_M_S * shift_s)
     else:
         log.info("%s: range_delay_s %.4f ns recorded, site %.4f ns: window start %+.4f ns",
                  scan.source or "pass", scan.range_delay_s * 1e9, site_delay_s * 1e9, -shift_s * 1e9)
