@@ -208,6 +208,11 @@ def test_the_site_files_delay_is_set_where_it_is_or_added_to_its_table_or_append
         "radar": {"range_delay_s": 2e-9}, "detection": {"cfar_db": 10.0}}
     text = '[radar]\n# calibrated\n[detection]\ncfar_db = 10.0'
     assert config.tomllib.loads(calibrate.with_range_delay(text, 2e-9))["radar"] == {"range_delay_s": 2e-9}
+    # the replaced line's provenance is kept, as a comment above the new value
+    text = '[radar]\nrange_delay_s = 1.0e-9 # measured 2026-10 by J. Smith\n'
+    assert calibrate.with_range_delay(text, 2e-9).splitlines()[1:] == [
+        "# before uwbcl calibrate: range_delay_s = 1.0e-9 # measured 2026-10 by J. Smith",
+        "range_delay_s = 2e-09  # s, uwbcl calibrate"]
 
 
 def test_import_refuses_two_different_delays_in_one_site_file(scene, tmp_path, capsys):

@@ -222,8 +222,9 @@ _DELAY_KEY = re.compile(r"^\s*range_delay_s\s*=")
 
 
 def with_range_delay(toml_text: str, delay_s: float) -> str:
-    """The site file's text with `[radar] range_delay_s` set (the key replaced where it is, else added to the
-    [radar] table, else a [radar] table appended); everything else kept as written."""
+    """The site file's text with `[radar] range_delay_s` set (the key replaced where it is, its old line kept
+    above it as a comment with whatever provenance it carried, else added to the [radar] table, else a
+    [radar] table appended); everything else kept as written."""
     lines = toml_text.splitlines()
     value = f"range_delay_s = {delay_s!r}  # s, uwbcl calibrate"
     start = next((i for i, line in enumerate(lines) if _RADAR_HEADER.match(line)), None)
@@ -233,7 +234,7 @@ def with_range_delay(toml_text: str, delay_s: float) -> str:
     end = next((i for i in range(start + 1, len(lines)) if _ANY_HEADER.match(lines[i])), len(lines))
     for i in range(start + 1, end):
         if _DELAY_KEY.match(lines[i]):
-            lines[i] = value
+            lines[i:i + 1] = [f"# before uwbcl calibrate: {lines[i].strip()}", value]
             break
     else:
         lines.insert(start + 1, value)
