@@ -117,6 +117,20 @@ def test_a_linked_directory_is_reported_not_followed_and_followed_on_request_wit
     assert [(p.file, p.kind) for p in report.errors] == [(rig.name, "directory_link")]
     report = batch.process_directory(src, out, SETTINGS, options(follow_symlinks=True))
     assert report.errors == [] and report.n_passes == CONFIG.cycles * 2
+    assert (rig.name, "symlink") in [(w.file, w.kind) for w in report.warnings]  # read through a link: said
+
+
+def test_of_two_identical_copies_the_regular_file_is_used_not_the_one_through_a_linked_directory(
+        tree, tmp_path):
+    src, out = tree
+    first = a_pass(src)
+    mirror = tmp_path / "mirror"  # sorts before the tree's own directories: a copy reached through "a-link"
+    mirror.mkdir()
+    shutil.copy(first, mirror / first.name)
+    os.symlink(mirror, src / "a-link")
+    report = batch.process_directory(src, out, SETTINGS, options(follow_symlinks=True))
+    (dup,) = [p for p in report.errors if p.kind == "duplicate_pass"]
+    assert dup.reason.endswith(f"{first.relative_to(src).as_posix()} used"), dup.reason
 
 
 # ----------------------------------------------------------------------------------------------- the cache

@@ -227,6 +227,9 @@ def _walk_link(entry: os.DirEntry, real_root: str, follow: bool, walk: TreeWalk,
     if stat.S_ISDIR(st.st_mode):
         if follow:
             stack.append(entry.path)
+            walk.warnings.append((rel(entry.path), "symlink",
+                                  f"a symbolic link to the directory {display_name(target)}, followed "
+                                  "(--follow-symlinks): its archives are read through it"))
         else:
             report(entry.path, "directory_link",
                    "a symbolic link to a directory; not followed (--follow-symlinks)")

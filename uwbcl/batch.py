@@ -362,10 +362,18 @@ def _expected_height(r: PassRecord, options: BatchOptions) -> Problem | None:
                    f"rail height {r.height_m:.4f} m is not one of the configured heights {heights} m")
 
 
-def _one_per_height(recs: list[PassRecord], where: str, problems: list[Problem]) -> dict[int, PassRecord]:
-    """{height_mm: record}: of byte-identical copies one is kept, of different passes at one height none."""
+def _through_link(file: str, linked: frozenset[str]) -> bool:
+    """Whether `file` (relative, POSIX) was reached through one of the `linked` entries (a linked archive, or
+    a linked directory above it)."""
+    return file in linked or any(file.startswith(f"{d}/") for d in linked)
+
+
+def _one_per_height(recs: list[PassRecord], where: str, problems: list[Problem],
+                    linked: frozenset[str] = frozenset()) -> dict[int, PassRecord]:
+    """{height_mm: record}: of byte-identical copies one is kept (a regular file before one reached through
+    a symbolic link, then by name), of different passes at one height none."""
     by_height: dict[int, list[PassRecord]] = defaultdict(list)
-    for r in sorted(recs, key=lambda r: r.file):
+    for r in sorted(recs, key=lambda r: (_through_link(r.file, linked), r.file)):
         by_height[archive.height_mm(r.height_m)].append(r)
     kept: dict[int, PassRecord] = {}
     for hmm, rs in sorted(by_height.items()):
@@ -413,8 +421,10 @@ def _agreeing_majority(kept: dict[int, PassRecord], where: str, problems: list[P
     return {k: r for k, r in kept.items() if any(r is m for m in majority)}
 
 
-def group_cycles(records: list[PassRecord], options: BatchOptions) -> tuple[dict, list[Problem]]:
-    """(rig, cycle) -> {height_mm: record}, after the checks of a cycle; the problems found on the way."""
+def group_cycles(records: list[PassRecord], options: BatchOptions, linked: frozenset[str] = frozenset()
+                 ) -> tuple[dict, list[Problem]]:
+    """(rig, cycle) -> {height_mm: record}, after the checks of a cycle; the problems found on the way.
+    `linked`: the tree's symbolic links that were read (its `symlink` warnings), whose copies come last."""
     problems: list[Problem] = []
     by_cycle: dict[tuple[str, int], list[PassRecord]] = defaultdict(list)
     for r in records:
@@ -426,7 +436,7 @@ def group_cycles(records: list[PassRecord], options: BatchOptions) -> tuple[dict
     cycles = {}
     for (rig, cycle), recs in sorted(by_cycle.items()):
         where = f"rig {rig} cycle {cycle}"
-        kept = _agreeing_majority(_one_per_height(recs, where, problems), where, problems)
+        kept = _agreeing_majority(_one_per_height(recs, where, problems, linked), where, problems)
         if kept is None:
             continue
         if len(kept) < 2:
@@ -795,7 +805,8 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
         warnings += suspicious(records) + q_sign
         for w in warnings:
             log.warning("%s: %s: %s", w.kind, w.file, w.reason)
-        groups, group_problems = group_cycles(records, options)
+        groups, group_problems = group_cycles(records, options,
+                                              frozenset(w.file for w in warnings if w.kind == "symlink"))
         problems += group_problems
         for p in group_problems:
             log.error("%s: %s", p.file, p.reason)

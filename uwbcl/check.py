@@ -96,7 +96,8 @@ def check_directory(in_dir: Path, settings: ProcessingSettings | None = None,
             problems.append(Problem(name, "unreadable", f"cannot read: {e.strerror or e}"))
     problems += [p.unfocusable for p in passes if p.unfocusable is not None]
     records = [p.record for p in passes if p.unfocusable is None]  # as in process: such a pass has no record
-    _, grouping = batch.group_cycles(records, options)
+    linked = frozenset(w.file for w in warnings if w.kind == "symlink")
+    _, grouping = batch.group_cycles(records, options, linked)
     problems += grouping
     warnings += batch.suspicious(records)
     for p in passes:
