@@ -110,21 +110,26 @@ WITHDRAWN = "withdrawn"
 MAX_PREVIOUS_BYTES = 64 << 20  # the published displacements.csv read back (about 200 000 rows)
 
 
+def _published_rows(out_dir: Path, name: str, what: str) -> list[dict] | None:
+    """The rows (text) of the published set's CSV `name`; None when there is none, or (logged) when it cannot
+    be read or parsed."""
+    path = out_dir / CURRENT_LINK / name
+    try:
+        text = read_regular_file(path, MAX_PREVIOUS_BYTES).decode("utf-8")
+        return list(csv.DictReader(io.StringIO(text, newline="")))
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError, csv.Error) as e:  # UnicodeDecodeError is a ValueError
+        log.warning("%s: the published %s cannot be read (%s)", path, what, e)
+        return None
+
+
 def previous_displacements(out_dir: Path) -> dict[tuple[str, int], dict]:
     """The published set's displacements.csv rows (text) by (rig_id, cycle); {} when there is none. A file
     that cannot be read or parsed is logged and taken as none: revisions then start again from the chain's."""
-    path = out_dir / CURRENT_LINK / "displacements.csv"
-    try:
-        text = read_regular_file(path, MAX_PREVIOUS_BYTES).decode("utf-8")
-        rows = list(csv.DictReader(io.StringIO(text, newline="")))
-    except FileNotFoundError:
-        return {}
-    except (OSError, ValueError, csv.Error) as e:  # UnicodeDecodeError is a ValueError
-        log.warning("%s: the published displacements cannot be read (%s); revisions are not carried over",
-                    path, e)
-        return {}
+    rows = _published_rows(out_dir, "displacements.csv", "displacements (revisions are not carried over)")
     previous, bad = {}, 0
-    for r in rows:
+    for r in rows or []:
         try:
             key = (r["rig_id"], int(r["cycle"]))
             int(r.get("revision") or 0)
@@ -136,22 +141,16 @@ def previous_displacements(out_dir: Path) -> dict[tuple[str, int], dict]:
             continue
         previous[key] = r
     if bad:
-        log.warning("%s: %d published rows cannot be read; their revisions are not carried over", path, bad)
+        log.warning("%s: %d published rows cannot be read; their revisions are not carried over",
+                    out_dir / CURRENT_LINK / "displacements.csv", bad)
     return previous
 
 
 def previous_targets(out_dir: Path) -> dict[tuple[str, int], list[dict]] | None:
     """The published set's targets.csv rows (text) by (rig_id, cycle), in file order; None when the set has
     none or it cannot be read (then a cycle's plates cannot be compared: only its row's values are)."""
-    path = out_dir / CURRENT_LINK / "targets.csv"
-    try:
-        text = read_regular_file(path, MAX_PREVIOUS_BYTES).decode("utf-8")
-        rows = list(csv.DictReader(io.StringIO(text, newline="")))
-    except FileNotFoundError:
-        return None
-    except (OSError, ValueError, csv.Error) as e:
-        log.warning("%s: the published targets cannot be read (%s); their changes do not raise revisions",
-                    path, e)
+    rows = _published_rows(out_dir, "targets.csv", "targets (their changes do not raise revisions)")
+    if rows is None:
         return None
     by_cycle: dict[tuple[str, int], list[dict]] = {}
     for r in rows:
@@ -237,7 +236,7 @@ def carry_revisions(records: list[dict], previous: dict[tuple[str, int], dict],
     for (rig, cycle), p in previous.items():
         if p["status"] != WITHDRAWN:
             log.info("rig %s cycle %d: withdrawn: published before, no longer measured (its archives are "
-                        "gone or no longer usable)", rig, cycle)
+                     "gone or no longer usable)", rig, cycle)
         out.append(_withdrawn(p))
     return sorted(out, key=lambda r: (r["rig_id"], r["cycle"]))
 
