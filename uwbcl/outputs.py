@@ -110,7 +110,7 @@ WITHDRAWN = "withdrawn"
 MAX_PREVIOUS_BYTES = 64 << 20  # the published displacements.csv read back (about 200 000 rows)
 
 
-def _published_rows(out_dir: Path, name: str, what: str) -> list[dict] | None:
+def _published_rows(out_dir: Path, name: str, what: str, then: str) -> list[dict] | None:
     """The rows (text) of the published set's CSV `name`; None when there is none, or (logged) when it cannot
     be read or parsed."""
     path = out_dir / CURRENT_LINK / name
@@ -120,14 +120,15 @@ def _published_rows(out_dir: Path, name: str, what: str) -> list[dict] | None:
     except FileNotFoundError:
         return None
     except (OSError, ValueError, csv.Error) as e:  # UnicodeDecodeError is a ValueError
-        log.warning("%s: the published %s cannot be read (%s)", path, what, e)
+        log.warning("%s: the published %s cannot be read (%s); %s", path, what, e, then)
         return None
 
 
 def previous_displacements(out_dir: Path) -> dict[tuple[str, int], dict]:
     """The published set's displacements.csv rows (text) by (rig_id, cycle); {} when there is none. A file
     that cannot be read or parsed is logged and taken as none: revisions then start again from the chain's."""
-    rows = _published_rows(out_dir, "displacements.csv", "displacements (revisions are not carried over)")
+    rows = _published_rows(out_dir, "displacements.csv", "displacements",
+                           "revisions are not carried over")
     previous, bad = {}, 0
     for r in rows or []:
         try:
@@ -149,7 +150,7 @@ def previous_displacements(out_dir: Path) -> dict[tuple[str, int], dict]:
 def previous_targets(out_dir: Path) -> dict[tuple[str, int], list[dict]] | None:
     """The published set's targets.csv rows (text) by (rig_id, cycle), in file order; None when the set has
     none or it cannot be read (then a cycle's plates cannot be compared: only its row's values are)."""
-    rows = _published_rows(out_dir, "targets.csv", "targets (their changes do not raise revisions)")
+    rows = _published_rows(out_dir, "targets.csv", "targets", "their changes do not raise revisions")
     if rows is None:
         return None
     by_cycle: dict[tuple[str, int], list[dict]] = {}
