@@ -412,6 +412,52 @@ def test_live_processing_publishes_retreat_and_creep_in_the_result_registers(res
     assert report.ok and processor.q_sign_warning == ""
 
 
+def test_a_restarted_acquire_numbers_its_results_after_the_one_the_controller_holds(tmp_path):
+    # A face automation system takes a changed (or later, serial arithmetic) RESULT_SEQ as new data: a
+    # restarted uwbcl that began again at 1 would repeat, or fall behind, the number it reads.
+    from pymodbus.client import ModbusTcpClient
+
+    from uwbcl.acquisition.live import LiveProcessor, processing_settings
+
+    device = RigController(DeviceConfig(time_scale=80.0, first_cycle_after_s=30.0, cycle_interval_s=1e9))
+    processor = LiveProcessor(processing_settings("numpy", device.campaign.nominal_web_m))
+    with RigServer(device, LOOPBACK, 0) as server:
+        client = ModbusTcpClient(LOOPBACK, port=server.port, timeout=1.0)
+        earlier = R.RESULT.encode({"RESULT_SEQ": 41, "CYCLE": 7, "PREVIOUS_CYCLE": 6, "STATUS": 0})
+        client.write_registers(R.RESULT.address, earlier, device_id=1)  # an earlier session's last result
+        threading.Thread(target=signal_cycle_after_passes, args=(server, 2), daemon=True).start()
+        report = run_session(settings_for(server, tmp_path, cycles=2, timeout_s=1.0), timeout_s=60.0,
+                             processor=processor)
+        regs = client.read_holding_registers(R.RESULT.address, count=R.RESULT.length, device_id=1).registers
+        client.close()
+    assert report.ok and R.RESULT.decode(regs)["RESULT_SEQ"] == 42
+
+
+def test_results_that_arrive_together_are_published_a_hold_apart_in_order(tmp_path, monkeypatch):
+    import queue
+
+    from uwbcl.acquisition import client as client_module
+
+    results = queue.Queue()
+    for cycle in (11, 12):
+        results.put({"cycle": cycle, "previous_cycle": cycle - 1, "retreat_m": 0.9, "creep_m": 0.0,
+                     "vertical_m": 0.0, "status_code": 0, "status": "ok", "n_targets": 5, "residual_m": 0.001,
+                     "time_s": 1.8e9, "revision": 0})
+    processor = SimpleNamespace(results=results, write_csv=lambda out, rows: None)
+    session = AcquisitionSession(AcquireSettings(host=LOOPBACK, port=1, out=str(tmp_path)),
+                                 stop=threading.Event(), processor=processor)
+    written = []
+    monkeypatch.setattr(session.link, "read", lambda table, address, count: [0] * count)
+    monkeypatch.setattr(session.link, "write_block",
+                        lambda block, values: written.append((time.monotonic(), values)))
+    session._publish_results()
+    session._publish_results()  # within the hold: the second waits
+    assert [v["CYCLE"] for _, v in written] == [11]
+    session._publish_results(final=True)  # the session ends: the hold waited out, nothing dropped
+    assert [(v["CYCLE"], v["RESULT_SEQ"]) for _, v in written] == [(11, 1), (12, 2)]
+    assert written[1][0] - written[0][0] >= client_module.RESULT_HOLD_S - 0.01
+
+
 def test_live_processing_warns_once_about_conjugated_data_as_process_does(monkeypatch, caplog):
     from uwbcl import shift
     from uwbcl.acquisition import live

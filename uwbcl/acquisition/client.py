@@ -14,6 +14,7 @@ anything is logged, never written, ABORTed and re-run. What each fault costs is 
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 import math
@@ -68,6 +69,9 @@ class CycleSuperseded(Exception):
 
 COMMAND_SLOW_S = 10.0  # a command not acknowledged or not DONE after this long is logged (once)
 COMMAND_RESEND_MAX_S = 1.0  # the longest interval between writes of an unacknowledged command
+# Two RESULT blocks are published at least this far apart (map section 5.3): a face automation system polling
+# faster sees every one, also when processing that fell behind delivers several results at once.
+RESULT_HOLD_S = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -485,7 +489,9 @@ class AcquisitionSession:
         self.out = Path(settings.out)
         self._cmd_seq: int | None = None  # continues after the controller's CMD_ACK_SEQ (map 7)
         self._token = int(time.time()) % 1_000_000 * 1000  # distinct from an earlier run's tokens
-        self._result_seq = 0
+        self._result_seq: int | None = None  # continues from the controller's RESULT_SEQ (map 5.3)
+        self._to_publish: collections.deque[dict] = collections.deque()  # results waiting for RESULT_HOLD_S
+        self._published_at = -math.inf  # time.monotonic() of the last RESULT written
         self._heartbeat = 0
         self._last_heartbeat_t = 0.0
         self._active_token: int | None = None
@@ -982,6 +988,8 @@ class AcquisitionSession:
             self.processor.submit(cycle, passes, complete=complete, start_time=start_time)
 
     def _publish_results(self, final: bool = False) -> None:
+        """Every processed result into acquire-results.csv at once, and into the RESULT block at most one per
+        RESULT_HOLD_S (the rest wait in order; `final`: all of them, the hold waited out)."""
         if self.processor is None:
             return
         if self._last_result is not None and self._published_boot != self.link.boot_id:
@@ -990,16 +998,24 @@ class AcquisitionSession:
             try:
                 result = self.processor.results.get_nowait()
             except queue.Empty:
-                return
+                break
             self.report.results.append(result)
             try:  # the results file is rewritten whole each time: a failed write is made good by the next
                 self.processor.write_csv(self.out, self.report.results)
             except OSError as exc:
                 log.error("cannot write the results file under %s: %s; the RESULT block is still published",
                           self.out, exc.strerror or exc)
-            if result.get("status_code") is None or result.get("revision", 0):
-                continue  # the reference cycle: nothing to publish yet; a re-issue goes to the CSV only
-            self._result_seq = self._result_seq % 0xFFFFFFFF + 1
+            if result.get("status_code") is not None and not result.get("revision", 0):
+                self._to_publish.append(result)  # the reference cycle has nothing to publish; a re-issue
+                # goes to the CSV only
+        while self._to_publish:
+            wait_s = RESULT_HOLD_S - (time.monotonic() - self._published_at)
+            if wait_s > 0:
+                if not final:
+                    return
+                time.sleep(wait_s)  # bounded: the session is ending, a few results at most
+            result = self._to_publish.popleft()
+            self._result_seq = self._next_result_seq()
             values = {"RESULT_SEQ": self._result_seq, "CYCLE": result["cycle"],
                       "PREVIOUS_CYCLE": result["previous_cycle"] or 0, "RETREAT": result["retreat_m"],
                       "CREEP": result["creep_m"], "VERTICAL": result["vertical_m"],
@@ -1007,10 +1023,28 @@ class AcquisitionSession:
                       "RESIDUAL": result["residual_m"] if math.isfinite(result["residual_m"]) else 0.0,
                       "TIME": result["time_s"]}
             self._last_result = values
+            self._published_at = time.monotonic()
             if self._write_result(values, final):
                 log.info("cycle %d: published retreat %.4f m, creep %.4f m (%s) as result %d",
                          result["cycle"], result["retreat_m"], result["creep_m"], result["status"],
                          self._result_seq)
+
+    def _next_result_seq(self) -> int:
+        """RESULT_SEQ of the next result: one more than the last this session published, or, for its first,
+        than the one the controller holds (an earlier session's: a reader that takes a changed or later
+        RESULT_SEQ as new data must never see a restarted uwbcl repeat a number); 1 on a block that reads 0 or
+        cannot be trusted."""
+        if self._result_seq is None:
+            held = 0
+            try:
+                regs = self.link.read(R.RESULT.table, R.RESULT.address, R.RESULT.length)
+                if any(regs):
+                    held = R.RESULT.decode(regs)["RESULT_SEQ"]
+            except (R.RegisterError, LinkDown, DeviceRebooted) as exc:
+                log.warning("the RESULT block the controller holds was not read (%s); RESULT_SEQ starts at "
+                            "1", exc)
+            self._result_seq = int(held)
+        return self._result_seq % 0xFFFFFFFF + 1
 
     def _write_result(self, values: dict, final: bool) -> bool:
         try:
