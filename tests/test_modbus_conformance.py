@@ -120,6 +120,10 @@ def test_boot_id_changes_and_the_cycle_counter_persists_across_restarts_and_wrap
         status = block(c, STATUS)
         assert u32(status, 12) == 0, "CYCLE_COUNTER must keep its value across a restart"
         assert u32(status, 4) != boot_1, "BOOT_ID must differ from the previous boot's"
+        # DEVICE_TIME (u64 ms) goes on from the last cycle signal, 3 device seconds after the simulator's
+        # epoch 2026-11-02T06:00Z (map section 11), instead of starting from the epoch again
+        epoch_ms = 1_793_599_200_000
+        assert u32(status, 8) << 32 | u32(status, 10) >= epoch_ms + 3000, "DEVICE_TIME went back"
 
         identity, radar = block(c, IDENTITY), block(c, RADAR)
         assert identity[0] == 0x5557 and identity[1] == 1 and identity[2] >= 1  # map 1.1: these answers exist

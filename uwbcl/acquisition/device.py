@@ -6,9 +6,10 @@ acknowledge window, the cycle counter of the longwall control system, reboots. `
 Modbus TCP (pymodbus `ModbusTcpServer` with a `SimDevice` whose access hook calls the controller) in a
 background thread, and applies the faults a `FaultInjector` draws.
 
-Persistence: with a state file (`DeviceConfig.state_file`, `uwbcl simulate-device --state`), CYCLE_COUNTER
-and the last BOOT_ID survive a restart of the simulator, as the map requires of a controller (the counter
-lives in the longwall control system; BOOT_ID must differ from the previous boot's).
+Persistence: with a state file (`DeviceConfig.state_file`, `uwbcl simulate-device --state`), CYCLE_COUNTER,
+the last BOOT_ID and the clock survive a restart of the simulator, as the map requires of a controller (the
+counter lives in the longwall control system; BOOT_ID must differ from the previous boot's; DEVICE_TIME is a
+clock, which never goes back).
 
 Time: device time runs `time_scale` times faster than the host's monotonic clock, so a 45-minute cycle or a
 13-second pass can be compressed for tests and the demo; every rate in the registers stays in device time.
@@ -23,6 +24,7 @@ import dataclasses
 import datetime as dt
 import json
 import logging
+import math
 import os
 import secrets
 import threading
@@ -142,10 +144,14 @@ class RigController:
         self.rig_id = config.rig_id
         self.boot_id = 0
         self.cycle_counter = config.initial_cycle
+        self._clock_offset_s = 0.0  # DEVICE_TIME at device time 0, after DEVICE_EPOCH
         stored = self._load_state()
         if stored is not None:
             self.cycle_counter = int(stored.get("cycle_counter", config.initial_cycle)) % R.SEQ_MODULUS
             self.boot_id = int(stored.get("boot_id", 0)) % R.SEQ_MODULUS
+            clock_s = stored.get("clock_s")  # a restarted controller's clock goes on, never back
+            if isinstance(clock_s, (int, float)) and math.isfinite(clock_s):
+                self._clock_offset_s = max(0.0, float(clock_s) - DEVICE_EPOCH.timestamp())
         self._k_of_counter = {self.cycle_counter: 0}  # counter value -> campaign cycle index (truth)
         self.cycles_raised = 0
         self.next_cycle_due = config.first_cycle_after_s
@@ -181,7 +187,7 @@ class RigController:
         self._window_cache = None
         self._window_idx: list[int] = []
         self.last_busy_end = now
-        self._save_state()
+        self._save_state(now)
 
     # ------------------------------------------------------------------------------------------ persistence
 
@@ -197,16 +203,17 @@ class RigController:
                         exc)
             return None
 
-    def _save_state(self) -> None:
-        """Write CYCLE_COUNTER and BOOT_ID atomically (a crash leaves the old file or the new one)."""
+    def _save_state(self, now: float = 0.0) -> None:
+        """Write CYCLE_COUNTER, BOOT_ID and DEVICE_TIME at device time `now` atomically (a crash leaves the
+        old file or the new one)."""
         path = self.config.state_file
         if not path:
             return
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         tmp = f"{path}.tmp{os.getpid()}"
         with open(tmp, "w", encoding="utf-8") as f:
-            json.dump({"cycle_counter": self.cycle_counter, "boot_id": self.boot_id, "rig_id": self.rig_id},
-                      f)
+            json.dump({"cycle_counter": self.cycle_counter, "boot_id": self.boot_id, "rig_id": self.rig_id,
+                       "clock_s": self._clock_ms(now) / 1000.0}, f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -312,7 +319,7 @@ class RigController:
         self.cycles_raised += 1
         self._k_of_counter[self.cycle_counter] = self.cycles_raised
         self.cycle_log.append((self.cycle_counter, now))
-        self._save_state()
+        self._save_state(now)
         log.info("device: cycle signal, counter %d at t=%.1f s", self.cycle_counter, now)
 
     def signal_cycle_now(self, now: float) -> None:
@@ -433,6 +440,7 @@ class RigController:
         self.drop_next = 0
         self.fault_word &= ~(R.Fault.BUFFER_OVERFLOW | R.Fault.PASS_ABORTED)
         self._window_cache = None
+        self._save_state(now)  # the clock too: a restart continues it from this pass's start, never before
         self.pass_ = _Pass(token=token, cycle=self.cycle_counter, k=k, first_seq=first_seq, t_start=now,
                            start_time_ms=self._clock_ms(now), times=data.time_s, positions=data.position_m,
                            records=records, scale=scale, range_window_start_s=data.range_window_start_s,
@@ -473,7 +481,7 @@ class RigController:
     # ------------------------------------------------------------------------------------------ registers
 
     def _clock_ms(self, now: float) -> int:
-        return round((DEVICE_EPOCH.timestamp() + now) * 1000.0)
+        return round((DEVICE_EPOCH.timestamp() + self._clock_offset_s + now) * 1000.0)
 
     def status_word(self, now: float) -> R.Status:
         s = R.Status.CYCLE_LINK_OK
