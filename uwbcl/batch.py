@@ -106,9 +106,8 @@ def code_fingerprint() -> str:
 
 def settings_key(settings: ProcessingSettings) -> str:
     """Hash of everything that shapes a pass's detections (not the association, which is recomputed)."""
-    shaping = {k: v for k, v in dataclasses.asdict(settings).items() if k != "association"}
     text = json.dumps({"cache_version": CACHE_VERSION, "uwbcl": __version__, "code": code_fingerprint(),
-                       "settings": shaping}, sort_keys=True, default=str)
+                       "settings": settings.shaping()}, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 

@@ -529,10 +529,9 @@ IMAGE_INDEX = "images.json"  # plots/cycles/: each image's archive digest and se
 def _image_key(rec, settings) -> str:
     """What a pass's image depends on: the archive's bytes, the settings that shape focusing (not the
     association's) and the detections it marks."""
-    shaping = {k: v for k, v in dataclasses.asdict(settings).items() if k != "association"}
     marks = [(d.image_azimuth_m, d.image_range_m) for d in rec.detections]
-    text = json.dumps({"archive": rec.sha256, "uwbcl": __version__, "settings": shaping, "marks": marks},
-                      sort_keys=True, default=str)
+    text = json.dumps({"archive": rec.sha256, "uwbcl": __version__, "settings": settings.shaping(),
+                       "marks": marks}, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()
 
 

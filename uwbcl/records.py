@@ -211,6 +211,12 @@ class ProcessingSettings:
     # records (`pipeline.apply_range_delay`, docs/configuration.md).
     range_delay_s: float | None = None
 
+    def shaping(self) -> dict:
+        """Every setting that shapes a pass's focused image and detections, as plain data: all but the
+        association's, which is recomputed from the detections (the detection cache and the carried images
+        are keyed by it)."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if k != "association"}
+
 
 @dataclasses.dataclass(frozen=True)
 class OutputOptions:
