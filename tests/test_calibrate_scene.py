@@ -24,6 +24,7 @@ import dataclasses
 import io
 import logging
 import math
+import os
 
 import numpy as np
 import pytest
@@ -208,11 +209,39 @@ def test_the_site_files_delay_is_set_where_it_is_or_added_to_its_table_or_append
         "radar": {"range_delay_s": 2e-9}, "detection": {"cfar_db": 10.0}}
     text = '[radar]\n# calibrated\n[detection]\ncfar_db = 10.0'
     assert config.tomllib.loads(calibrate.with_range_delay(text, 2e-9))["radar"] == {"range_delay_s": 2e-9}
+    # a quoted key is the same key; an [import] delay is replaced too (`uwbcl import` refuses two delays)
+    text = '[radar]\n"range_delay_s" = 5e-9\n[import]\nrange_delay_s = 5e-9\n'
+    assert config.tomllib.loads(calibrate.with_range_delay(text, 2e-9)) == {
+        "radar": {"range_delay_s": 2e-9}, "import": {"range_delay_s": 2e-9}}
     # the replaced line's provenance is kept, as a comment above the new value
     text = '[radar]\nrange_delay_s = 1.0e-9 # measured 2026-10 by J. Smith\n'
     assert calibrate.with_range_delay(text, 2e-9).splitlines()[1:] == [
         "# before uwbcl calibrate: range_delay_s = 1.0e-9 # measured 2026-10 by J. Smith",
         "range_delay_s = 2e-09  # s, uwbcl calibrate"]
+
+
+@pytest.mark.parametrize("text", ["radar = { range_delay_s = 2e-9 }\n", "radar.range_delay_s = 2e-9\n"])
+def test_a_site_file_whose_delay_calibrate_cannot_edit_is_named_not_a_traceback(text, tmp_path):
+    base = tmp_path / "site.toml"
+    base.write_text(text)
+    with pytest.raises(ConfigError, match="in a form uwbcl calibrate does not edit"):
+        calibrate.write_config(tmp_path / "out.toml", base, 1e-9)
+    assert not (tmp_path / "out.toml").exists()
+
+
+@pytest.mark.parametrize("kind", ["fifo", "symlink"])
+def test_calibrate_writes_a_config_only_to_a_regular_file_or_a_new_name(kind, tmp_path, capsys):
+    real = tmp_path / "real.toml"
+    real.write_text("[site]\nweb_depth_m = 0.9\n")
+    out = tmp_path / "out.toml"
+    if kind == "fifo":
+        os.mkfifo(out)
+    else:
+        out.symlink_to(real)
+    code = cli.main(["calibrate", str(tmp_path / "a.h5"), "--reflector=1,-2.4,0.3", "--backend", "numpy",
+                     "--write-config", str(out)])
+    assert code == 2 and "--write-config" in capsys.readouterr().err
+    assert real.read_text() == "[site]\nweb_depth_m = 0.9\n" and (out.is_symlink() or not out.is_file())
 
 
 def test_import_refuses_two_different_delays_in_one_site_file(scene, tmp_path, capsys):

@@ -27,7 +27,7 @@ import numpy as np
 from . import config, pipeline
 from .atomic import write_text_atomic
 from .model import SPEED_OF_LIGHT_M_S, ScanPass
-from .records import Detection, ProcessingSettings
+from .records import ConfigError, Detection, ProcessingSettings
 
 log = logging.getLogger("uwbcl")
 
@@ -216,35 +216,62 @@ def report_lines(cal: Calibration, recorded_delays_s: Sequence[float]) -> list[s
     return lines
 
 
-_RADAR_HEADER = re.compile(r"^\s*\[\s*radar\s*\]\s*(#.*)?$")
 _ANY_HEADER = re.compile(r"^\s*\[")
-_DELAY_KEY = re.compile(r"^\s*range_delay_s\s*=")
+_DELAY_KEY = re.compile(r"""^\s*(range_delay_s|"range_delay_s"|'range_delay_s')\s*=""")
+
+
+def _header(table: str) -> re.Pattern:
+    return re.compile(rf"^\s*\[\s*{table}\s*\]\s*(#.*)?$")
+
+
+def _set_delay(lines: list[str], table: str, value: str, *, add: bool) -> bool:
+    """Replace `range_delay_s` in [table] of `lines` in place (its old line kept above as a comment), or add
+    it at the table's top when `add`; False when the table is not there as a `[table]` header."""
+    start = next((i for i, line in enumerate(lines) if _header(table).match(line)), None)
+    if start is None:
+        return False
+    end = next((i for i in range(start + 1, len(lines)) if _ANY_HEADER.match(lines[i])), len(lines))
+    for i in range(start + 1, end):
+        if _DELAY_KEY.match(lines[i]):
+            lines[i:i + 1] = [f"# before uwbcl calibrate: {lines[i].strip()}", value]
+            return True
+    if add:
+        lines.insert(start + 1, value)
+    return True
 
 
 def with_range_delay(toml_text: str, delay_s: float) -> str:
     """The site file's text with `[radar] range_delay_s` set (the key replaced where it is, its old line kept
     above it as a comment with whatever provenance it carried, else added to the [radar] table, else a
-    [radar] table appended); everything else kept as written."""
+    [radar] table appended), and an `[import] range_delay_s` replaced alike (one delay per site: `uwbcl
+    import` refuses two); everything else kept as written. Keys written another way (an inline table, a
+    dotted key) are not edited: `write_config` then finds the delay not set and says so."""
     lines = toml_text.splitlines()
     value = f"range_delay_s = {delay_s!r}  # s, uwbcl calibrate"
-    start = next((i for i, line in enumerate(lines) if _RADAR_HEADER.match(line)), None)
-    if start is None:
+    _set_delay(lines, "import", value, add=False)
+    if not _set_delay(lines, "radar", value, add=True):
         sep = "" if not toml_text or toml_text.endswith("\n") else "\n"
         return f"{toml_text}{sep}\n[radar]\n{value}\n"
-    end = next((i for i in range(start + 1, len(lines)) if _ANY_HEADER.match(lines[i])), len(lines))
-    for i in range(start + 1, end):
-        if _DELAY_KEY.match(lines[i]):
-            lines[i:i + 1] = [f"# before uwbcl calibrate: {lines[i].strip()}", value]
-            break
-    else:
-        lines.insert(start + 1, value)
     return "\n".join(lines) + "\n"
 
 
 def write_config(out: Path, base: Path | None, delay_s: float) -> None:
     """OUT.toml: the site file `base` (or an empty one) with the delay set, checked as `uwbcl process` reads
-    it before it is written (atomically)."""
+    it before it is written (atomically). ConfigError naming OUT when the result would not load, or would not
+    hold the delay (a site file that writes the key in a form `with_range_delay` does not edit)."""
     text = with_range_delay(config.read_site_text(base) if base is not None else "", delay_s)
-    parsed = config.tomllib.loads(text)
+    try:
+        parsed = config.tomllib.loads(text)
+    except config.tomllib.TOMLDecodeError as exc:
+        parsed, why = None, f"would not be valid TOML ({exc})"
+    else:
+        held = [parsed.get(t, {}).get("range_delay_s") for t in ("radar", "import")
+                if isinstance(parsed.get(t), dict) and "range_delay_s" in parsed[t]]
+        why = "" if held and all(v == delay_s for v in held) else "would not hold the new delay"
+    if why:
+        raise ConfigError(out, "radar.range_delay_s",
+                          f"{why}: the site file sets range_delay_s in a form uwbcl calibrate does not "
+                          "edit (an inline table, a dotted key); write it as `range_delay_s = ...` "
+                          f"under a `[radar]` header, or set {delay_s!r} by hand")
     config.parse_config(parsed, out)  # ConfigError naming OUT if the result would not load
     write_text_atomic(out, text)

@@ -272,9 +272,12 @@ def _calibrate(args: argparse.Namespace) -> int:
         print(f"{name}: {exc}", file=sys.stderr)
         return 2
     out = Path(args.write_config) if args.write_config else None
-    if out is not None and (out.is_dir() or not out.parent.is_dir()):
-        print(f"{name}: --write-config {out}: " + ("is a directory" if out.is_dir() else
-                                                   f"{out.parent} is not a directory"), file=sys.stderr)
+    if out is not None and (out.is_dir() or not out.parent.is_dir() or out.is_symlink()
+                            or (out.exists() and not out.is_file())):
+        why = ("is a directory" if out.is_dir() else f"{out.parent} is not a directory"
+               if not out.parent.is_dir() else "is a symbolic link: give the file it names"
+               if out.is_symlink() else "is not a regular file (a FIFO or device): give a site file")
+        print(f"{name}: --write-config {out}: {why}", file=sys.stderr)
         return 2
     if settings.backend == "opencl" and not _engine_ready(settings.device):
         return 2
