@@ -292,7 +292,7 @@ def test_a_config_that_is_a_device_a_fifo_endless_or_nested_without_end_is_a_usa
         cfg.write_text("a = " + "[" * 200_000)
     assert main(["process", str(archive_dir), "--out", str(tmp_path / "o"), "--config", str(cfg)]) == 2
     err = capsys.readouterr().err
-    assert f"{cfg}: -: " in err and words in err and "Traceback" not in err
+    assert f"{cfg}: " in err and ": -: " not in err and words in err and "Traceback" not in err
 
 
 def test_a_config_with_a_utf8_byte_order_mark_is_read(archive_dir, tmp_path):

@@ -76,7 +76,8 @@ def test_without_a_file_the_defaults_apply():
     ("[detection]\ncross_height_x_tol_m = 0.0\n", "detection.cross_height_x_tol_m"),
     ("[detection]\ncross_height_rc_tol_m = nan\n", "detection.cross_height_rc_tol_m"),
     ("[detection]\ncross_height_wall_tol_m = -0.1\n", "detection.cross_height_wall_tol_m"),
-    ("[site\n", "-"),
+    ("[site\n", ""),  # the file itself: no key
+    ("web_depth_m = 0.9\n", "web_depth_m"),  # a key outside any table
 ])
 def test_a_mistake_names_the_file_and_the_key(tmp_path, text, key):
     path = write(tmp_path, text)
@@ -98,3 +99,30 @@ def test_one_site_file_serves_process_and_acquire(tmp_path):
     """`uwbcl acquire` reads the [acquire] table of the same file; `uwbcl process` leaves it to it."""
     path = write(tmp_path, SITE + '\n[acquire]\nhost = "127.0.0.1"\nport = 5020\n')
     assert config.load_config(path) == config.load_config(write(tmp_path, SITE))
+
+
+def test_the_range_table_of_configuration_md_lists_every_range_the_code_checks():
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "configuration.md").read_text(encoding="utf-8")
+    table = text[text.index("| key | must be |"):]
+    table = table[:table.index("\n\n")]
+    documented = set(re.findall(r"`([a-z_]+\.[a-z_0-9*]+)`", table))
+    checked = {k for k in config._RANGES if not k.startswith("limits.")} - {"association.prior_window_m"}
+    checked |= {"site.web_depth_m", "site.height_tolerance_m", "processing.jobs", "site.prior_creep_m",
+                "site.prior_vertical_m", "site.prior_window_m", "site.heights_m", "association.max_bound_m",
+                "association.max_backward_m", "association.min_margin", "association.max_bridge_cycles",
+                "radar.range_delay_s", "limits.*"}  # checked in config.validate
+    assert checked - documented == set()
+
+
+@pytest.mark.parametrize("value, ok", [(1e-6, True), (-1e-6, True), (1.0000001e-6, False)])
+def test_the_range_delay_is_accepted_within_one_microsecond_inclusive(tmp_path, value, ok):
+    site = tmp_path / "site.toml"
+    site.write_text(f"[radar]\nrange_delay_s = {value!r}\n")
+    if ok:
+        assert config.load_config(site).range_delay_s == value
+    else:
+        with pytest.raises(config.ConfigError, match="radar.range_delay_s"):
+            config.load_config(site)

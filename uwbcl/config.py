@@ -164,8 +164,12 @@ def parse_config(data: dict[str, Any], path: str | os.PathLike[str] | None = Non
     for section, table in data.items():
         if section in OTHER_COMMANDS_SECTIONS:
             continue  # one site file serves every command; `uwbcl acquire` checks its own table
+        if section not in schema and not isinstance(table, dict):
+            raise ConfigError(path, section, "a key outside any table: put it under its [section] (one of "
+                                             f"{', '.join(sorted([*schema, *OTHER_COMMANDS_SECTIONS]))})")
         if section not in schema:
-            raise ConfigError(path, section, f"unknown section; expected one of {', '.join(sorted(schema))}")
+            raise ConfigError(path, section, "unknown section; expected one of "
+                                             f"{', '.join(sorted([*schema, *OTHER_COMMANDS_SECTIONS]))}")
         if not isinstance(table, dict):
             raise ConfigError(path, section, "must be a table ([section])")
         values[section] = {}
@@ -243,7 +247,7 @@ def _check_ranges(settings: ProcessingSettings, path) -> None:
                           f"must be one of {', '.join(map(repr, BACKGROUND_MODES))}, got {d.background!r}")
     if d.search not in SEARCH_REGIONS:
         raise ConfigError(path, "detection.search", f"{d.search!r} is not one of {', '.join(SEARCH_REGIONS)}")
-    if settings.range_delay_s is not None and not abs(settings.range_delay_s) < MAX_RANGE_DELAY_S:
+    if settings.range_delay_s is not None and not abs(settings.range_delay_s) <= MAX_RANGE_DELAY_S:
         raise ConfigError(path, "radar.range_delay_s",
                           f"must be within +-{MAX_RANGE_DELAY_S:g} s, got {settings.range_delay_s!r}")
     if 0 < d.max_range_m <= d.min_range_m:
@@ -313,11 +317,11 @@ MAX_CONFIG_BYTES = 1 << 20
 def read_site_text(path: str | os.PathLike[str]) -> str:
     """The text of a site file: a regular file of at most MAX_CONFIG_BYTES (`atomic.read_regular_file`: never
     a FIFO or a device such as /dev/zero, which would block or never end), UTF-8, a byte-order mark dropped.
-    ConfigError (file, "-") otherwise; OSError and UnicodeDecodeError pass to the caller."""
+    ConfigError (file, no key) otherwise; OSError and UnicodeDecodeError pass to the caller."""
     try:
         raw = read_regular_file(path, MAX_CONFIG_BYTES)
     except ValueError as e:  # not a regular file, or too large for a site file
-        raise ConfigError(path, "-", f"{e}: not a site file") from None
+        raise ConfigError(path, "", f"{e}: not a site file") from None
     return raw.decode("utf-8").removeprefix("\ufeff")
 
 
@@ -325,18 +329,18 @@ def read_toml(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The parsed tables of a site file (`read_site_text`); ConfigError for a missing, unreadable or invalid
     one."""
     if tomllib is None:
-        raise ConfigError(path, "-", "reading TOML needs Python >= 3.11 or the 'tomli' package")
+        raise ConfigError(path, "", "reading TOML needs Python >= 3.11 or the 'tomli' package")
     try:
         return tomllib.loads(read_site_text(path))
     except OSError as e:
-        raise ConfigError(path, "-", f"cannot read: {e.strerror or e}") from e
+        raise ConfigError(path, "", f"cannot read: {e.strerror or e}") from e
     except tomllib.TOMLDecodeError as e:
-        raise ConfigError(path, "-", f"not valid TOML: {e}") from e
+        raise ConfigError(path, "", f"not valid TOML: {e}") from e
     except UnicodeDecodeError as e:  # binary, UTF-16, Latin-1: TOML is UTF-8
-        raise ConfigError(path, "-", f"not a UTF-8 text file (TOML must be UTF-8): {e.reason} at byte "
+        raise ConfigError(path, "", f"not a UTF-8 text file (TOML must be UTF-8): {e.reason} at byte "
                                      f"{e.start}") from e
     except RecursionError:  # tomllib recurses per nesting level: [[[[... thousands deep
-        raise ConfigError(path, "-", "not valid TOML: nested too deeply") from None
+        raise ConfigError(path, "", "not valid TOML: nested too deeply") from None
 
 
 def override(cfg: SiteConfig, **flags: Any) -> SiteConfig:

@@ -37,7 +37,7 @@ class ConfigError(ValueError):
 
     def __str__(self) -> str:
         where = f"{self.path}: " if self.path else ""
-        return f"{where}{self.key}: {self.reason}"
+        return f"{where}{self.key}: {self.reason}" if self.key else f"{where}{self.reason}"  # "": the file
 
 
 class BatchError(RuntimeError):
