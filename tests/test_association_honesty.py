@@ -358,3 +358,10 @@ def test_the_backward_limit_is_configured_and_must_not_be_negative(tmp_path):
     with pytest.raises(config.ConfigError) as e:
         config.load_config(site)
     assert e.value.key == "association.max_backward_m"
+
+
+def test_too_few_targets_says_how_many_plates_did_match():
+    cycles, _ = noisy_cycles(2, seed=5)
+    a, b = cycles
+    d = estimate_advance(a.plates, b.plates, dataclasses.replace(PRIOR, min_targets=50))
+    assert d.status == "too_few_targets" and 1 <= d.n_targets < 50 and d.pairs == []

@@ -645,7 +645,7 @@ def estimate_advance(before: list[Located], after: list[Located],
                       the face backwards is never proposed, M2b);
       inconsistent    the matched plates disagree beyond their location precision and two plates cannot say
                       which is wrong;
-      too_few_targets no plate pair matches: no estimate (NaN).
+      too_few_targets fewer plate pairs match than min_targets (n_targets: how many): no estimate (NaN).
     The bound (eq. M3): sqrt(f^2 diag(Sigma_GLS) + exp(-margin) offset^2), f^2 = max(1, chi2 / dof) (with
     covariances) or chi2 / dof (without), 1 for one plate (no redundancy: an outlying single plate is not
     caught, see docs/method.md section 6.1); offset = the closest material competitor's translation minus the
@@ -669,8 +669,8 @@ def estimate_advance(before: list[Located], after: list[Located],
         evidence = {h.pairs: h.rib for h in _with_rib_evidence(hyps, rib, settings)}
         hyps = level([dataclasses.replace(h, score=h.score + evidence.get(h.pairs, 0.0),
                                           rib=evidence.get(h.pairs, 0.0)) for h in raw])
-    if not hyps or len(hyps[0].pairs) < settings.min_targets:
-        return none
+    if not hyps or len(hyps[0].pairs) < settings.min_targets:  # n_targets: how many did match
+        return dataclasses.replace(none, n_targets=len(hyps[0].pairs) if hyps else 0)
     best = hyps[0]
     runner_up = hyps[1] if len(hyps) > 1 else None
     margin, unknown_var, rival_var = _competitors(best, hyps[1:], settings)

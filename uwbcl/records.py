@@ -213,9 +213,12 @@ class ProcessingSettings:
 
     def shaping(self) -> dict:
         """Every setting that shapes a pass's focused image and detections, as plain data: all but the
-        association's, which is recomputed from the detections (the detection cache and the carried images
-        are keyed by it)."""
-        return {k: v for k, v in dataclasses.asdict(self).items() if k != "association"}
+        association's, which is recomputed from the detections, and the OpenCL device where another backend
+        runs (the detection cache and the carried images are keyed by it)."""
+        shaping = {k: v for k, v in dataclasses.asdict(self).items() if k != "association"}
+        if self.backend != "opencl":
+            del shaping["device"]  # an OpenCL device spec shapes nothing the numpy backend computes
+        return shaping
 
 
 @dataclasses.dataclass(frozen=True)
