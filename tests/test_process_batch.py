@@ -662,3 +662,13 @@ def test_a_negative_zero_is_written_as_zero_so_an_unchanged_value_keeps_its_text
 
     assert [number_text(v) for v in (-0.0, -1e-9, 1e-9, -0.0000005, -0.0000006, 0.1234564)] == \
         ["0.000000", "0.000000", "0.000000", "0.000000", "-0.000001", "0.123456"]
+
+
+def test_the_opencl_device_keys_the_cache_of_the_opencl_backend_only():
+    from uwbcl.records import ProcessingSettings
+
+    def key(**kw):
+        return batch.settings_key(ProcessingSettings(**kw))
+
+    assert key(backend="numpy", device="0:1") == key(backend="numpy")
+    assert key(backend="opencl", device="0:1") != key(backend="opencl")
