@@ -10,7 +10,7 @@ from uwbcl.records import AssociationSettings, BatchOptions, ProcessingSettings
 
 SETTINGS = ProcessingSettings(backend="numpy",
                               association=AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0)))
-OUTPUTS = ("displacements.csv", "displacements.h5", "targets.csv", "errors.csv")
+OUTPUTS = ("displacements.csv", "displacements.h5", "targets.csv", "errors.csv", "settings.json")
 CONFIG = shift.ShiftConfig(rigs=1, cycles=3, seed=5)
 
 

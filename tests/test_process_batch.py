@@ -672,3 +672,19 @@ def test_the_opencl_device_keys_the_cache_of_the_opencl_backend_only():
 
     assert key(backend="numpy", device="0:1") == key(backend="numpy")
     assert key(backend="opencl", device="0:1") != key(backend="opencl")
+
+
+def test_the_published_set_says_which_settings_produced_it(archive_dir, clean, tmp_path):
+    # The file, the flags and the defaults together, as in effect (docs/outputs.md section 2).
+    site = tmp_path / "site.toml"
+    site.write_text("[association]\nmin_margin = 9.0\n[detection]\ncfar_db = 11.0\n")
+    out = warm_out(clean[0], tmp_path)
+    assert main(["process", str(archive_dir), "--out", str(out), "--config", str(site), "--backend", "numpy",
+                 "--jobs", "1", "--no-progress", "--web-depth", "0.85", "--heights", "0.2", "0.6"]) in (0, 1)
+    doc = json.loads((out / "settings.json").read_text())
+    assert (doc["format"], doc["format_version"]) == ("uwbcl-settings", 1)
+    processing = doc["processing"]
+    assert processing["association"]["prior_advance_m"][0] == 0.85  # the flag
+    assert processing["association"]["min_margin"] == 9.0 and processing["detection"]["cfar_db"] == 11.0
+    assert processing["detection"]["separation_m"] == SETTINGS.detection.separation_m  # a default
+    assert processing["backend"] == "numpy" and doc["batch"]["heights_m"] == [0.2, 0.6]

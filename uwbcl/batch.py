@@ -841,7 +841,8 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
         problems.sort(key=lambda p: (p.file, p.kind, p.reason))
         interrupt.check()  # never publish a run that was asked to stop
         rows = outputs.write_all(out_dir, rows_series, cycles, problems, out_opts, groups=groups,
-                                 in_dir=in_dir, settings=settings)
+                                 in_dir=in_dir, settings=settings,
+                                 settings_json=outputs.settings_text(settings, options))
     n_cached = len(records) - sum(1 for r in records if r.file in focused)
     return BatchReport(rows, problems, cycles, rows_series, len(files), n_detected, n_cached, cache.damaged,
                        warnings)

@@ -317,8 +317,36 @@ def write_h5_atomic(path: Path, tables: dict[str, tuple[tuple[str, ...], list[di
     write_hdf5_atomic(path, fill)
 
 
+SETTINGS_FORMAT = "uwbcl-settings"
+SETTINGS_FORMAT_VERSION = 1
+
+
+def _jsonable(value):
+    """Plain JSON data: tuples as lists, a non-finite float as its text ("nan", "inf")."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    return value
+
+
+def settings_text(settings, batch_options) -> str:
+    """settings.json (docs/outputs.md section 2): every setting in effect that shapes the outputs, from the
+    site file, the flags and the defaults together, so a published set says what produced it."""
+    opts = batch_options
+    doc = {"format": SETTINGS_FORMAT, "format_version": SETTINGS_FORMAT_VERSION, "uwbcl": __version__,
+           "processing": _jsonable(dataclasses.asdict(settings)),
+           "batch": _jsonable({"heights_m": opts.heights_m, "height_tolerance_m": opts.height_tolerance_m,
+                               "max_bridge_cycles": opts.max_bridge_cycles,
+                               "follow_symlinks": opts.follow_symlinks,
+                               "outputs": dataclasses.asdict(opts.outputs)})}
+    return json.dumps(doc, indent=1, sort_keys=True, allow_nan=False) + "\n"
+
+
 def write_all(out_dir: Path, rows: list[SeriesRow], cycles: list[CycleResult], problems: list[Problem], opts,
-              *, groups: dict, in_dir: Path, settings) -> list[dict]:
+              *, groups: dict, in_dir: Path, settings, settings_json: str) -> list[dict]:
     """Every output of a run, published as one set (see `publish`); returns the displacements.csv rows (text).
 
     Raises OutputError naming the path when a file cannot be written (disk full, permissions): the previous
@@ -346,6 +374,7 @@ def write_all(out_dir: Path, rows: list[SeriesRow], cycles: list[CycleResult], p
                              "targets": (TARGET_COLUMNS, targets)})
         write_bytes_atomic(gen / "errors.csv",
                            csv_bytes(ERROR_COLUMNS, [dataclasses.asdict(p) for p in problems]))
+        write_text_atomic(gen / "settings.json", settings_json)
         if opts.plots:
             plot_time_series(gen / "plots", disp)
         if opts.cycle_images:
@@ -370,7 +399,8 @@ def write_all(out_dir: Path, rows: list[SeriesRow], cycles: list[CycleResult], p
 # either the old complete set or the new one (docs/outputs.md, "One set").
 GENERATIONS_DIR = ".uwbcl-generations"
 CURRENT_LINK = ".uwbcl-current"
-OUTPUT_NAMES = ("displacements.csv", "displacements.h5", "targets.csv", "errors.csv", "plots")
+OUTPUT_NAMES = ("displacements.csv", "displacements.h5", "targets.csv", "errors.csv", "settings.json",
+                "plots")
 KEEP_GENERATIONS = 2  # the current set and the one before it (a reader may still be reading it)
 
 
