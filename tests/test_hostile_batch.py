@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import h5py
+import numpy as np
 import pytest
 from shift_case import CONFIG, OUTPUTS, SETTINGS, options
 
@@ -556,3 +557,25 @@ def test_an_hdf5_output_past_the_file_size_limit_is_an_os_error_not_a_crash(tmp_
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and done.stdout.strip() == f"OSError {errno.EFBIG}", done.stderr[-2000:]
     assert "Traceback" not in done.stderr and list(tmp_path.iterdir()) == []
+
+
+def test_an_archive_named_hdf5_or_in_upper_case_is_read(tree):
+    # The name is a convenience only (docs/archive-format.md section 1): other writers use .hdf5 and .H5.
+    src, out = tree
+    first, second = sorted(src.rglob("*.h5"))[:2]
+    first.rename(first.with_suffix(".hdf5"))
+    second.rename(second.with_suffix(".H5"))
+    report = batch.process_directory(src, out, SETTINGS, options())
+    assert report.errors == [] and report.n_passes == CONFIG.cycles * 2
+
+
+def test_a_descriptive_created_by_that_is_empty_or_not_utf8_does_not_cost_the_pass(tree, caplog):
+    src, out = tree
+    first, second = sorted(src.rglob("*.h5"))[:2]
+    with h5py.File(first, "r+") as f:
+        f.attrs["created_by"] = h5py.Empty("S1")  # an empty dataspace, as h5py and others write ""
+    with h5py.File(second, "r+") as f:
+        f.attrs["created_by"] = np.bytes_("Caf\xe9 LabVIEW 2019".encode("latin-1"))
+    report = batch.process_directory(src, out, SETTINGS, options())
+    assert report.errors == [] and report.n_passes == CONFIG.cycles * 2
+    assert "created_by is not UTF-8 text" in caplog.text

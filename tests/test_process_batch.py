@@ -634,7 +634,7 @@ def test_an_archive_directory_that_yields_no_pass_keeps_the_published_set_and_ex
     assert main(["process", str(empty), *args]) == 1
     err = capsys.readouterr().err
     assert "no archive could be read; nothing published, the previous outputs are intact" in err
-    assert "no archive (*.h5) under" in err
+    assert "no archive (*.h5, *.hdf5) under" in err
     assert snapshot(out) == before
     (empty / "rig-1_c000009_h0150.h5").write_bytes(b"not hdf5")  # only unreadable archives: the same
     assert main(["process", str(empty), *args]) == 1

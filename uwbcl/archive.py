@@ -48,7 +48,14 @@ MAX_PULSE_SPECTRUM_SAMPLES = 65536  # samples of a measured pulse's spectrum (1.
 MAX_RAIL_DEVIATION_M = 0.5  # |antenna_y_m|, |antenna_z_m| (1.2): beyond, first-order compensation fails
 ECHO_DTYPES = ("complex64", "complex128", "int16")
 INT16_FULL_SCALE = 32767  # symmetric: -32768 is never written, so +-peak maps to +-32767
-FILE_SUFFIX = ".h5"
+FILE_SUFFIX = ".h5"  # what uwbcl writes
+# What a scan of a tree reads as an archive (any case): other writers name HDF5 files .hdf5 or .H5, and the
+# name is a convenience only (docs/archive-format.md section 1).
+READ_SUFFIXES = (".h5", ".hdf5")
+
+
+def is_archive_name(name: str) -> bool:
+    return name.lower().endswith(READ_SUFFIXES)
 
 _LIBVER = ("v110", "v110")  # the h5py wheel bundles HDF5 2.0; "latest" would lock out older readers
 _GZIP_LEVEL = 4
@@ -193,14 +200,14 @@ def _walk_entry(entry: os.DirEntry, real_root: str, follow: bool, walk: TreeWalk
             return  # a write in progress (or a dead one): never an archive
         if _is_dir(entry):
             report(entry.path, "hidden_directory", "hidden directories are not searched")
-        elif name.endswith(FILE_SUFFIX):
+        elif is_archive_name(name):
             report(entry.path, "hidden_file", "hidden files are not read")
         return
     if entry.is_symlink():
         _walk_link(entry, real_root, follow, walk, stack, report, rel)
     elif _is_dir(entry):
         stack.append(entry.path)
-    elif name.endswith(FILE_SUFFIX):
+    elif is_archive_name(name):
         if entry.is_file(follow_symlinks=False):
             walk.files.append(Path(entry.path))
         else:
@@ -234,7 +241,7 @@ def _walk_link(entry: os.DirEntry, real_root: str, follow: bool, walk: TreeWalk,
             report(entry.path, "directory_link",
                    "a symbolic link to a directory; not followed (--follow-symlinks)")
         return
-    if not entry.name.endswith(FILE_SUFFIX):
+    if not is_archive_name(entry.name):
         return
     if not stat.S_ISREG(st.st_mode):
         report(entry.path, "not_a_regular_file", "a link to a FIFO, device or socket, not an archive")
@@ -498,7 +505,7 @@ def _read_header(f: h5py.File, path: Any, limits: ReadLimits = ReadLimits()) -> 
 
     h: dict[str, Any] = {"format": fmt, "format_version": version}
     for name in _ROOT_STR[1:]:
-        h[name] = _str_attr(f, name, path)
+        h[name] = _free_text_attr(f, name, path) if name in _FREE_TEXT else _str_attr(f, name, path)
     h["cycle"] = _int_attr(f, "cycle", path)
     radar = _group(f, "radar", path)
     for name in _RADAR_FLOAT:
@@ -799,6 +806,29 @@ def _str_attr(obj: h5py.HLObject, name: str, path: Any) -> str:
             value = value.decode("utf-8")
         except UnicodeDecodeError:
             raise ArchiveError(path, f"{obj.name}@{name}", "not valid UTF-8") from None
+    if not isinstance(value, str):
+        raise ArchiveError(path, f"{obj.name}@{name}", f"expected a string, got {type(value).__name__}")
+    return value
+
+
+# Descriptive text no value depends on: read whatever a writer stored (an empty dataspace, as h5py.Empty
+# writes it, is ""; bytes that are not UTF-8, e.g. Latin-1 from a Windows writer, are read with replacement
+# characters and a warning) rather than refuse the pass over it.
+_FREE_TEXT = ("created_by",)
+
+
+def _free_text_attr(obj: h5py.HLObject, name: str, path: Any) -> str:
+    raw = _raw_attr(obj, name, path)
+    if isinstance(raw, h5py.Empty):
+        return ""
+    value = _scalar(obj, name, path).item()
+    if isinstance(value, bytes):
+        try:
+            value = value.decode("utf-8")
+        except UnicodeDecodeError:
+            value = value.decode("utf-8", errors="replace")
+            _warn_once("%s: %s@%s is not UTF-8 text; read with replacement characters (descriptive only)",
+                       path, obj.name, name)
     if not isinstance(value, str):
         raise ArchiveError(path, f"{obj.name}@{name}", f"expected a string, got {type(value).__name__}")
     return value

@@ -828,8 +828,8 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
                             r.cycle.cycle, r.displacement.status, r.displacement.n_targets,
                             r.displacement.runner_up_targets)
         if not files and not problems:  # (a problem of the walk already says why nothing was found)
-            problems.append(Problem(".", "no_archives", f"no archive (*.h5) under {in_dir}"))
-            log.error("%s: no archive (*.h5) found", in_dir)
+            problems.append(Problem(".", "no_archives", f"no archive (*.h5, *.hdf5) under {in_dir}"))
+            log.error("%s: no archive (*.h5, *.hdf5) found", in_dir)
         published = outputs.previous_displacements(out_dir)
         if not records and published:
             problems.sort(key=lambda p: (p.file, p.kind, p.reason))

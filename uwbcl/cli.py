@@ -171,7 +171,7 @@ def _check(args: argparse.Namespace) -> int:
     report = check.check_directory(in_dir, settings, options)
     print(f"{in_dir}: {report.n_files} archives, {len(report.passes)} read")
     if not report.n_files and not report.problems:
-        print(f"no archives under {in_dir} (files named *.h5, docs/archive-format.md section 1)")
+        print(f"no archives under {in_dir} (files named *.h5 or *.hdf5, docs/archive-format.md section 1)")
         return 1
     for line in check.rig_lines(report, options):
         print(line)
