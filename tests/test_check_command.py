@@ -72,7 +72,7 @@ def test_check_finds_passes_too_small_to_focus_or_beyond_the_limits_as_process_d
     assert names[files[2].relative_to(src).as_posix()][0] == "exceeds_limits"
 
 
-def test_check_warns_about_every_conjugated_pass(archive_dir, tmp_path):
+def test_check_warns_about_every_conjugated_pass(archive_dir, tmp_path, capsys):
     src = tmp_path / "in"
     shutil.copytree(archive_dir, src)
     for path in pass_files(src)[:2]:
@@ -81,6 +81,9 @@ def test_check_warns_about_every_conjugated_pass(archive_dir, tmp_path):
     warned = sorted(w.file for w in report.warnings if w.kind == "q_sign")
     assert warned == [p.relative_to(src).as_posix() for p in pass_files(src)[:2]]
     assert report.problems == []  # conjugated data are read and grouped: only focusing fails
+    assert main(["check", str(src)]) == 0
+    out = capsys.readouterr().out  # "no problems", but not as if all were well
+    assert "warnings above, worth reading first" in out and "their rows would all be flagged" in out
 
 
 def test_check_refuses_a_missing_directory_and_a_bad_height_list_as_usage_errors(tmp_path, capsys):

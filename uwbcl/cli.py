@@ -181,7 +181,11 @@ def _check(args: argparse.Namespace) -> int:
             for p in found:
                 print(f"  {p.kind}: {p.file}: {p.reason}")
     if not report.problems:
-        print("no problems: uwbcl process would use every pass")
+        said = f"; {len(report.warnings)} warnings above, worth reading first" if report.warnings else ""
+        print(f"no problems: uwbcl process would use every pass{said}")
+    if any(w.kind == "q_sign" for w in report.warnings):  # not a problem of the files, but no usable result
+        print("q_sign: those rigs' passes will not focus as they are (conjugated data or the table angle's "
+              "sign): their rows would all be flagged (docs/archive-format.md section 3)")
     return 1 if report.problems else 0
 
 
