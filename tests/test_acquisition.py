@@ -412,7 +412,8 @@ def test_live_processing_publishes_retreat_and_creep_in_the_result_registers(res
     assert report.ok and processor.q_sign_warning == ""
 
 
-def test_a_restarted_acquire_numbers_its_results_after_the_one_the_controller_holds(tmp_path):
+@pytest.mark.parametrize("held, first", [(41, 42), (2**32 - 1, 1)])  # after 2^32 - 1 comes 1 (never 0)
+def test_a_restarted_acquire_numbers_its_results_after_the_one_the_controller_holds(held, first, tmp_path):
     # A face automation system takes a changed (or later, serial arithmetic) RESULT_SEQ as new data: a
     # restarted uwbcl that began again at 1 would repeat, or fall behind, the number it reads.
     from pymodbus.client import ModbusTcpClient
@@ -423,14 +424,14 @@ def test_a_restarted_acquire_numbers_its_results_after_the_one_the_controller_ho
     processor = LiveProcessor(processing_settings("numpy", device.campaign.nominal_web_m))
     with RigServer(device, LOOPBACK, 0) as server:
         client = ModbusTcpClient(LOOPBACK, port=server.port, timeout=1.0)
-        earlier = R.RESULT.encode({"RESULT_SEQ": 41, "CYCLE": 7, "PREVIOUS_CYCLE": 6, "STATUS": 0})
+        earlier = R.RESULT.encode({"RESULT_SEQ": held, "CYCLE": 7, "PREVIOUS_CYCLE": 6, "STATUS": 0})
         client.write_registers(R.RESULT.address, earlier, device_id=1)  # an earlier session's last result
         threading.Thread(target=signal_cycle_after_passes, args=(server, 2), daemon=True).start()
         report = run_session(settings_for(server, tmp_path, cycles=2, timeout_s=1.0), timeout_s=60.0,
                              processor=processor)
         regs = client.read_holding_registers(R.RESULT.address, count=R.RESULT.length, device_id=1).registers
         client.close()
-    assert report.ok and R.RESULT.decode(regs)["RESULT_SEQ"] == 42
+    assert report.ok and R.RESULT.decode(regs)["RESULT_SEQ"] == first
 
 
 def test_results_that_arrive_together_are_published_a_hold_apart_in_order(tmp_path, monkeypatch):
