@@ -161,15 +161,14 @@ def parse_config(data: dict[str, Any], path: str | os.PathLike[str] | None = Non
     """A SiteConfig from the parsed TOML tables."""
     schema = dict(_SCHEMA, detection=_detection_schema())
     values: dict[str, dict[str, Any]] = {}
+    known = ", ".join(sorted([*schema, *OTHER_COMMANDS_SECTIONS]))
     for section, table in data.items():
         if section in OTHER_COMMANDS_SECTIONS:
             continue  # one site file serves every command; `uwbcl acquire` checks its own table
         if section not in schema and not isinstance(table, dict):
-            raise ConfigError(path, section, "a key outside any table: put it under its [section] (one of "
-                                             f"{', '.join(sorted([*schema, *OTHER_COMMANDS_SECTIONS]))})")
+            raise ConfigError(path, section, f"a key outside any table: put it under its [section] (one of {known})")
         if section not in schema:
-            raise ConfigError(path, section, "unknown section; expected one of "
-                                             f"{', '.join(sorted([*schema, *OTHER_COMMANDS_SECTIONS]))}")
+            raise ConfigError(path, section, f"unknown section; expected one of {known}")
         if not isinstance(table, dict):
             raise ConfigError(path, section, "must be a table ([section])")
         values[section] = {}
