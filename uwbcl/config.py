@@ -166,7 +166,8 @@ def parse_config(data: dict[str, Any], path: str | os.PathLike[str] | None = Non
         if section in OTHER_COMMANDS_SECTIONS:
             continue  # one site file serves every command; `uwbcl acquire` checks its own table
         if section not in schema and not isinstance(table, dict):
-            raise ConfigError(path, section, f"a key outside any table: put it under its [section] (one of {known})")
+            raise ConfigError(path, section,
+                              f"a key outside any table: put it under its [section] (one of {known})")
         if section not in schema:
             raise ConfigError(path, section, f"unknown section; expected one of {known}")
         if not isinstance(table, dict):
