@@ -113,10 +113,10 @@ def _device_options(p) -> None:
     p.add_argument("--window-regs", type=int, default=2048,
                    help="pulse window size in registers (default 2048)")
     p.add_argument("--faults", default="",
-                   help="fault injection spec, e.g. 'every=50' or 'drop=0.01,corrupt=0.01'"
+                   help="fault injection spec, e.g. 'every=200' or 'drop=0.01,corrupt=0.01'"
                    " (kinds: drop missing slow exception exception02 exception03 exception04 corrupt reboot "
                    "reconfigure overflow absurd short stall counter_back counter_jump; see "
-                   "uwbcl/acquisition/faults.py)")
+                   "docs/modbus-register-map.md section 11)")
 
 
 def _device_config(args, world):

@@ -1,33 +1,6 @@
 """Fault injection for the simulated rig: which Modbus request gets which fault, seeded and reproducible.
 
-Spec (`uwbcl simulate-device --faults SPEC`), comma-separated items:
-
-    KIND=P        each request gets fault KIND with probability P (a pass-only KIND: each request while a pass
-                  runs, so that drawn faults do not pile up while the client waits for a cycle)
-    KIND@N        request number N (1-based, counted from server start) gets fault KIND
-    every=N       every N-th request gets a fault, KIND taken in turn from `kinds`
-    kinds=A+B+..  the rotation for `every` (default: all kinds)
-    after=N       no fault before request N (default 1)
-    limit=N       at most N faults in all
-    seed=S        seed of the random draws (default 0)
-    slow_s=X      how late a slow reply is (real seconds, default 0.3)
-    reboot_s=X    how long a reboot keeps the controller away (device seconds, default 20)
-    overflow_pulses=N  pulses a buffer overflow drops (default 4)
-
-Kinds: drop (the connection is closed instead of a reply; the request is not executed), missing (executed, no
-reply), slow (the reply is late by slow_s), exception (Modbus exception 06 DEVICE BUSY or 04 DEVICE FAILURE
-in turn, not executed), exception02 / exception03 / exception04 (one spurious exception of that code, not
-executed), corrupt (executed; one bit of one register of the next read reply is flipped), reboot (the
-controller restarts while a pass runs: the pass and the buffer are lost), reconfigure (a reboot that also
-brings a new RADAR.SAMPLE_RATE, x0.75 and back, and a new IDENTITY.RIG_ID, "<rig>-b" and back), overflow (the
-buffer drops the next `overflow_pulses` pulses of a running pass as if it were full), absurd (the next PASS
-read carries an absurd value with a valid CRC: PULSES_PLANNED 1e9, SAMPLES_PER_PULSE 60000 or AMPLITUDE_SCALE
--1, in turn), short (the running pass ends COMPLETE with fewer pulses than planned, no LAST pulse: a
-controller that breaks the map), stall (the radar of the running pass stops delivering pulses, the pass stays
-RUNNING: only a no-progress watchdog notices), counter_back (the longwall counter goes back by 1),
-counter_jump (it jumps by 3: two cycles missed). reboot, reconfigure, overflow, absurd, short and stall wait
-for a pass to be running; the others hit the request they are drawn for. A counter change during a pass aborts
-it (map 4.2).
+The spec (`uwbcl simulate-device --faults SPEC`) and every kind are in docs/modbus-register-map.md section 11.
 """
 
 from __future__ import annotations
