@@ -688,3 +688,17 @@ def test_the_published_set_says_which_settings_produced_it(archive_dir, clean, t
     assert processing["association"]["min_margin"] == 9.0 and processing["detection"]["cfar_db"] == 11.0
     assert processing["detection"]["separation_m"] == SETTINGS.detection.separation_m  # a default
     assert processing["backend"] == "numpy" and doc["batch"]["heights_m"] == [0.2, 0.6]
+
+
+def test_a_rig_whose_rows_are_often_withheld_gets_a_low_availability_warning():
+    from types import SimpleNamespace as NS
+
+    def rows(rig, statuses):
+        return [NS(cycle=NS(rig_id=rig, cycle=k), displacement=NS(status=s)) for k, s in enumerate(statuses)]
+
+    often = rows("a", ["ok", "ambiguous", "ok", "low_confidence", "ok"])  # 2 of 5 withheld: 40 %
+    seldom = rows("b", ["ok"] * 9 + ["ambiguous"])  # 10 %
+    few = rows("c", ["ambiguous"] * 4)  # too few rows to say
+    (w,) = batch.low_availability_warnings(often + seldom + few)
+    assert (w.file, w.kind) == ("rig a", "low_availability")
+    assert w.reason.startswith("2 of 5 rows withheld (ambiguous 1, low_confidence 1)")

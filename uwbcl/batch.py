@@ -31,7 +31,7 @@ import stat
 import sys
 import threading
 import time
-from collections import defaultdict
+from collections import Counter, defaultdict
 from collections.abc import Callable
 from pathlib import Path
 
@@ -54,6 +54,7 @@ from .records import (
     PassTooSmall,
     Problem,
     ProcessingSettings,
+    SeriesRow,
 )
 from .utc import utc_seconds
 
@@ -531,6 +532,30 @@ SHARED_PEAKS_WARN_FRACTION = 0.25
 SHARED_PEAKS_WARN_MIN = 4
 
 
+# A rig with at least this many rows, of which at least this fraction were withheld, gets a `low_availability`
+# warning: a site should look at why (docs/method.md section 6.1) before it trusts the next months to it.
+LOW_AVAILABILITY_MIN_ROWS = 5
+LOW_AVAILABILITY_FRACTION = 0.3
+
+
+def low_availability_warnings(rows: list[SeriesRow]) -> list[Problem]:
+    """One `low_availability` warning per rig whose rows are withheld (any status but `ok`) this often, with
+    the statuses counted: a geometry, plates or settings that do not suit the method, not a bad night."""
+    by_rig: dict[str, Counter] = defaultdict(Counter)
+    for r in rows:
+        by_rig[r.cycle.rig_id][r.displacement.status] += 1
+    out = []
+    for rig, statuses in sorted(by_rig.items()):
+        n, withheld = sum(statuses.values()), sum(v for k, v in statuses.items() if k != "ok")
+        if n >= LOW_AVAILABILITY_MIN_ROWS and withheld >= LOW_AVAILABILITY_FRACTION * n:
+            said = ", ".join(f"{k} {v}" for k, v in sorted(statuses.items()) if k != "ok")
+            why = (f"{withheld} of {n} rows withheld ({said}): look at why before trusting this rig to the "
+                   "method (docs/method.md section 6.1: rib distance, rail heights and rows, extended or "
+                   "domed plates; docs/outputs.md section 2.1 for each status)")
+            out.append(Problem(f"rig {rig}", "low_availability", why))
+    return out
+
+
 def shared_peak_warnings(cycles: list[CycleResult]) -> list[Problem]:
     """One `shared_peaks` warning per rig and rail height where many located plates shared their peak with a
     neighbour's (eq. L1, `Located.shared_heights_m`): seen from that height, two plates of a column are closer
@@ -827,6 +852,9 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
                 log.warning("rig %s cycle %d: %s (%d plates matched, runner-up %d)", r.cycle.rig_id,
                             r.cycle.cycle, r.displacement.status, r.displacement.n_targets,
                             r.displacement.runner_up_targets)
+        for w in low_availability_warnings(rows_series):
+            log.warning("%s: %s: %s", w.kind, w.file, w.reason)
+            warnings.append(w)
         if not files and not problems:  # (a problem of the walk already says why nothing was found)
             problems.append(Problem(".", "no_archives", f"no archive (*.h5, *.hdf5) under {in_dir}"))
             log.error("%s: no archive (*.h5, *.hdf5) found", in_dir)
