@@ -203,7 +203,10 @@ def test_the_radar_table_and_the_new_detection_keys_are_read_and_checked():
 
 
 def test_the_site_files_delay_is_set_where_it_is_or_added_to_its_table_or_appended():
-    assert calibrate.with_range_delay("", 1e-9) == "\n[radar]\nrange_delay_s = 1e-09  # s, uwbcl calibrate\n"
+    assert calibrate.with_range_delay("", 1e-9) == "[radar]\nrange_delay_s = 1e-09  # s, uwbcl calibrate\n"
+    # an [import] delay alone: replaced, and a [radar] table appended with the same value
+    assert config.tomllib.loads(calibrate.with_range_delay("[import]\nrange_delay_s = 5e-9\n", 2e-9)) == {
+        "import": {"range_delay_s": 2e-9}, "radar": {"range_delay_s": 2e-9}}
     text = '[radar]\nrange_delay_s = 5e-9\n\n[detection]\ncfar_db = 10.0\n'
     assert config.tomllib.loads(calibrate.with_range_delay(text, 2e-9)) == {
         "radar": {"range_delay_s": 2e-9}, "detection": {"cfar_db": 10.0}}

@@ -78,18 +78,20 @@ def test_a_cycle_with_a_single_height_is_an_error_not_a_silent_gap(simulated, tm
 
 
 @pytest.mark.parametrize("command", [
-    ["process", "{dir}"],
-    ["focus", "{dir}"],
-    ["import", "p440", "{dir}/rec.p440", "--speed-m-s", "0.1", "--height-m", "0.3"],
-    ["demo", "--cycles", "2"],
-    ["acquire", "--host", "127.0.0.1", "--port", "1", "--heights", "0.1,0.2", "--cycles", "1"],
+    ["process", "{dir}", "--out", "{out}"],
+    ["focus", "{dir}", "--out", "{out}"],
+    ["import", "p440", "{dir}/rec.p440", "--speed-m-s", "0.1", "--height-m", "0.3", "--out", "{out}"],
+    ["demo", "--cycles", "2", "--out", "{out}"],
+    ["acquire", "--host", "127.0.0.1", "--port", "1", "--heights", "0.1,0.2", "--cycles", "1",
+     "--out", "{out}"],
+    ["simulate", "{out}"],
 ])
 def test_every_command_refuses_an_output_under_a_file_naming_the_file_and_writes_nothing(command, tmp_path,
                                                                                          capsys):
     (tmp_path / "rec.p440").write_bytes(b"")
     blocker = tmp_path / "afile"
     blocker.write_text("x")
-    argv = [a.format(dir=tmp_path) for a in command] + ["--out", str(blocker / "sub")]
+    argv = [a.format(dir=tmp_path, out=blocker / "sub") for a in command]
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert f"{blocker} is not a directory" in err and "Traceback" not in err

@@ -623,6 +623,18 @@ def test_a_cycle_whose_plates_change_but_not_its_values_gets_the_next_revision(a
     assert (now[1]["revision"], now[2]["revision"]) == ("0", "1")
 
 
+def test_plates_that_change_while_targets_csv_is_off_raise_the_revision_from_the_h5_s_table(
+        archive_dir, clean, tmp_path):
+    src = copy_archive(archive_dir, tmp_path)
+    out = warm_out(clean[0], tmp_path)
+    no_csv = options(outputs=OutputOptions(targets=False))
+    batch.process_directory(src, out, SETTINGS, no_csv)
+    with h5py.File(_cycle_files(src, 2)[0], "r+") as f:
+        f["echo"][...] = 2 * f["echo"][()]
+    batch.process_directory(src, out, SETTINGS, no_csv)  # compared with the published displacements.h5
+    assert _rows_by_cycle(out)[2]["revision"] == "1" and _rows_by_cycle(out)[1]["revision"] == "0"
+
+
 def test_an_archive_directory_that_yields_no_pass_keeps_the_published_set_and_exits_1(
         archive_dir, clean, tmp_path, capsys):
     out = warm_out(clean[0], tmp_path)
@@ -702,3 +714,13 @@ def test_a_rig_whose_rows_are_often_withheld_gets_a_low_availability_warning():
     (w,) = batch.low_availability_warnings(often + seldom + few)
     assert (w.file, w.kind) == ("rig a", "low_availability")
     assert w.reason.startswith("2 of 5 rows withheld (ambiguous 1, low_confidence 1)")
+
+
+def test_settings_json_does_not_depend_on_the_order_the_heights_were_given_in():
+    from uwbcl import outputs
+    from uwbcl.records import BatchOptions
+
+    def text(heights):
+        return outputs.settings_text(SETTINGS, BatchOptions(heights_m=heights))
+
+    assert text((0.6, 0.2)) == text((0.2, 0.6)) and '"heights_m": [\n   0.2,' in text((0.6, 0.2))

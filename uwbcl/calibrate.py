@@ -250,8 +250,8 @@ def with_range_delay(toml_text: str, delay_s: float) -> str:
     value = f"range_delay_s = {delay_s!r}  # s, uwbcl calibrate"
     _set_delay(lines, "import", value, add=False)
     if not _set_delay(lines, "radar", value, add=True):
-        sep = "" if not toml_text or toml_text.endswith("\n") else "\n"
-        return f"{toml_text}{sep}\n[radar]\n{value}\n"
+        lines += [""] if lines else []  # a blank line before the appended table, none at a new file's top
+        lines += ["[radar]", value]
     return "\n".join(lines) + "\n"
 
 

@@ -45,6 +45,9 @@ SIMULATED_RIG_ID = "sim-rig"  # a paper scenario's rig
 
 
 def _simulate(args: argparse.Namespace) -> int:
+    if blocker := file_in_the_way(Path(args.out_dir)):
+        print(f"uwbcl simulate: {args.out_dir}: {blocker} is not a directory", file=sys.stderr)
+        return 2
     if args.scenario == "shift":
         return _simulate_shift(args)
     scenario = SCENARIOS[args.scenario]

@@ -147,10 +147,42 @@ def previous_displacements(out_dir: Path) -> dict[tuple[str, int], dict]:
     return previous
 
 
+def _published_h5_targets(out_dir: Path) -> list[dict] | None:
+    """The targets table of the published displacements.h5 as targets.csv would write it (text); None when
+    there is none or it cannot be read."""
+    import h5py
+
+    path = out_dir / CURRENT_LINK / "displacements.h5"
+    try:
+        with h5py.File(path, "r") as f:
+            group = f["targets"]
+            columns = {name: group[name][()] for name in TARGET_COLUMNS if name in group}
+    except FileNotFoundError:
+        return None
+    except (OSError, KeyError, ValueError, TypeError) as e:
+        log.warning("%s: the published targets cannot be read (%s); their changes do not raise revisions",
+                    path, e)
+        return None
+    n = min((len(v) for v in columns.values()), default=0)
+    return [{k: _h5_text(v[i]) for k, v in columns.items()} for i in range(n)]
+
+
+def _h5_text(value) -> str:
+    """A value of displacements.h5 as the CSV writes it."""
+    if isinstance(value, bytes):
+        return value.decode("utf-8")
+    if isinstance(value, np.floating):
+        return number_text(float(value))
+    return str(int(value))
+
+
 def previous_targets(out_dir: Path) -> dict[tuple[str, int], list[dict]] | None:
-    """The published set's targets.csv rows (text) by (rig_id, cycle), in file order; None when the set has
-    none or it cannot be read (then a cycle's plates cannot be compared: only its row's values are)."""
+    """The published set's plates (text) by (rig_id, cycle), in file order: its targets.csv, else the targets
+    table of its displacements.h5 (a set written with `targets = false`); None when it has neither or they
+    cannot be read (then a cycle's plates cannot be compared: only its row's values are)."""
     rows = _published_rows(out_dir, "targets.csv", "targets", "their changes do not raise revisions")
+    if rows is None:
+        rows = _published_h5_targets(out_dir)
     if rows is None:
         return None
     by_cycle: dict[tuple[str, int], list[dict]] = {}
@@ -338,7 +370,8 @@ def settings_text(settings, batch_options) -> str:
     opts = batch_options
     doc = {"format": SETTINGS_FORMAT, "format_version": SETTINGS_FORMAT_VERSION, "uwbcl": __version__,
            "processing": _jsonable(dataclasses.asdict(settings)),
-           "batch": _jsonable({"heights_m": opts.heights_m, "height_tolerance_m": opts.height_tolerance_m,
+           "batch": _jsonable({"heights_m": sorted(opts.heights_m) if opts.heights_m else opts.heights_m,
+                               "height_tolerance_m": opts.height_tolerance_m,
                                "max_bridge_cycles": opts.max_bridge_cycles,
                                "follow_symlinks": opts.follow_symlinks,
                                "outputs": dataclasses.asdict(opts.outputs)})}
@@ -355,7 +388,7 @@ def write_all(out_dir: Path, rows: list[SeriesRow], cycles: list[CycleResult], p
     try:
         _adopt_plain_outputs(out_dir)  # first: the old set's generation is then numbered before the new one
         previous = previous_displacements(out_dir)
-        published_targets = previous_targets(out_dir) if opts.targets else None
+        published_targets = previous_targets(out_dir) if (opts.targets or opts.hdf5) else None
         gen = new_generation(out_dir)
     except OSError as e:
         raise OutputError(f"cannot write the outputs: {e.filename or out_dir}: {e.strerror or e}; the "
