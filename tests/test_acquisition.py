@@ -622,3 +622,32 @@ def test_a_frozen_heartbeat_is_logged_as_a_fault_and_the_link_renewed(tmp_path):
         report = run_session(settings_for(server, tmp_path, heartbeat_timeout_s=0.2))
     assert report.faults.stalls >= 1 and report.faults.reconnects >= 1
     assert report.ok and len(report.passes_written) == 2
+
+
+@pytest.mark.parametrize("failing_writes", [2, 10**6])
+def test_a_pass_whose_archive_cannot_be_written_is_kept_and_written_when_the_disk_takes_it(
+        failing_writes, tmp_path, monkeypatch):
+    # A full disk must not cost a pass: the face has moved on, it can never be scanned again.
+    import errno
+
+    from uwbcl.acquisition import client as client_module
+
+    real, calls = client_module.write_scan, []
+
+    def full_disk_for_a_while(*args, **kwargs):
+        calls.append(args[2])
+        if len(calls) <= failing_writes:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(client_module, "write_scan", full_disk_for_a_while)
+    with RigServer(RigController(FAST_DEVICE), LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, cycles=1))
+    if failing_writes == 2:  # the first pass waits in memory, and is written before the second
+        assert report.ok and len(report.passes_written) == 2 and report.passes_failed == []
+        assert_archives_match_device(report, server)
+        ids = [archive.read_pass_header(p)["pass_id"] for p in report.passes_written]
+        assert ids == list(dict.fromkeys(calls))  # in acquisition order
+    else:  # never: both named as lost when the session ends, nothing half-written
+        assert report.passes_written == [] and len(report.passes_failed) == 2
+        assert all("could not be written before the end" in f for f in report.passes_failed)

@@ -72,6 +72,11 @@ COMMAND_RESEND_MAX_S = 1.0  # the longest interval between writes of an unacknow
 # Two RESULT blocks are published at least this far apart (map section 5.3): a face automation system polling
 # faster sees every one, also when processing that fell behind delivers several results at once.
 RESULT_HOLD_S = 1.0
+# Passes whose archive could not be written (a full disk, a share gone read-only) are kept in memory and
+# written again, in order, every UNWRITTEN_RETRY_S while the session runs: the face has moved on, so such a
+# pass can never be acquired again. At most this many are kept (a few MB each); beyond, a pass is lost.
+MAX_UNWRITTEN_PASSES = 64
+UNWRITTEN_RETRY_S = 10.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -492,6 +497,8 @@ class AcquisitionSession:
         self._result_seq: int | None = None  # continues from the controller's RESULT_SEQ (map 5.3)
         self._to_publish: collections.deque[dict] = collections.deque()  # results waiting for RESULT_HOLD_S
         self._published_at = -math.inf  # time.monotonic() of the last RESULT written
+        self._unwritten: collections.deque[tuple] = collections.deque()  # (name, scan, pass id, unique)
+        self._unwritten_tried_at = -math.inf
         self._heartbeat = 0
         self._last_heartbeat_t = 0.0
         self._active_token: int | None = None
@@ -523,6 +530,10 @@ class AcquisitionSession:
             if self.processor is not None:
                 self.processor.close(5.0 if self.report.interrupted else 60.0)
                 self._publish_results(final=True)
+            self._write_unwritten(force=True)
+            for name, *_ in self._unwritten:  # the session ends: what the disk still refuses is lost
+                self.report.passes_failed.append(f"{name}: the archive could not be written before the end")
+                log.error("pass %s lost: its archive could not be written before the session ended", name)
             self.link.close()
         return self.report
 
@@ -655,8 +666,27 @@ class AcquisitionSession:
                 self.link.sleep(pause_s)
                 pause_s = min(2.0 * pause_s, self.settings.reconnect_max_s)
 
+    def _write_unwritten(self, force: bool = False) -> None:
+        """Write the passes kept in memory, oldest first, until one fails again (then again after
+        UNWRITTEN_RETRY_S; `force`: now)."""
+        if not self._unwritten or (not force
+                                   and time.monotonic() - self._unwritten_tried_at < UNWRITTEN_RETRY_S):
+            return
+        self._unwritten_tried_at = time.monotonic()
+        while self._unwritten:
+            name, scan, pass_id, unique = self._unwritten[0]
+            try:
+                path = write_scan(self.out, scan, pass_id, unique=unique)
+            except OSError as exc:
+                log.warning("%d passes still wait for the archive directory (%s)", len(self._unwritten), exc)
+                return
+            self._unwritten.popleft()
+            self.report.passes_written.append(str(path))
+            log.warning("pass %s: written late to %s", name, path)
+
     def _wait_cycle(self, last: int) -> int:
         while True:
+            self._write_unwritten()
             self._publish_results()
             try:
                 counter = self._status()["CYCLE_COUNTER"]
@@ -694,11 +724,25 @@ class AcquisitionSession:
                 # the height in the id and the name is the one the archive records (PASS.HEIGHT), as the
                 # archive format names files: a carriage a fraction of a millimetre off gives h0149
                 pass_id = f"{archive.default_pass_id(scan)}-b{boot:08X}-p{token}"
+                self._write_unwritten(force=True)  # earlier passes first: archives keep their order
+                path = None
                 try:
-                    path = write_scan(self.out, scan, pass_id, unique=f"b{boot:08X}_p{token}")
-                except OSError as exc:  # disk full, permissions: the pass is lost to us, the service goes on
-                    self.report.passes_failed.append(f"{name}: cannot write the archive: {exc}")
+                    if not self._unwritten:
+                        path = write_scan(self.out, scan, pass_id, unique=f"b{boot:08X}_p{token}")
+                except OSError as exc:  # disk full, permissions: kept and written again (never re-scanned)
                     log.error("pass %s: cannot write the archive: %s", name, exc)
+                if path is None:
+                    if len(self._unwritten) >= MAX_UNWRITTEN_PASSES:
+                        self.report.passes_failed.append(f"{name}: cannot write the archive, and "
+                                                         f"{MAX_UNWRITTEN_PASSES} passes already wait")
+                        log.error("pass %s lost: %d unwritten passes already wait", name,
+                                  len(self._unwritten))
+                        break
+                    self._unwritten.append((name, scan, pass_id, f"b{boot:08X}_p{token}"))
+                    log.error("pass %s: kept in memory, written when the archive directory takes it again "
+                              "(%d waiting)", name, len(self._unwritten))
+                    passes.append(scan)  # processed live all the same
+                    start_time = start_time or scan.pass_start_time
                     break
                 if path.name != archive.default_relative_path(scan).name:
                     self.link.counts.names_taken += 1

@@ -401,6 +401,11 @@ FAULT_TAXONOMY = (
               "log both; later archives carry the new id"),
     FaultRule("NAME_TAKEN", FaultClass.NOTICE, "the archive name of a whole pass is already taken",
               "write it as <name>_b<BOOT_ID hex>_p<TOKEN>.h5 (then _2, _3, ...): never dropped"),
+    FaultRule("ARCHIVE_UNWRITABLE", FaultClass.NOTICE,
+              "a whole pass's archive cannot be written (disk full, a share gone read-only)",
+              "keep the pass in memory (up to 64) and process it live; write the kept passes again, oldest "
+              "first, every 10 s and before each new pass; name those still unwritten when the session "
+              "ends as lost"),
     FaultRule("INCOMPATIBLE", FaultClass.SERVICE,
               "MAGIC not 0x5557, MAP_MAJOR not 1 or WINDOW_ADDRESS not 1024, read twice",
               "stop with a message naming the value"),
