@@ -32,6 +32,7 @@ import pytest
 from uwbcl import archive, calibrate, cli, config, detect, locate, pipeline
 from uwbcl import geometry as geo
 from uwbcl.importers import synthetic
+from uwbcl.model import MIN_WINDOW_RANGE_M, SPEED_OF_LIGHT_M_S
 from uwbcl.records import ConfigError, Detection, DetectionSettings, ProcessingSettings
 from uwbcl.scenarios import PAPER_SIM1
 
@@ -173,13 +174,19 @@ def test_the_site_delay_moves_the_window_by_its_difference_from_the_recorded_del
     assert "records no range_delay_s" in caplog.text
 
 
-def test_a_site_delay_that_would_start_the_window_behind_the_antenna_is_refused_with_the_numbers():
+def test_a_site_delay_past_the_window_start_drops_the_near_field_and_past_its_end_is_refused():
     scan = dataclasses.replace(_sim1_pass(), range_delay_s=1.0e-9)
-    too_long = scan.range_window_start_s + 1.0e-9 + 2.0e-9
-    with pytest.raises(ValueError, match=r"behind the antenna") as err:
-        pipeline.apply_range_delay(scan, too_long)
-    assert "0.30 m behind" in str(err.value)  # 2 ns two-way
-    assert pipeline.apply_range_delay(scan, too_long - 2.5e-9).range_window_start_s > 0
+    fs = scan.radar.sample_rate_hz
+    past_start = scan.range_window_start_s + 1.0e-9 + 2.0e-9  # the window now starts 0.30 m behind
+    cropped = pipeline.apply_range_delay(scan, past_start)
+    near_s = 2 * MIN_WINDOW_RANGE_M / SPEED_OF_LIGHT_M_S  # processed from 0.1 m in front of the antenna
+    assert near_s <= cropped.range_window_start_s < near_s + 1 / fs
+    dropped = scan.samples_per_pulse - cropped.samples_per_pulse
+    np.testing.assert_array_equal(cropped.echo, scan.echo[:, dropped:])
+    past_end = scan.range_window_start_s + 1.0e-9 + scan.samples_per_pulse / fs
+    with pytest.raises(ValueError, match=r"in front of the antenna \(a delay for another radar"):
+        pipeline.apply_range_delay(scan, past_end)
+    assert pipeline.apply_range_delay(scan, past_start - 2.5e-9).range_window_start_s > near_s  # no crop
 
 
 def test_the_radar_table_and_the_new_detection_keys_are_read_and_checked():

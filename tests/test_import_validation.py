@@ -100,12 +100,17 @@ def test_a_decimation_whose_rate_is_below_the_bandwidth_exits_2_with_the_numbers
 # ------------------------------------------------------------------------------------------- the delay
 
 
-def test_a_delay_beyond_the_scan_start_is_refused_naming_both(small, tmp_path, capsys):
-    # scan start 9 ns: a 10 ns delay would start the window 15 cm behind the antenna
-    assert _run(small, tmp_path / "out", *TRACK, "--range-delay-s", "10e-9") == 2
+def test_a_delay_beyond_the_whole_scan_window_is_refused_and_one_inside_it_imported(small, tmp_path, capsys):
+    # scan start 9 ns: a 10 ns delay starts the window 15 cm behind the antenna, a window that holds the
+    # antenna's coupling: imported as it is, processed from 0.1 m in front (pipeline.crop_near_field); a delay
+    # past the window's end puts all of it behind the antenna: refused, naming the window
+    assert _run(small, tmp_path / "in", *TRACK, "--range-delay-s", "10e-9") == 0
+    (path,) = archive.find_pass_files(tmp_path / "in")
+    assert archive.read_pass(path).range_window_start_s == pytest.approx(-1e-9)
+    assert _run(small, tmp_path / "out", *TRACK, "--range-delay-s", "900e-9") == 2
     err = capsys.readouterr().err
-    assert "--range-delay-s: 1e-08 s is more than the recording's scan start 9e-09 s" in err
-    assert "0.15 m) behind the antenna" in err and not (tmp_path / "out").exists()
+    assert "--range-delay-s: 9e-07 s is more than the recording's whole scan window (9e-09 to" in err
+    assert "behind the antenna" in err and not (tmp_path / "out").exists()
     assert _run(small, tmp_path / "ok", *TRACK, "--range-delay-s", "5e-9") == 0
     (path,) = archive.find_pass_files(tmp_path / "ok")
     assert archive.read_pass(path).range_window_start_s == pytest.approx(4e-9)

@@ -13,6 +13,10 @@ import math
 import numpy as np
 
 SPEED_OF_LIGHT_M_S = 299_792_458.0
+# Samples nearer than this to the antenna (one-way range; or behind it, once a calibrated delay is removed
+# from a window that began before it) hold the antenna's own coupling, never a plate: processing drops them
+# (`pipeline.crop_near_field`), since a focus grid has no meaning at or behind zero range.
+MIN_WINDOW_RANGE_M = 0.1
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

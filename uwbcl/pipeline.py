@@ -20,7 +20,7 @@ from .focus import backprojection, nlcs
 from .focus.engine import shared_engine  # pyopencl and pyvkfft are imported when an engine is built, not here
 from .focus.protocol import Focuser
 from .focus.reference import NUMPY_FOCUSER
-from .model import SPEED_OF_LIGHT_M_S, ScanPass
+from .model import MIN_WINDOW_RANGE_M, SPEED_OF_LIGHT_M_S, ScanPass
 from .opencl import OpenClUnavailable
 from .records import (
     ALGORITHMS,
@@ -50,23 +50,22 @@ BP_PIXEL_M = 0.01  # backprojection image pixel (backprojection.backprojection_f
 BP_RANGE_MARGIN_M = 0.1
 
 
+MIN_FOCUS_PULSES = nlcs.LAGRANGE_ORDER
+MIN_FOCUS_SAMPLES = 2
+
+
 def apply_range_delay(scan: ScanPass, site_delay_s: float | None, *, quiet: bool = False) -> ScanPass:
     """The pass with the site's calibrated delay in place of the one its archive records
     (docs/configuration.md [radar]): the window start moves earlier by site - recorded, so an echo's range is
     that of the radar's axis less the site's delay. None: the pass as recorded. An archive that records no
     delay (0: a 1.0 file, or an uncalibrated import) gets the site's delay in full, with a warning (`quiet`:
-    at debug level, for a pass read again after it was focused). Logged.
-    ValueError when the site's delay would put the window's start behind the antenna."""
+    at debug level, for a pass read again after it was focused). Logged. Then the samples nearer than
+    MIN_WINDOW_RANGE_M to the antenna are dropped (`crop_near_field`): a window that began before the
+    antenna's delay (one that holds the coupling) is processed from there on.
+    ValueError when no more than that near field is left in front of the antenna."""
     if site_delay_s is None or site_delay_s == scan.range_delay_s:
-        return scan
+        return crop_near_field(scan, quiet=quiet)
     shift_s = site_delay_s - scan.range_delay_s
-    if scan.range_window_start_s - shift_s < 0:  # the window would start behind the antenna
-        raise ValueError(
-            f"the site's range_delay_s {site_delay_s * 1e9:.4f} ns ([radar], docs/configuration.md) is more "
-            f"than this pass's window start {scan.range_window_start_s * 1e9:.4f} ns plus the "
-            f"{scan.range_delay_s * 1e9:.4f} ns it records as removed: its first sample would lie "
-            f"{0.5 * SPEED_OF_LIGHT_M_S * (shift_s - scan.range_window_start_s):.2f} m behind the antenna "
-            "(a delay for another radar, or in the wrong unit?)")
     if scan.range_delay_s == 0.0:
         say = log.debug if quiet else log.warning
         say("%s records no range_delay_s: the site's %.4f ns applied in full (window start %+.4f ns, ranges "
@@ -75,7 +74,29 @@ def apply_range_delay(scan: ScanPass, site_delay_s: float | None, *, quiet: bool
     else:
         log.info("%s: range_delay_s %.4f ns recorded, site %.4f ns: window start %+.4f ns",
                  scan.source or "pass", scan.range_delay_s * 1e9, site_delay_s * 1e9, -shift_s * 1e9)
-    return shift_range_delay(scan, site_delay_s)
+    return crop_near_field(shift_range_delay(scan, site_delay_s), quiet=quiet)
+
+
+def crop_near_field(scan: ScanPass, *, quiet: bool = False) -> ScanPass:
+    """The pass without its samples nearer than MIN_WINDOW_RANGE_M (one-way) to the antenna, or behind it;
+    logged (`quiet`: at debug level). ValueError when fewer than MIN_FOCUS_SAMPLES would be left (a delay for
+    another radar, or in the wrong unit)."""
+    fs = scan.radar.sample_rate_hz
+    start_s = 2.0 * MIN_WINDOW_RANGE_M / SPEED_OF_LIGHT_M_S
+    if scan.range_window_start_s >= start_s:
+        return scan
+    k = math.ceil((start_s - scan.range_window_start_s) * fs - 1e-9)
+    if scan.samples_per_pulse - k < MIN_FOCUS_SAMPLES:
+        end_m = 0.5 * SPEED_OF_LIGHT_M_S * (scan.range_window_start_s + scan.samples_per_pulse / fs)
+        raise ValueError(
+            f"the range window ends {end_m:.2f} m from the antenna, the calibrated delay removed "
+            f"(range_delay_s {scan.range_delay_s * 1e9:.4f} ns): nothing of it lies {MIN_WINDOW_RANGE_M} m "
+            "or more in front of the antenna (a delay for another radar, or in the wrong unit?)")
+    (log.debug if quiet else log.warning)(
+        "%s: the first %d samples lie nearer than %.2f m to the antenna (or behind it) once its delay is "
+        "removed: dropped (the antenna's coupling, no plate)", scan.source or "pass", k, MIN_WINDOW_RANGE_M)
+    return dataclasses.replace(scan, echo=scan.echo[:, k:],
+                               range_window_start_s=scan.range_window_start_s + k / fs)
 
 
 def shift_range_delay(scan: ScanPass, delay_s: float) -> ScanPass:
@@ -97,8 +118,6 @@ def bp_u_extent_m(scan: ScanPass, settings: ProcessingSettings) -> tuple[float, 
     return detect.peaks.search_extent_u_m(grid, r, footprint)
 
 
-MIN_FOCUS_PULSES = nlcs.LAGRANGE_ORDER
-MIN_FOCUS_SAMPLES = 2
 
 
 def check_plan(scan: ScanPass, settings: ProcessingSettings) -> None:

@@ -27,7 +27,7 @@ import numpy as np
 
 from ..archive import MAX_RAIL_DEVIATION_M
 from ..config import MAX_RANGE_DELAY_S
-from ..model import SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters, RawRF, ScanPass
+from ..model import MIN_WINDOW_RANGE_M, SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters, RawRF, ScanPass
 from ..records import ConfigError
 from ..utc import parse_utc
 from . import OptionError, RawRecording, RecordingError, baseband, open_recording
@@ -425,11 +425,16 @@ def _window_start_s(recording: RawRecording, options: ImportOptions) -> float:
     the antenna (docs/importing.md section 5)."""
     delay = options.range_delay_s
     start = recording.scan_start_s - delay
-    if start < 0 < delay:
+    end = start + recording.samples.shape[1] * recording.bin_period_s
+    if end <= 0 < delay:
         raise OptionError("range_delay_s", (
-            f"{delay:.4g} s is more than the recording's scan start {recording.scan_start_s:.4g} s: the "
-            f"window would start {-start:.4g} s ({0.5 * SPEED_OF_LIGHT_M_S * -start:.2f} m) behind the "
-            "antenna (a P440's delay is about 10e-9 s; the value is in seconds)"))
+            f"{delay:.4g} s is more than the recording's whole scan window ({recording.scan_start_s:.4g} to "
+            f"{recording.scan_start_s + end - start:.4g} s): it would lie behind the antenna (a P440's delay "
+            "is about 10e-9 s; the value is in seconds)"))
+    if start < 0 < delay:  # a window that holds the coupling: its part behind the antenna is not processed
+        log.info("%s: the window starts %.2f m behind the antenna once the delay is removed (it holds the "
+                 "antenna's coupling); processing starts %.2f m in front of it", recording.source,
+                 0.5 * SPEED_OF_LIGHT_M_S * -start, MIN_WINDOW_RANGE_M)
     if delay < 0:
         log.warning("%s: range_delay_s %.4g s is negative: the antenna's echo would come before the radar's "
                     "zero delay (a sign mistake?)", recording.source, delay)
