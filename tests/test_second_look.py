@@ -244,7 +244,8 @@ def test_the_live_processor_appends_the_reissued_rows_after_the_cycle_that_resol
     try:
         results = []
         for c in cycles:
-            passes = [SimpleNamespace(cycle=c.cycle, geometry=SimpleNamespace(height_m=h)) for h in HEIGHTS]
+            passes = [SimpleNamespace(cycle=c.cycle, geometry=SimpleNamespace(height_m=h),
+                                      range_window_start_s=2e-8) for h in HEIGHTS]  # (metres out: no crop)
             results += proc._process(c.cycle, passes, True, c.start_time)
     finally:
         proc.close()

@@ -81,10 +81,10 @@ def crop_near_field(scan: ScanPass, *, quiet: bool = False) -> ScanPass:
     """The pass without its samples nearer than MIN_WINDOW_RANGE_M (one-way) to the antenna, or behind it;
     logged (`quiet`: at debug level). ValueError when fewer than MIN_FOCUS_SAMPLES would be left (a delay for
     another radar, or in the wrong unit)."""
-    fs = scan.radar.sample_rate_hz
     start_s = 2.0 * MIN_WINDOW_RANGE_M / SPEED_OF_LIGHT_M_S
     if scan.range_window_start_s >= start_s:
         return scan
+    fs = scan.radar.sample_rate_hz
     k = math.ceil((start_s - scan.range_window_start_s) * fs - 1e-9)
     if scan.samples_per_pulse - k < MIN_FOCUS_SAMPLES:
         end_m = 0.5 * SPEED_OF_LIGHT_M_S * (scan.range_window_start_s + scan.samples_per_pulse / fs)
