@@ -499,6 +499,7 @@ class AcquisitionSession:
         self._published_at = -math.inf  # time.monotonic() of the last RESULT written
         self._unwritten: collections.deque[tuple] = collections.deque()  # (name, scan, pass id, unique)
         self._unwritten_tried_at = -math.inf
+        self._late: set[str] = set()  # passes of _unwritten whose write failed at least once
         self._heartbeat = 0
         self._last_heartbeat_t = 0.0
         self._active_token: int | None = None
@@ -678,11 +679,18 @@ class AcquisitionSession:
             try:
                 path = write_scan(self.out, scan, pass_id, unique=unique)
             except OSError as exc:
-                log.warning("%d passes still wait for the archive directory (%s)", len(self._unwritten), exc)
+                self._late.update(n for n, *_ in self._unwritten)
+                log.warning("%d passes wait for the archive directory (%s)", len(self._unwritten), exc)
                 return
             self._unwritten.popleft()
             self.report.passes_written.append(str(path))
-            log.warning("pass %s: written late to %s", name, path)
+            if path.name != archive.default_relative_path(scan).name:
+                self.link.counts.names_taken += 1
+                log.warning("pass %s: the usual archive name was taken (cycle %d acquired before); written "
+                            "as %s", name, scan.cycle, path.name)
+            if name in self._late:
+                self._late.discard(name)
+                log.warning("pass %s: written late to %s", name, path)
 
     def _wait_cycle(self, last: int) -> int:
         while True:
@@ -724,35 +732,22 @@ class AcquisitionSession:
                 # the height in the id and the name is the one the archive records (PASS.HEIGHT), as the
                 # archive format names files: a carriage a fraction of a millimetre off gives h0149
                 pass_id = f"{archive.default_pass_id(scan)}-b{boot:08X}-p{token}"
-                self._write_unwritten(force=True)  # earlier passes first: archives keep their order
-                path = None
-                try:
-                    if not self._unwritten:
-                        path = write_scan(self.out, scan, pass_id, unique=f"b{boot:08X}_p{token}")
-                except OSError as exc:  # disk full, permissions: kept and written again (never re-scanned)
-                    log.error("pass %s: cannot write the archive: %s", name, exc)
-                if path is None:
-                    if len(self._unwritten) >= MAX_UNWRITTEN_PASSES:
-                        self.report.passes_failed.append(f"{name}: cannot write the archive, and "
-                                                         f"{MAX_UNWRITTEN_PASSES} passes already wait")
-                        log.error("pass %s lost: %d unwritten passes already wait", name,
-                                  len(self._unwritten))
-                        break
-                    self._unwritten.append((name, scan, pass_id, f"b{boot:08X}_p{token}"))
+                if len(self._unwritten) >= MAX_UNWRITTEN_PASSES:
+                    self.report.passes_failed.append(f"{name}: cannot write the archive, and "
+                                                     f"{MAX_UNWRITTEN_PASSES} passes already wait")
+                    log.error("pass %s lost: %d unwritten passes already wait", name, len(self._unwritten))
+                    break
+                # one way to the archive: queued behind any pass still waiting (order kept), written now
+                self._unwritten.append((name, scan, pass_id, f"b{boot:08X}_p{token}"))
+                self._write_unwritten(force=True)
+                if name in self._late:
                     log.error("pass %s: kept in memory, written when the archive directory takes it again "
                               "(%d waiting)", name, len(self._unwritten))
-                    passes.append(scan)  # processed live all the same
-                    start_time = start_time or scan.pass_start_time
-                    break
-                if path.name != archive.default_relative_path(scan).name:
-                    self.link.counts.names_taken += 1
-                    log.warning("pass %s: the usual archive name was taken (cycle %d acquired before); "
-                                "written as %s", name, cycle, path.name)
-                self.report.passes_written.append(str(path))
-                passes.append(scan)
+                else:
+                    log.info("pass %s: %d pulses x %d samples, attempt %d, written to %s", name,
+                             scan.n_pulses, scan.samples_per_pulse, attempt, self.report.passes_written[-1])
+                passes.append(scan)  # processed live, written or waiting
                 start_time = start_time or scan.pass_start_time
-                log.info("pass %s: %d pulses x %d samples, attempt %d, written to %s", name, scan.n_pulses,
-                         scan.samples_per_pulse, attempt, path)
                 break
             else:
                 self.report.passes_failed.append(f"{name}: incomplete {self.settings.max_attempts} times")
