@@ -63,6 +63,8 @@ def _run(scan_file, out, *flags):
     ([*TRACK, "--range-delay-s", "12.3"],
      f"--range-delay-s: must be within +-{config.MAX_RANGE_DELAY_S:g} s"),
     (["--positions", "pos.csv", "--time-offset-s", "inf"], "--time-offset-s: must be finite"),
+    ([*TRACK, "--pulse-window-m", "nan", "0.3"], "--pulse-window-m: must be finite, got nan"),
+    ([*TRACK, "--pulse-window-m", "0.3", "-0.2"], "--pulse-window-m: the reference window needs"),
 ])
 def test_a_bad_flag_value_exits_2_naming_the_flag_before_the_recording_is_read(tmp_path, capsys, flags,
                                                                                 message):
@@ -114,6 +116,15 @@ def test_a_delay_beyond_the_whole_scan_window_is_refused_and_one_inside_it_impor
     assert _run(small, tmp_path / "ok", *TRACK, "--range-delay-s", "5e-9") == 0
     (path,) = archive.find_pass_files(tmp_path / "ok")
     assert archive.read_pass(path).range_window_start_s == pytest.approx(4e-9)
+
+
+def test_a_measured_pulse_window_starting_behind_the_antenna_holds_a_calibrated_coupling(small, tmp_path):
+    # the echo (same in every scan, as a coupling) is 14 ns into a window starting at 9 ns: calibrated with
+    # a delay of 23 ns it sits at 0 m, and its window starts below 0 (docs/importing.md section 5)
+    assert _run(small, tmp_path / "out", *TRACK, "--range-delay-s", "23e-9", "--pulse", "measured",
+                "--pulse-window-m", "-0.2", "0.3") == 0
+    [path] = (tmp_path / "out").rglob("*.h5")
+    assert archive.read_pass(path).radar.measured_pulse is not None
 
 
 def test_a_negative_delay_is_imported_with_a_warning(small, tmp_path, caplog):

@@ -597,9 +597,13 @@ def check_options(options: ImportOptions) -> None:
         fail("decimation", f"must be >= 1, got {options.decimation}")
     if options.pulse not in ("gaussian", "measured"):
         fail("pulse", f"must be 'gaussian' or 'measured', got {options.pulse!r}")
-    if not (0 <= options.pulse_window_start_m < options.pulse_window_stop_m < math.inf):
-        fail("pulse_window_stop_m", "the reference window needs 0 <= pulse_window_start_m < "
-             f"pulse_window_stop_m, got {options.pulse_window_start_m}, {options.pulse_window_stop_m}")
+    # A start below 0 m is legal: a calibrated coupling sits within a few cm of 0 m, so its window starts
+    # behind the antenna (docs/importing.md section 5).
+    if not math.isfinite(options.pulse_window_start_m):
+        fail("pulse_window_start_m", f"must be finite, got {options.pulse_window_start_m}")
+    if not options.pulse_window_start_m < options.pulse_window_stop_m < math.inf:
+        fail("pulse_window_stop_m", "the reference window needs pulse_window_start_m < pulse_window_stop_m "
+             f"(finite), got {options.pulse_window_start_m}, {options.pulse_window_stop_m}")
     if not math.isfinite(options.range_delay_s):
         fail("range_delay_s", f"must be finite, got {options.range_delay_s}")
     if not abs(options.range_delay_s) < MAX_RANGE_DELAY_S:  # the site config's bound (config.py)
