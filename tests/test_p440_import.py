@@ -410,6 +410,20 @@ def test_the_clocks_align_on_the_first_motion_within_one_scan(synthetic_recordin
     assert track.time_offset_s == pytest.approx(LOGGER_OFFSET_S, abs=0.0206)
 
 
+def test_a_positions_log_started_after_the_rail_moved_cannot_align_the_clocks_on_its_first_motion(
+        synthetic_recording, tmp_path):
+    scan_file, positions, _ = synthetic_recording
+    rows = positions.read_text().splitlines()
+    late = tmp_path / "late.csv"
+    late.write_text("\n".join([rows[0], *rows[1 + len(rows) // 2:]]) + "\n")  # the log starts mid-rail
+    rec = p440.READER.read(scan_file)
+    with pytest.raises(RecordingError, match="the log started after the rail did; give --time-offset-s"):
+        passes.track_from_positions(rec, passes.read_positions_csv(late), None, 1e-4)
+    # given the offset, the same log pairs the scans it covers
+    track = passes.track_from_positions(rec, passes.read_positions_csv(late), LOGGER_OFFSET_S, 1e-4)
+    assert track.n_outside_log > 0
+
+
 # ----------------------------------------------------------------------------------------------- archive 1.1
 
 

@@ -171,6 +171,24 @@ def positions_first_motion_s(positions: Positions) -> float | None:
     return float(t0 + (MOTION_THRESHOLD_M - x0) / (x1 - x0) * (t1 - t0)) if i > 0 else float(t0)
 
 
+LATE_LOG_SPEED_FRACTION = 0.5  # a log whose first interval moves this fast (of its median speed) started late
+
+
+def _check_log_starts_at_rest(recording: RawRecording, positions: Positions) -> None:
+    """RecordingError when the positions log is already moving at its first interval (at least
+    LATE_LOG_SPEED_FRACTION of its median moving speed): its first motion is then the logger's start, not
+    the rail's, and aligning the clocks on it would shift every scan by the time the rail had been moving."""
+    v = np.abs(np.diff(positions.x_m)) / np.maximum(np.diff(positions.time_s), 1e-12)
+    moving = v[np.abs(np.diff(positions.x_m)) > 0]
+    if v.size and moving.size and v[0] >= LATE_LOG_SPEED_FRACTION * float(np.median(moving)):
+        raise RecordingError(
+            recording.source, None,
+            f"cannot align the clocks on the first motion: the positions of {positions.source or 'the log'} "
+            f"already move at {v[0]:.3f} m/s over their first interval (the pass's median "
+            f"{float(np.median(moving)):.3f} m/s), so the log started after the rail did; give "
+            "--time-offset-s, or a log that starts at rest")
+
+
 def moving_runs(x_m: np.ndarray, min_step_m: float) -> list[slice]:
     """Every run of samples whose position moves strictly one way by > min_step_m each step, in order."""
     dx = np.diff(x_m)
@@ -240,6 +258,7 @@ def track_from_positions(
                 + ("the positions never move" if t_pos is None else "no motion seen in the echo")
                 + "); give --time-offset-s",
             )
+        _check_log_starts_at_rest(recording, positions)
         time_offset_s = t_pos - t_radar
         log.info("clocks aligned on the first motion: positions time = scan time %+.3f s", time_offset_s)
     t = recording.scan_time_s + time_offset_s
