@@ -281,7 +281,12 @@ def test_absurd_pass_sizes_fail_the_pass_before_anything_is_allocated():
     with pytest.raises(AbsurdValue, match="SAMPLES_PER_PULSE"):
         PassAssembler(descriptor(SAMPLES_PER_PULSE=60000), RADAR_OK, Limits())
     with pytest.raises(AbsurdValue, match="MiB"):
-        PassAssembler(descriptor(PULSES_PLANNED=90_000, SAMPLES_PER_PULSE=4000),
+        PassAssembler(descriptor(PULSES_PLANNED=8_000, SAMPLES_PER_PULSE=4000),
+                      {**RADAR_OK, "WINDOW_REGS": 60000}, Limits(max_pass_bytes=2**26))
+    # a pass the archive readers would refuse (more samples than ReadLimits.max_echo_samples) is never
+    # acquired, though its int16 I/Q would fit in memory
+    with pytest.raises(AbsurdValue, match="more than the 33554432 an archive may hold"):
+        PassAssembler(descriptor(PULSES_PLANNED=40_000, SAMPLES_PER_PULSE=1024),
                       {**RADAR_OK, "WINDOW_REGS": 60000}, Limits())
 
 
@@ -651,3 +656,24 @@ def test_a_pass_whose_archive_cannot_be_written_is_kept_and_written_when_the_dis
     else:  # never: both named as lost when the session ends, nothing half-written
         assert report.passes_written == [] and len(report.passes_failed) == 2
         assert all("could not be written before the end" in f for f in report.passes_failed)
+
+
+def test_a_pass_the_archive_refuses_at_the_write_is_named_as_lost_and_does_not_block_the_passes_behind_it(
+        tmp_path, monkeypatch):
+    from uwbcl.acquisition import client as client_module
+
+    real, calls = client_module.write_scan, []
+
+    def first_refused(out, scan, pass_id, unique):
+        calls.append(pass_id)
+        if len(calls) == 1:
+            raise archive.ArchiveError(out, "/geometry@rotation_table_angle_deg", "must be within (-90, 90)")
+        return real(out, scan, pass_id, unique=unique)
+
+    monkeypatch.setattr(client_module, "write_scan", first_refused)
+    with RigServer(RigController(FAST_DEVICE), LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, cycles=1))
+    assert not report.error and len(report.passes_written) == 1
+    [lost] = report.passes_failed
+    assert "rotation_table_angle_deg" in lost
+    assert archive.read_pass_header(report.passes_written[0])["pass_id"] == calls[1]

@@ -189,6 +189,36 @@ def test_an_absurd_pass_value_fails_the_pass_which_is_aborted_and_re_run(values,
     assert_archives_match_device(report, server)
 
 
+class _UnarchivablePassOnce(RigController):
+    """Every PASS read of the first pass carries a value that fits its register but no archive may hold (a
+    table at 90 deg, an echo scale past 1e30, a START_TIME past year 9999), consistently from start to end."""
+
+    def __init__(self, config, **values):
+        super().__init__(config)
+        self.values, self.token = values, None
+
+    def read(self, now, table, address, count):
+        regs = super().read(now, table, address, count)
+        if table is R.Table.INPUT and address == R.PASS.address and self.pass_ is not None:
+            self.token = self.token or self.pass_.token
+            if self.pass_.token == self.token:
+                regs = _patch_block([0] * R.PASS.address + regs, R.PASS, **self.values)[R.PASS.address:]
+        return regs
+
+
+@pytest.mark.parametrize("values", [{"TABLE_ANGLE": 90.0}, {"AMPLITUDE_SCALE": 1e31}, {"START_TIME": 1e15}])
+def test_a_pass_value_no_archive_may_hold_fails_that_pass_which_is_re_run_and_acquisition_goes_on(values,
+                                                                                                   tmp_path):
+    device = _UnarchivablePassOnce(FAST_DEVICE, **values)
+    with RigServer(device, LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, cycles=1))
+    assert device.token is not None
+    assert report.ok and len(report.passes_written) == 2, report
+    [incomplete] = report.passes_incomplete
+    assert "the pass cannot be archived" in incomplete or "START_TIME" in incomplete
+    assert_archives_match_device(report, server)
+
+
 # ============================================================================================== item 3
 
 

@@ -280,15 +280,10 @@ def write_pass(
         raise FileExistsError(errno.EEXIST, "scan file exists (--overwrite, or overwrite=True in Python, "
                               "replaces it)", str(path))
 
+    header = check_scan(scan, path, pass_id=pass_id, created_by=created_by)
     echo = np.asarray(scan.echo)
-    if echo.ndim != 2 or not np.iscomplexobj(echo):
-        raise ArchiveError(path, "/echo", f"expected a 2-D complex array, got {echo.dtype} {echo.shape}")
-    header = _header_from_scan(scan, pass_id, created_by)
-    _check_header(path, header)
     time_s = np.asarray(scan.pulse_time_s, dtype=np.float64)
     position_m = np.asarray(scan.pulse_position_m, dtype=np.float64)
-    _check_pulses(path, time_s, position_m, echo.shape[0])
-    _check_echo_values(path, echo)
     stored, layout, scale = _encode_echo(path, echo, echo_dtype)
 
     with atomic_path(path, overwrite=overwrite) as partial, h5py.File(partial, "w", libver=_LIBVER) as f:
@@ -300,6 +295,22 @@ def write_pass(
         ds.attrs["scale"] = np.float64(scale)
         _write_additions(f, path, scan)
     return path
+
+
+def check_scan(scan: ScanPass, path: Any = "<pass>", *, pass_id: str | None = None,
+               created_by: str | None = None) -> dict[str, Any]:
+    """ArchiveError (naming `path` and the field) for a pass `write_pass` would refuse: the same checks, run
+    before anything is written (`uwbcl acquire` runs them on a pass as the controller described it, so a
+    value no archive may hold re-runs the pass instead of stopping at the write). Returns the header."""
+    echo = np.asarray(scan.echo)
+    if echo.ndim != 2 or not np.iscomplexobj(echo):
+        raise ArchiveError(path, "/echo", f"expected a 2-D complex array, got {echo.dtype} {echo.shape}")
+    header = _header_from_scan(scan, pass_id, created_by)
+    _check_header(path, header)
+    _check_pulses(path, np.asarray(scan.pulse_time_s, dtype=np.float64),
+                  np.asarray(scan.pulse_position_m, dtype=np.float64), echo.shape[0])
+    _check_echo_values(path, echo)
+    return header
 
 
 def _header_from_scan(scan: ScanPass, pass_id: str | None, created_by: str | None) -> dict[str, Any]:

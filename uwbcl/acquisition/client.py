@@ -500,6 +500,7 @@ class AcquisitionSession:
         self._unwritten: collections.deque[tuple] = collections.deque()  # (name, scan, pass id, unique)
         self._unwritten_tried_at = -math.inf
         self._late: set[str] = set()  # passes of _unwritten whose write failed at least once
+        self._refused: set[str] = set()  # passes the archive refused (never written, not processed)
         self._heartbeat = 0
         self._last_heartbeat_t = 0.0
         self._active_token: int | None = None
@@ -528,14 +529,20 @@ class AcquisitionSession:
             log.exception("acquisition stopped by an unexpected error")
             self._abort_quietly()
         finally:
-            if self.processor is not None:
-                self.processor.close(5.0 if self.report.interrupted else 60.0)
-                self._publish_results(final=True)
-            self._write_unwritten(force=True)
-            for name, *_ in self._unwritten:  # the session ends: what the disk still refuses is lost
-                self.report.passes_failed.append(f"{name}: the archive could not be written before the end")
-                log.error("pass %s lost: its archive could not be written before the session ended", name)
-            self.link.close()
+            try:
+                if self.processor is not None:
+                    self.processor.close(5.0 if self.report.interrupted else 60.0)
+                    self._publish_results(final=True)
+                self._write_unwritten(force=True)
+            except Exception as exc:  # a defect while ending: still name what is lost and close the link
+                self.report.error = self.report.error or f"{type(exc).__name__}: {exc}"
+                log.exception("error while ending the session")
+            finally:
+                for name, *_ in self._unwritten:  # the session ends: what the disk still refuses is lost
+                    self.report.passes_failed.append(f"{name}: the archive could not be written before the "
+                                                     "end")
+                    log.error("pass %s lost: its archive could not be written before the session ended", name)
+                self.link.close()
         return self.report
 
     def _adopt_description(self) -> None:
@@ -682,6 +689,12 @@ class AcquisitionSession:
                 self._late.update(n for n, *_ in self._unwritten)
                 log.warning("%d passes wait for the archive directory (%s)", len(self._unwritten), exc)
                 return
+            except archive.ArchiveError as exc:  # the pass itself (checked when scanned: a defect): never
+                self._unwritten.popleft()          # block the passes behind it
+                self._refused.add(name)
+                self.report.passes_failed.append(f"{name}: {exc}")
+                log.error("pass %s lost: its archive cannot be written: %s", name, exc)
+                continue
             self._unwritten.popleft()
             self.report.passes_written.append(str(path))
             if path.name != archive.default_relative_path(scan).name:
@@ -740,6 +753,8 @@ class AcquisitionSession:
                 # one way to the archive: queued behind any pass still waiting (order kept), written now
                 self._unwritten.append((name, scan, pass_id, f"b{boot:08X}_p{token}"))
                 self._write_unwritten(force=True)
+                if name in self._refused:  # named as lost by _write_unwritten
+                    break
                 if name in self._late:
                     log.error("pass %s: kept in memory, written when the archive directory takes it again "
                               "(%d waiting)", name, len(self._unwritten))
@@ -807,8 +822,12 @@ class AcquisitionSession:
             self.link.counts.description_changes += 1
             raise DescriptionChanged("IDENTITY or RADAR changed during the pass; running it again with the "
                                      "new values")
-        scan = assembler.scan_pass(radar, rig_id=rig_id, reference_point_m=self.reference_point_m,
-                                   cycle=cycle)
+        try:
+            scan = assembler.scan_pass(radar, rig_id=rig_id, reference_point_m=self.reference_point_m,
+                                       cycle=cycle)
+        except AbsurdValue:
+            self.link.counts.absurd_values += 1
+            raise
         return scan, token, boot
 
     def _drain(self, asm: PassAssembler) -> None:

@@ -13,6 +13,7 @@ import numpy as np
 
 from .. import __version__, archive
 from ..model import PassGeometry, RadarParameters, ScanPass
+from ..records import ReadLimits
 from ..utc import format_utc
 from . import registers as R
 
@@ -36,6 +37,9 @@ class Limits:
     max_samples_per_pulse: int = 8192
     max_pulses_per_pass: int = 100_000
     max_pass_bytes: int = 512 * 2**20  # int16 I/Q held in memory for one pass
+    # pulses x samples: no more than every archive reader accepts by default, so no pass is acquired only to
+    # be refused by the nightly run (docs/configuration.md [limits])
+    max_echo_samples: int = ReadLimits.max_echo_samples
 
 
 def check_radar(radar: dict, limits: Limits) -> None:
@@ -73,6 +77,9 @@ class PassAssembler:
             raise AbsurdValue(f"PASS.SAMPLES_PER_PULSE = {m}: a record does not fit RADAR.WINDOW_REGS")
         if not 2 <= n <= limits.max_pulses_per_pass:
             raise AbsurdValue(f"PASS.PULSES_PLANNED = {n}: outside 2..{limits.max_pulses_per_pass}")
+        if n * m > limits.max_echo_samples:
+            raise AbsurdValue(f"PASS: {n} pulses x {m} samples, more than the {limits.max_echo_samples} an "
+                              "archive may hold (limits.max_echo_samples)")
         if n * m * 4 > limits.max_pass_bytes:
             raise AbsurdValue(f"PASS: {n} pulses x {m} samples need {n * m * 4 / 2**20:.0f} MiB, more than "
                               f"the {limits.max_pass_bytes / 2**20:.0f} MiB limit")
@@ -152,15 +159,25 @@ class PassAssembler:
         d, n = self.descriptor, self.count
         x_c = 0.5 * float(self.position_m[0] + self.position_m[n - 1])
         reference_point_m = (x_c + float(reference_point_m[0]), *reference_point_m[1:])
-        echo = float(d["AMPLITUDE_SCALE"]) * (self.iq[:n, :, 0].astype(np.float64)
-                                              + 1j * self.iq[:n, :, 1].astype(np.float64))
+        echo = np.empty((n, self.samples_per_pulse), dtype=np.complex128)  # in place: no float temporaries
+        echo.real, echo.imag = self.iq[:n, :, 0], self.iq[:n, :, 1]
+        echo *= float(d["AMPLITUDE_SCALE"])
+        try:
+            start_time = format_utc(d["START_TIME"])
+        except (OverflowError, OSError, ValueError) as exc:
+            raise AbsurdValue(f"PASS.START_TIME = {d['START_TIME']}: not a date ({exc})") from None
         geometry = PassGeometry(height_m=d["HEIGHT"], rotation_table_angle_deg=d["TABLE_ANGLE"],
                                 reference_point_m=tuple(float(v) for v in reference_point_m),
                                 boresight_y_sign=int(radar["BORESIGHT_Y_SIGN"]))
-        return ScanPass(radar=radar_parameters(radar), geometry=geometry,
+        scan = ScanPass(radar=radar_parameters(radar), geometry=geometry,
                         range_window_start_s=d["RANGE_WINDOW_START"], pulse_time_s=self.time_s[:n].copy(),
                         pulse_position_m=self.position_m[:n].copy(), echo=echo, rig_id=rig_id, cycle=cycle,
-                        pass_start_time=format_utc(d["START_TIME"]))
+                        pass_start_time=start_time)
+        try:  # a value no archive may hold (TABLE_ANGLE at 90 deg, an echo past 1e30) fails the pass, re-run
+            archive.check_scan(scan, "PASS")
+        except archive.ArchiveError as exc:
+            raise AbsurdValue(f"the pass cannot be archived: {exc.field}: {exc.reason}") from None
+        return scan
 
 
 def write_scan(out_dir: Path, scan: ScanPass, pass_id: str, unique: str) -> Path:
