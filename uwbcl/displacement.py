@@ -537,7 +537,7 @@ def fit_chi2(before: list[Located], after: list[Located], pairs, advance_m: np.n
     over recent rows to calibrate the range precision (the covariance scale) from the data. RigChain passes
     the reported advance (refined by the carrier phases, conditioned on the vertical prior), about which
     the expectation is larger by up to the two axes those moved: the scale is then 1.2-1.6x high for rows of
-    2-3 plates. Kept so, measured (docs/method.md section 6.1, "The covariance scale"): the unbiased scale
+    2-3 plates. Kept so, measured (docs/method.md section 6.5, its last measurements): the unbiased scale
     let an ok row 23.7 mm off pass inside 3 x its bound where rows merge, a margin the model lacks.
     """
     if len(pairs) < 2:
