@@ -471,6 +471,28 @@ def test_a_pass_that_kills_its_worker_is_reported_and_the_others_are_still_focus
     assert report.rows[0]["from_cycle"] == 0
 
 
+def test_an_archive_replaced_after_it_was_hashed_is_not_cached_under_the_old_bytes_hash(
+        archive_dir, clean, tmp_path, monkeypatch):
+    src = copy_archive(archive_dir, tmp_path)
+    out = warm_out(clean[0], tmp_path)
+    victim, other = _cycle_files(src, 2)[0], _cycle_files(src, 1)[0]
+    old_sha = batch.file_sha256(victim)
+    entry = out / batch.CACHE_DIR / batch.settings_key(SETTINGS) / f"{old_sha}.json"
+    entry.unlink()
+
+    def replaced_while_queued(path: str, settings):
+        if path == str(victim):  # an importer renames another file over it while the run has it queued
+            shutil.copy(other, victim.with_suffix(".tmp"))
+            os.replace(victim.with_suffix(".tmp"), victim)
+        return batch.detect_file(path, settings)
+
+    monkeypatch.setattr(batch, "DETECT", replaced_while_queued)
+    report = batch.process_directory(src, out, SETTINGS, options(jobs=1))
+    [problem] = [p for p in report.errors if p.file == victim.relative_to(src).as_posix()]
+    assert problem.kind == "unreadable" and batch.CHANGED in problem.reason
+    assert not entry.exists()  # the other file's detections are not filed under the old content's hash
+
+
 def test_default_jobs_are_all_cores_for_numpy_and_two_for_opencl(monkeypatch):
     monkeypatch.setattr(batch.os, "sched_getaffinity", lambda pid: set(range(6)), raising=False)
     assert batch.default_jobs(dataclasses.replace(SETTINGS, backend="numpy")) == 6

@@ -88,6 +88,16 @@ def file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+CHANGED = "changed while being read"  # an archive replaced or rewritten while this run read it
+
+
+def file_identity(path: str | Path) -> list[int]:
+    """[device, inode, size, mtime ns] of the file `path` names now: an archive replaced (renamed over) or
+    rewritten in place has another, so a worker can tell whether it read the bytes the cache key hashed."""
+    st = os.stat(path)
+    return [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns]
+
+
 @functools.lru_cache(maxsize=1)
 def code_fingerprint() -> str:
     """Hash of the package's own source (Python and OpenCL): a changed focuser or detector invalidates the
@@ -125,9 +135,11 @@ def focus_failure(e: Exception) -> dict:
 def detect_file(path: str, settings: ProcessingSettings) -> dict:
     """Worker: read and focus one archive. Returns {"header": ..., "detections": [...]} or {"error": ...}.
 
-    Runs in a worker process, so it returns plain data and never raises for a bad file.
+    Runs in a worker process, so it returns plain data and never raises for a bad file. "identity" holds
+    the file's `file_identity` before and after it was read (the caller compares them with what it hashed).
     """
     try:
+        identity = [file_identity(path)]
         scan = archive.read_pass(path, settings.limits)
     except archive.ArchiveError as e:
         return {"error": f"{e.field}: {e.reason}", "kind": "invalid_archive"}
@@ -139,9 +151,10 @@ def detect_file(path: str, settings: ProcessingSettings) -> dict:
         return focus_failure(e)
     try:
         header = pass_header(scan, path, settings)
+        identity.append(file_identity(path))
     except (archive.ArchiveError, OSError) as e:  # the file changed under us
-        return {"error": f"changed while being read: {e}", "kind": "unreadable"}
-    return {"header": header, "detections": [dataclasses.asdict(d) for d in detections]}
+        return {"error": f"{CHANGED}: {e}", "kind": "unreadable"}
+    return {"header": header, "detections": [dataclasses.asdict(d) for d in detections], "identity": identity}
 
 
 def pass_header(scan, path: str | Path, settings: ProcessingSettings) -> dict:
@@ -721,16 +734,21 @@ def _run_pool_of(pool: cf.Executor, todo: list[tuple[Path, str, str]], settings:
     return [item for k, item in enumerate(todo) if k not in done]
 
 
-def _from_cache(files: list[Path], in_dir: Path, cache: PassCache
-                ) -> tuple[list[PassRecord], list[Problem], list[tuple[Path, str, str]]]:
-    """The cached records, the unreadable files' problems, and the (path, name, sha256) left to focus."""
+def _from_cache(files: list[Path], in_dir: Path, cache: PassCache) -> tuple[
+        list[PassRecord], list[Problem], list[tuple[Path, str, str]], dict[str, list[int]]]:
+    """The cached records, the unreadable files' problems, the (path, name, sha256) left to focus, and the
+    `file_identity` each of those had when it was hashed (by name)."""
     records: list[PassRecord] = []
     problems: list[Problem] = []
     todo: list[tuple[Path, str, str]] = []
+    identities: dict[str, list[int]] = {}
     for path in files:
         rel = archive.display_name(path.relative_to(in_dir).as_posix())
         try:
+            identity = file_identity(path)
             sha = file_sha256(path)
+            if file_identity(path) != identity:
+                raise OSError(CHANGED)
         except OSError as e:
             log.error("%s: cannot read: %s", rel, e.strerror or e)
             problems.append(Problem(rel, "unreadable", f"cannot read: {e.strerror or e}"))
@@ -740,9 +758,10 @@ def _from_cache(files: list[Path], in_dir: Path, cache: PassCache
             records.append(cached)
         else:
             todo.append((path, rel, sha))
+            identities[rel] = identity
     if records:
         log.info("%d passes from the cache, %d to focus", len(records), len(todo))
-    return records, problems, todo
+    return records, problems, todo, identities
 
 
 def _focus(todo: list[tuple[Path, str, str]], settings: ProcessingSettings, jobs: int, finish) -> None:
@@ -773,12 +792,17 @@ def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, ca
                ) -> tuple[list[PassRecord], list[Problem], set[str]]:
     """Records of every readable archive, from the cache or by focusing (in this machine's worker processes,
     or by `runner`); problems of the others; the files focused in this run."""
-    records, problems, todo = _from_cache(files, in_dir, cache)
+    records, problems, todo, identities = _from_cache(files, in_dir, cache)
     progress = Progress(len(todo), options.progress)
     done = 0
 
     def finish(path: Path, rel: str, sha: str, entry: dict) -> None:
         nonlocal done
+        seen = entry.pop("identity", None) if isinstance(entry, dict) else None
+        if seen is not None and any(i != identities.get(rel) for i in seen):
+            # replaced or rewritten since it was hashed: its detections must not be cached under that hash
+            entry = {"error": f"{CHANGED}: replaced or rewritten after it was hashed; the next run reads it",
+                     "kind": "unreadable"}
         if "error" not in entry:
             try:
                 record = _record(rel, sha, entry)

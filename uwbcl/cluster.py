@@ -96,16 +96,22 @@ def detect_passes(items: list[tuple[str, str]], settings: ProcessingSettings, fi
     out = []
     for path, sha in items:
         try:
+            identity = batch.file_identity(path)
             seen = batch.file_sha256(Path(path))
         except OSError as e:
             out.append({"error": f"cannot read on the worker {socket.gethostname()}: {e.strerror or e}",
                         "kind": "unreadable"})
             continue
         if seen != sha:
-            out.append({"error": f"changed while being read: the worker {socket.gethostname()} read other "
+            out.append({"error": f"{batch.CHANGED}: the worker {socket.gethostname()} read other "
                                  "bytes than the client", "kind": "unreadable"})
             continue
-        out.append(batch.DETECT(path, settings))
+        entry = batch.DETECT(path, settings)
+        # what the worker focused is what it hashed; the client's identities are another machine's
+        if isinstance(entry, dict) and any(i != identity for i in entry.pop("identity", None) or ()):
+            entry = {"error": f"{batch.CHANGED}: replaced on the worker {socket.gethostname()} after it was "
+                              "hashed", "kind": "unreadable"}
+        out.append(entry)
     return out
 
 
