@@ -517,6 +517,33 @@ def test_a_cycle_cut_short_after_two_heights_is_measured_live_as_process_measure
     assert cut_one[0]["status_code"] == R.ResultStatus.INCOMPLETE_CYCLE
 
 
+def test_a_cycle_counter_that_goes_back_starts_the_live_measurement_again_instead_of_failing_each_cycle(
+        monkeypatch, caplog):
+    """Register map section 12.1 item 2: a counter that moved back numbers new cycles; each is measured (the
+    first as a reference), never a PROCESSING_ERROR until the numbers pass the old ones."""
+    from uwbcl.acquisition import live
+    from uwbcl.records import CycleResult
+
+    monkeypatch.setattr(live.pipeline, "locate_cycle", lambda passes, settings: CycleResult(
+        "r", passes[0].cycle, "", (0.15, 0.45), []))
+    monkeypatch.setattr(live.geo, "doppler_wrong_side", lambda scan: None)  # the stand-ins have no echo
+    monkeypatch.setattr(live.pipeline, "apply_range_delay", lambda scan, delay_s: scan)
+    proc = live.LiveProcessor(live.processing_settings("numpy"))
+
+    def cycle(n):
+        return [SimpleNamespace(cycle=n, geometry=SimpleNamespace(height_m=h)) for h in (0.15, 0.45)]
+
+    try:
+        rows = [proc._process(n, cycle(n), True, "") for n in (900, 901, 5, 6)]
+    finally:
+        proc.close()
+    statuses = [[r["status"] for r in rs] for rs in rows]
+    assert statuses[0] == ["reference"] and statuses[2] == ["reference"]
+    assert all(r["status_code"] != R.ResultStatus.PROCESSING_ERROR for rs in rows for r in rs), statuses
+    assert [r["previous_cycle"] for r in rows[3]] == [5]
+    assert "the cycle counter went back" in caplog.text
+
+
 def test_sigint_mid_pass_stops_cleanly_without_a_partial_archive(tmp_path):
     slow = dataclasses.replace(FAST_DEVICE, time_scale=2.0, first_cycle_after_s=1e6)  # a pass lasts 1.5 s
     with RigServer(RigController(slow), LOOPBACK, 0) as server:

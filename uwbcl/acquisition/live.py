@@ -78,9 +78,10 @@ class LiveProcessor:
         # the recent cycles' passes by height (mm) for the rib registration (eq. M7), which `uwbcl process`
         # reads again from their archives
         self._recent: dict[int, dict[int, object]] = {}
-        rib = (registration.RibRegistration(self._recent_pass, pipeline.association_focuser(settings))
-               if settings.association.rib_registration else None)
-        self._chain = chain.RigChain(settings.association, rib=rib)
+        self._rib = (registration.RibRegistration(self._recent_pass, pipeline.association_focuser(settings))
+                     if settings.association.rib_registration else None)
+        self._chain = chain.RigChain(settings.association, rib=self._rib)
+        self._last_cycle: int | None = None  # the last cycle the chain measured
         self.q_sign_warning = ""  # set by the first complete cycle if its lowest pass fails the check
         self._q_sign_checked = False
         self._stop = threading.Event()
@@ -97,7 +98,10 @@ class LiveProcessor:
 
     def close(self, timeout_s: float = 60.0) -> None:
         """Finish the cycles already queued (bounded by timeout_s), then stop the worker."""
-        self._todo.put((None, None, None, None))
+        try:  # a full queue (processing behind) must not hold the stop beyond timeout_s
+            self._todo.put((None, None, None, None), timeout=timeout_s)
+        except queue.Full:
+            self._stop.set()
         self._thread.join(timeout_s)
         if self._thread.is_alive():
             self._stop.set()
@@ -128,6 +132,15 @@ class LiveProcessor:
         self._check_q_sign(cycle, passes)
         located = pipeline.locate_cycle(passes, self.settings)
         log.info("cycle %d: %d plates located", cycle, len(located.plates))
+        if self._last_cycle is not None and cycle <= self._last_cycle:
+            # A counter that went back (a reset or replaced control system, map section 12.1 item 2) numbers
+            # new cycles below the chain's: measured from nothing before, as a rig's first cycle is.
+            log.warning("cycle %d after cycle %d: the cycle counter went back; the live measurement starts "
+                        "again here (for `uwbcl process`, keep the two scans' archives apart)", cycle,
+                        self._last_cycle)
+            self._chain = chain.RigChain(self.settings.association, rib=self._rib)
+            self._recent.clear()
+        self._last_cycle = cycle
         self._recent[cycle] = {height_mm(p.geometry.height_m):
                                pipeline.apply_range_delay(p, self.settings.range_delay_s) for p in passes}
         for old in sorted(self._recent)[:-KEEP_CYCLES]:
