@@ -383,7 +383,11 @@ FAULT_TAXONOMY = (
               "cycle)"),
     FaultRule("ABSURD_VALUE", FaultClass.PASS,
               "a PASS or RADAR value the client will not use (sizes over its limits, a record that does not "
-              "fit WINDOW_REGS, AMPLITUDE_SCALE not finite > 0, DIRECTION not +1 or -1)",
+              "fit WINDOW_REGS, AMPLITUDE_SCALE not finite > 0, DIRECTION not +1 or -1), or a pass no "
+              "archive may hold (docs/archive-format.md: TABLE_ANGLE not within (−90, 90)°, START_TIME past "
+              "year 9999, an echo past 1e30 after AMPLITUDE_SCALE). uwbcl's limits: SAMPLES_PER_PULSE ≤ "
+              "8192, PULSES_PLANNED ≤ 100,000, and PULSES_PLANNED × SAMPLES_PER_PULSE ≤ 2^25 (what an "
+              "archive reader accepts by default, docs/configuration.md `[limits]`)",
               "ABORT, log, re-read, run the pass again"),
     FaultRule("NO_PROGRESS", FaultClass.PASS,
               "no new pulse and no change of STATE, PASS_STATE or PULSES_PRODUCED for stall_timeout_s",
