@@ -588,6 +588,22 @@ def test_the_memory_check_refuses_a_pass_that_would_not_fit_before_it_runs(engin
     assert launches == []  # refused before anything ran
 
 
+def test_a_pass_that_fits_only_alone_releases_the_engines_kept_tables_too_and_focuses_the_same(
+        engine, jittery_pass, grid, monkeypatch):
+    before = engine.nlcs_focus(jittery_pass).image
+    assert engine._filters is not None and engine._h8_tables and engine._buffers  # kept for the next pass
+    need = engine.nlcs_footprint(grid, jittery_pass.n_pulses, jittery_pass.radar.antenna_aperture_m)
+    released = []
+    real_release = engine.release_kept
+    monkeypatch.setattr(engine, "release_kept", lambda: released.append(1) or real_release())
+    monkeypatch.setattr(engine, "memory_limits", DeviceMemory(global_bytes=need + 1, max_alloc_bytes=1 << 30))
+    engine.check_footprint("nlcs_focus", grid, engine._nlcs_entries(grid, jittery_pass.n_pulses))
+    assert released and engine._filters is None and not engine._h8_tables and engine._echo_chain is None
+    assert not engine._buffers
+    monkeypatch.undo()
+    assert np.array_equal(engine.nlcs_focus(jittery_pass).image, before)  # rebuilt as needed
+
+
 def test_profiling_gives_a_table_of_the_stages_and_the_same_results_as_without(engine, jittery_pass):
     from uwbcl.focus.engine import FocusEngine
 

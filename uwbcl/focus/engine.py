@@ -197,6 +197,13 @@ class FocusEngine(OpenclProcessing):
                                            "use --backend numpy")
         self.startup_s = time.perf_counter() - t0
 
+    def release_kept(self) -> None:
+        """`OpenclProcessing.release_kept` and the engine's own: the filter tables, the H8 tables and the
+        recorded echo chain hold device arrays too (rebuilt on the next pass that needs them)."""
+        super().release_kept()
+        self._filters, self._echo_chain = None, None
+        self._h8_tables.clear()
+
     def __repr__(self) -> str:
         return f"FocusEngine({self.device.name.strip()!r}, fp64_phase={self.fp64_phase})"
 

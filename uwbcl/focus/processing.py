@@ -518,9 +518,14 @@ class OpenclProcessing:
                 f"(largest {largest}: {sizes[largest] / 2**20:.1f} MiB)")
         held = sum(a.nbytes for a in self._buffers.values())
         if need + held > limits.global_bytes:
-            self._buffers.clear()
-            self._uploaded.clear()
+            self.release_kept()
         return need
+
+    def release_kept(self) -> None:
+        """Drop every device array kept between passes, so a pass that fits alone can allocate: the buffer
+        table's here; a subclass drops whatever else it keeps (cached tables, recorded launches)."""
+        self._buffers.clear()
+        self._uploaded.clear()
 
     # ---- profiling
     def stage(self, name: str) -> _Stage:
