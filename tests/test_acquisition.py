@@ -7,6 +7,7 @@ run in a thread joined with a deadline, subprocesses with a timeout.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import os
 import re
@@ -704,3 +705,118 @@ def test_a_pass_the_archive_refuses_at_the_write_is_named_as_lost_and_does_not_b
     [lost] = report.passes_failed
     assert "rotation_table_angle_deg" in lost
     assert archive.read_pass_header(report.passes_written[0])["pass_id"] == calls[1]
+
+
+def test_a_height_one_micrometre_beyond_the_rigs_range_is_refused_at_the_start(tmp_path):
+    # MOVE_HEIGHT is sent in whole micrometres: 2.000001 m is 2000001, beyond HEIGHT_MAX 2000000
+    with RigServer(RigController(FAST_DEVICE), LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, heights_m=(0.15, 2.000001)), timeout_s=10.0)
+    assert "MOVE_HEIGHT 2000001: outside the rig's range" in report.error and not report.passes_written
+
+
+class _CarriageOff(RigController):
+    """The carriage settles `off_um` micrometres above every commanded height (PASS.HEIGHT and
+    CARRIAGE_HEIGHT say so)."""
+
+    def __init__(self, config, off_um):
+        super().__init__(config)
+        self.off_um = off_um
+
+    def read(self, now, table, address, count):
+        regs = super().read(now, table, address, count)
+        if table is R.Table.INPUT and address == R.PASS.address and self.pass_ is not None:
+            full = [0] * R.PASS.address + regs
+            height = R.PASS.decode(full[R.PASS.address:R.PASS.address + R.PASS.length])["HEIGHT"]
+            regs = _patch_block(full, R.PASS, HEIGHT=round(height * 1e6 + self.off_um) / 1e6)[R.PASS.address:]
+        return regs
+
+
+def _patch_block(regs, block, **values):
+    a = block.address
+    return regs[:a] + block.encode({**block.decode(regs[a:a + block.length]), **values}) \
+        + regs[a + block.length:]
+
+
+@pytest.mark.parametrize(("off_um", "written"), [(5000, 2), (-5000, 2), (5001, 0)])
+def test_a_carriage_exactly_at_the_height_tolerance_is_inside_it(off_um, written, tmp_path):
+    # "farther than height_tolerance_m" (5 mm) re-runs the pass; 5.000 mm is not farther (whole micrometres)
+    with RigServer(_CarriageOff(FAST_DEVICE, off_um), LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, max_attempts=2))
+    assert len(report.passes_written) == written, report
+
+
+class _NeverReady(RigController):
+    """STATE BOOTING, READY clear, every command refused NOT_READY, while the face's counter keeps going."""
+
+    def input_low(self, now):
+        regs = super().input_low(now)
+        a = R.STATUS.address
+        status = R.STATUS.decode(regs[a:a + R.STATUS.length])
+        status.update(STATE=int(R.State.BOOTING), STATUS_WORD=status["STATUS_WORD"] & ~int(R.Status.READY))
+        return regs[:a] + R.STATUS.encode(status) + regs[a + R.STATUS.length:]
+
+
+def test_a_rig_that_never_becomes_ready_is_named_at_once_and_loses_each_cycle_as_the_counter_moves(
+        tmp_path, caplog):
+    device = _NeverReady(dataclasses.replace(FAST_DEVICE, first_cycle_after_s=0.5, cycle_interval_s=60.0))
+    with RigServer(device, LOOPBACK, 0) as server, caplog.at_level(logging.INFO, logger="uwbcl"):
+        report = run_session(settings_for(server, tmp_path, cycles=2, command_timeout_s=100.0),
+                             timeout_s=20.0)
+    assert "rig not ready (state BOOTING" in caplog.text
+    assert "superseded during its scan" in caplog.text  # not after command_timeout_s: when the counter moved
+    assert not report.passes_written
+
+
+def test_a_samples_per_pulse_above_the_radars_own_maximum_names_that_maximum():
+    with pytest.raises(AbsurdValue, match="more than RADAR.MAX_SAMPLES_PER_PULSE = 415"):
+        PassAssembler(descriptor(SAMPLES_PER_PULSE=416), {**RADAR_OK, "MAX_SAMPLES_PER_PULSE": 415}, Limits())
+
+
+class _StopAtFirstMove(RigController):
+    """Sets the client's stop event when the first MOVE_HEIGHT arrives (SIGINT while the carriage moves)."""
+
+    def __init__(self, config, stop):
+        super().__init__(config)
+        self.stop, self.commands = stop, []
+
+    def write(self, now, address, values):
+        if address == R.COMMAND.address:
+            self.commands.append(R.Command(values[0]))
+            if self.commands[-1] is R.Command.MOVE_HEIGHT:
+                self.stop.set()
+        return super().write(now, address, values)
+
+
+def test_a_stop_request_never_starts_a_pass(tmp_path):
+    stop = threading.Event()
+    # moves done at once: no wait in which the old code noticed the stop before START_PASS
+    device = _StopAtFirstMove(dataclasses.replace(FAST_DEVICE, first_cycle_after_s=0.5, height_speed_m_s=1e6,
+                                                  table_speed_deg_s=1e9), stop)
+    with RigServer(device, LOOPBACK, 0) as server:
+        report = AcquisitionSession(settings_for(server, tmp_path), stop=stop).run()
+    assert report.interrupted and not report.passes_written
+    assert R.Command.START_PASS not in device.commands, device.commands
+
+
+class _WrongFunctionCodeServer(RigServer):
+    """Answers the first three window reads (function 04) as if they were function 03 (a gateway mixing up
+    the tables): the same registers, another function code."""
+
+    wrong = 0
+
+    def _trace_pdu(self, sending, pdu):
+        pdu = super()._trace_pdu(sending, pdu)
+        if sending and pdu.function_code == 4 and self.wrong < 3 and len(getattr(pdu, "registers", [])) > 100:
+            self.wrong += 1
+            pdu.function_code = 3
+        return pdu
+
+
+def test_a_reply_of_another_function_code_is_damage_and_read_again(tmp_path, caplog):
+    with _WrongFunctionCodeServer(RigController(FAST_DEVICE), LOOPBACK, 0) as server, \
+            caplog.at_level(logging.WARNING, logger="uwbcl"):
+        report = run_session(settings_for(server, tmp_path))
+    assert server.wrong == 3
+    assert report.ok and len(report.passes_written) == 2
+    assert report.faults.corrupt >= 3 and "function code 3, not 4" in caplog.text
+    assert_archives_match_device(report, server)

@@ -180,8 +180,9 @@ def _stop_on_signals(stop: threading.Event):
     """SIGINT/SIGTERM set `stop` (the session finishes cleanly) while inside; the old handlers
     come back after."""
     def handler(signum, _frame):
-        logging.getLogger("uwbcl.acquire").warning("%s received: finishing cleanly",
-                                                  signal.Signals(signum).name)
+        if not stop.is_set():  # said once: a second signal (a process group's) changes nothing
+            logging.getLogger("uwbcl.acquire").warning("%s received: finishing cleanly",
+                                                      signal.Signals(signum).name)
         stop.set()
 
     old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -219,9 +220,9 @@ def _acquire(args: argparse.Namespace) -> int:
             return 2
         processor = LiveProcessor(proc_settings)
     stop = threading.Event()
-    with _stop_on_signals(stop):
+    with _stop_on_signals(stop):  # until the end: a second signal while ending changes nothing
         report = AcquisitionSession(settings, stop=stop, processor=processor).run()
-    _print_summary(report, settings.out)
+        _print_summary(report, settings.out)
     return 0 if report.ok else 1
 
 

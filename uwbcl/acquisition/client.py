@@ -367,8 +367,13 @@ class RigLink:
         def fn():
             return reader(address, count=count, device_id=self.unit_id)
 
-        regs = self._request(f"read {'IR' if table is R.Table.INPUT else 'HR'} {address}+{count}",
-                             fn).registers
+        desc = f"read {'IR' if table is R.Table.INPUT else 'HR'} {address}+{count}"
+        reply = self._request(desc, fn)
+        expected = 4 if table is R.Table.INPUT else 3
+        if getattr(reply, "function_code", expected) != expected:  # another request's reply, or damaged
+            self.counts.corrupt += 1
+            raise _Corrupt(f"{desc}: the reply is of function code {reply.function_code}, not {expected}")
+        regs = reply.registers
         if len(regs) != count:
             self.counts.corrupt += 1
             raise _Corrupt(f"read {'IR' if table is R.Table.INPUT else 'HR'} {address}+{count}: {len(regs)} "
@@ -419,10 +424,14 @@ class RigLink:
             reply = self._request(desc, lambda: self.client.write_registers(block.address, regs,
                                                                             device_id=self.unit_id))
             echo = (getattr(reply, "address", block.address), getattr(reply, "count", len(regs)))
-            if echo == (block.address, len(regs)):
+            code = getattr(reply, "function_code", 16)
+            if echo == (block.address, len(regs)) and code == 16:
                 return
             self.counts.corrupt += 1
-            log.warning("fault: %s: the reply echoes HR %d+%d; writing again", desc, *echo)
+            if code != 16:
+                log.warning("fault: %s: the reply is of function code %d, not 16; writing again", desc, code)
+            else:
+                log.warning("fault: %s: the reply echoes HR %d+%d; writing again", desc, *echo)
         self.counts.requests_failed += 1
         raise LinkDown(f"{desc}: the reply echoed another address or quantity {self.MAX_CRC_RETRIES} times")
 
@@ -478,6 +487,10 @@ class _DrainState:
     empty_after_end: int = 0
 
 
+def _state_name(state: int) -> str:
+    return R.State(state).name if state in R.State._value2member_map_ else str(state)
+
+
 class AcquisitionSession:
     """Runs `uwbcl acquire` against one rig; `run()` returns an AcquisitionReport
     (docs/modbus-register-map.md s. 8)."""
@@ -501,6 +514,7 @@ class AcquisitionSession:
         self._unwritten_tried_at = -math.inf
         self._late: set[str] = set()  # passes of _unwritten whose write failed at least once
         self._refused: set[str] = set()  # passes the archive refused (never written, not processed)
+        self._current_pass: str | None = None  # the pass being attempted (named if a stop abandons it)
         self._heartbeat = 0
         self._last_heartbeat_t = 0.0
         self._active_token: int | None = None
@@ -518,7 +532,12 @@ class AcquisitionSession:
             self._cycle_loop()
         except Interrupted:
             self.report.interrupted = True
-            log.warning("stopping: shutdown requested; no pass in progress was written")
+            if self._current_pass is not None:
+                log.warning("stopping: shutdown requested; pass %s abandoned (%s), not written",
+                            self._current_pass, "aborted on the rig" if self._active_token is not None
+                            else "not started")
+            else:
+                log.warning("stopping: shutdown requested; no pass was in progress")
             self._abort_quietly()
         except DeviceRefused as exc:  # fault INCOMPATIBLE or CONFIGURATION: the only stops
             self.report.error = str(exc)
@@ -554,6 +573,8 @@ class AcquisitionSession:
         identity, radar = self.link.identity, self.link.radar
         if identity == self.identity and radar == self.radar:  # the usual case: a reconnect, nothing changed
             return
+        if not self.rig_id:  # named in the log from the first contact, even while RADAR is refused
+            self.rig_id = self.settings.rig_id or identity["RIG_ID"] or "rig"
         try:
             check_radar(radar, self.settings.limits)
         except AbsurdValue:
@@ -570,6 +591,12 @@ class AcquisitionSession:
             log.warning("controller RADAR changed (%s); passes from now on use the new values",
                         ", ".join(f"{k} {self.radar[k]:g} -> {radar[k]:g}" for k in changed))
         self._check_configuration(radar)
+        m_max = radar["MAX_SAMPLES_PER_PULSE"]
+        if m_max and R.WINDOW_HEADER.length + R.record_regs(m_max) > radar["WINDOW_REGS"]:
+            fits = (radar["WINDOW_REGS"] - R.WINDOW_HEADER.length - R.record_regs(0)) // 2
+            log.warning("controller RADAR breaks map 1.1 section 4.3: MAX_SAMPLES_PER_PULSE %d does not fit "
+                        "WINDOW_REGS %d (at most %d samples do); a pass with more will fail", m_max,
+                        radar["WINDOW_REGS"], fits)
         first = self.identity is None
         self.identity, self.radar, self.rig_id = identity, radar, rig_id
         self.reference_point_m = self.settings.reference_point_m(radar["BORESIGHT_Y_SIGN"])
@@ -588,7 +615,8 @@ class AcquisitionSession:
         lo, hi = radar["HEIGHT_MIN"], radar["HEIGHT_MAX"]
         if math.isfinite(lo) and math.isfinite(hi) and hi > lo:
             for h in self.settings.heights_m:
-                if not lo - 1e-6 <= h <= hi + 1e-6:
+                # in whole micrometres, as MOVE_HEIGHT sends it and the rig compares it with its limits
+                if not round(lo * 1e6) <= round(h * 1e6) <= round(hi * 1e6):
                     raise DeviceRefused(f"MOVE_HEIGHT {round(h * 1e6)}: outside the rig's range (height "
                                         f"{h:g} m, RADAR HEIGHT_MIN..HEIGHT_MAX {lo:g}..{hi:g} m; check "
                                         f"heights)")
@@ -725,6 +753,7 @@ class AcquisitionSession:
             name = f"{self.rig_id} c{cycle:06d} h{round(height * 1000):04d}"
             for attempt in range(1, self.settings.max_attempts + 1):
                 self._publish_results()
+                self._current_pass = name
                 try:
                     scan, token, boot = self._run_pass(cycle, height)
                 except CycleSuperseded as exc:
@@ -732,6 +761,7 @@ class AcquisitionSession:
                                 exc, len(passes), len(self.settings.heights_m))
                     self.report.cycles_incomplete.append(cycle)
                     self._submit(cycle, passes, complete=False, start_time=start_time)
+                    self._current_pass = None
                     return exc.counter
                 except (PassIncomplete, DeviceRebooted, LinkDown) as exc:  # fault class PASS: ABORT, re-run
                     self._abort_quietly()
@@ -768,6 +798,7 @@ class AcquisitionSession:
                 self.report.passes_failed.append(f"{name}: incomplete {self.settings.max_attempts} times")
                 log.error("pass %s failed %d times; cycle %d stays incomplete", name,
                           self.settings.max_attempts, cycle)
+            self._current_pass = None
         complete = len(passes) == len(self.settings.heights_m)
         (self.report.cycles_complete if complete else self.report.cycles_incomplete).append(cycle)
         self._submit(cycle, passes, complete=complete, start_time=start_time)
@@ -779,15 +810,21 @@ class AcquisitionSession:
         """One attempt: returns (scan, token, boot id), the scan carrying the IDENTITY and RADAR the
         controller had for the whole pass; PassIncomplete (or a subclass), DeviceRebooted or LinkDown
         otherwise."""
+        if self.stop.is_set():  # a stop request never starts motion or a pass
+            raise Interrupted()
         status = self._status()
         if status["CYCLE_COUNTER"] != cycle:
             raise CycleSuperseded(status["CYCLE_COUNTER"])
         self._adopt_description()
         boot, identity, radar, rig_id = self.link.boot_id, self.identity, self.radar, self.rig_id
-        self._make_idle(status)
+        self._make_idle(status, cycle)
+        if self.stop.is_set():
+            raise Interrupted()
         self._command(R.Command.MOVE_HEIGHT, round(height_m * 1e6), cycle=cycle)
         self._command(R.Command.SET_TABLE_ANGLE, round(self.settings.rotation_table_angle_deg * 1e3),
                       cycle=cycle)
+        if self.stop.is_set():
+            raise Interrupted()
         self._token = self._token % 2_000_000_000 + 1
         token = self._token
         self._command(R.Command.START_PASS, token, wait=False)
@@ -801,8 +838,8 @@ class AcquisitionSession:
                 self._abort_quietly()
                 raise CycleSuperseded(counter)
             raise PassIncomplete(f"PASS.CYCLE is {desc['CYCLE']}, not the cycle {cycle} CYCLE_COUNTER shows")
-        off_m = abs(desc["HEIGHT"] - height_m)
-        if off_m > self.settings.height_tolerance_m:
+        off_m = abs(round(desc["HEIGHT"] * 1e6) - round(height_m * 1e6)) * 1e-6  # as the registers hold them
+        if round(off_m * 1e6) > round(self.settings.height_tolerance_m * 1e6):
             tol_mm = 1e3 * self.settings.height_tolerance_m
             raise PassIncomplete(f"PASS.HEIGHT is {desc['HEIGHT']:.4f} m, {1e3 * off_m:.1f} mm from the "
                                  f"{height_m:.4f} m commanded (tolerance {tol_mm:g} mm)")
@@ -1003,24 +1040,32 @@ class AcquisitionSession:
                 raise PassIncomplete(f"{code.name} not done after {self.settings.command_timeout_s:g} s")
             self.link.sleep(self.settings.poll_s)
 
-    def _make_idle(self, status: dict) -> None:
+    def _make_idle(self, status: dict, cycle: int | None = None) -> None:
+        """Until the rig is READY and not BUSY (ABORT, CLEAR_FAULTS as needed), within command_timeout_s;
+        CycleSuperseded as soon as CYCLE_COUNTER leaves `cycle` (a rig that never became ready meanwhile
+        loses the cycle, logged, not the cycles after it); one warning when it is not ready for another
+        reason than a pass of ours (local control, booting)."""
         deadline = time.monotonic() + self.settings.command_timeout_s
         told = False
         while True:
             word = status["STATUS_WORD"]
+            if cycle is not None and status["CYCLE_COUNTER"] != cycle:
+                raise CycleSuperseded(status["CYCLE_COUNTER"])
             if word & R.Status.LOCAL and not told:  # the operator has the rig: say why nothing happens
                 told = True
                 log.warning("rig in local control (STATUS_WORD LOCAL): remote commands are rejected; waiting "
                             "up to %g s for remote control", self.settings.command_timeout_s)
             if word & R.Status.READY and not word & R.Status.BUSY:
                 return
+            if not word & (R.Status.READY | R.Status.BUSY) and not told:
+                told = True
+                log.warning("rig not ready (state %s, STATUS_WORD 0x%04X): waiting up to %g s", _state_name(
+                    status["STATE"]), word, self.settings.command_timeout_s)
             if status["FAULT_WORD"] & ~(R.Fault.BUFFER_OVERFLOW | R.Fault.PASS_ABORTED):
                 log.warning("device fault word 0x%04X: clearing faults", status["FAULT_WORD"])
                 self._command(R.Command.CLEAR_FAULTS)
             elif word & R.Status.BUSY:
-                state = R.State(status["STATE"]).name if status["STATE"] in R.State._value2member_map_ \
-                    else status["STATE"]
-                log.info("device busy (state %s): aborting", state)
+                log.info("device busy (state %s): aborting", _state_name(status["STATE"]))
                 self._command(R.Command.ABORT)
             if time.monotonic() > deadline:
                 raise PassIncomplete("device did not become ready")

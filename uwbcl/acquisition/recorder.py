@@ -71,8 +71,11 @@ class PassAssembler:
 
     def __init__(self, descriptor: dict, radar: dict, limits: Limits):
         m, n = int(descriptor["SAMPLES_PER_PULSE"]), int(descriptor["PULSES_PLANNED"])
-        if not 1 <= m <= min(limits.max_samples_per_pulse, radar["MAX_SAMPLES_PER_PULSE"] or m):
+        if not 1 <= m <= limits.max_samples_per_pulse:
             raise AbsurdValue(f"PASS.SAMPLES_PER_PULSE = {m}: outside 1..{limits.max_samples_per_pulse}")
+        if radar["MAX_SAMPLES_PER_PULSE"] and m > radar["MAX_SAMPLES_PER_PULSE"]:
+            raise AbsurdValue(f"PASS.SAMPLES_PER_PULSE = {m}: more than RADAR.MAX_SAMPLES_PER_PULSE = "
+                              f"{radar['MAX_SAMPLES_PER_PULSE']}")
         if R.WINDOW_HEADER.length + R.record_regs(m) > radar["WINDOW_REGS"]:
             raise AbsurdValue(f"PASS.SAMPLES_PER_PULSE = {m}: a record does not fit RADAR.WINDOW_REGS")
         if not 2 <= n <= limits.max_pulses_per_pass:

@@ -362,7 +362,8 @@ FAULT_TAXONOMY = (
     FaultRule("BUSY", FaultClass.TRANSIENT, "exception 04 or 06 (the request was not executed)",
               "wait 20 ms doubling to 1 s, repeat; after 25 in a row the request fails (REFUSED)"),
     FaultRule("DAMAGED", FaultClass.TRANSIENT,
-              "CRC mismatch or wrong length in a reply; an FC16 reply echoing another address or quantity",
+              "CRC mismatch or wrong length in a reply; a reply of another function code than the "
+              "request's; an FC16 reply echoing another address or quantity",
               "read (write) again; after 10 in a row the request fails (REFUSED)"),
     FaultRule("HUNG", FaultClass.TRANSIENT, "HEARTBEAT unchanged for 2 s while replies keep coming",
               "log, reconnect"),
