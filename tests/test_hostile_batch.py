@@ -51,6 +51,56 @@ def a_pass(root: Path) -> Path:
 
 
 # ----------------------------------------------------------------------------------------------- the tree
+def test_a_file_hdf5_loops_on_is_named_after_its_deadline_and_the_night_goes_on(tree, clean, monkeypatch):
+    src, out = tree
+    looping = a_pass(src).with_name("looping.h5")
+    shutil.copy(a_pass(src), looping)
+    with h5py.File(looping, "r+") as f:  # other bytes than its original's: not in the cache
+        f.attrs["created_by"] = "another writer"
+    real = archive.read_pass_header
+
+    def header(path, limits):  # what HDF5 does on a flipped bit in the root's attribute storage
+        while "looping" in str(path):
+            pass
+        return real(path, limits)
+
+    monkeypatch.setattr(batch.archive, "read_pass_header", header)  # the forked reader inherits it
+    monkeypatch.setattr(batch, "STRUCTURE_DEADLINE_S", 1.0)
+    report = batch.process_directory(src, out, SETTINGS, options())
+    [problem] = [p for p in report.errors if p.file.endswith("looping.h5")]
+    assert problem.kind == "invalid_archive"
+    assert "did not finish reading the file's structure" in problem.reason
+    assert (out / "displacements.csv").read_bytes() == (clean[0] / "displacements.csv").read_bytes()
+
+
+def test_a_file_beyond_max_file_bytes_is_refused_before_it_is_hashed_or_opened(tree, clean, monkeypatch):
+    src, out = tree
+    big = a_pass(src).with_name("big.h5")
+    shutil.copy(a_pass(src), big)
+    with big.open("r+b") as f:  # a sparse tail past what the limit admits: HDF5 would open it fine
+        f.truncate(1 << 31 | 1)
+    hashed = []
+    real = batch.file_sha256
+    monkeypatch.setattr(batch, "file_sha256", lambda path: hashed.append(path) or real(path))
+    report = batch.process_directory(src, out, SETTINGS, options())
+    [problem] = [p for p in report.errors if p.file.endswith("big.h5")]
+    assert problem.kind == "invalid_archive" and "(limits.max_file_bytes)" in problem.reason
+    assert big not in hashed
+    assert (out / "displacements.csv").read_bytes() == (clean[0] / "displacements.csv").read_bytes()
+
+
+def test_a_string_attribute_of_megabytes_is_refused_by_name_and_never_quoted_whole(tree, clean):
+    src, out = tree
+    long_id = a_pass(src).with_name("long_id.h5")
+    shutil.copy(a_pass(src), long_id)
+    with h5py.File(long_id, "r+") as f:
+        f.attrs["rig_id"] = "r" * 5_000_000
+    report = batch.process_directory(src, out, SETTINGS, options())
+    [problem] = [p for p in report.errors if p.file.endswith("long_id.h5")]
+    assert problem.kind == "invalid_archive" and "/@rig_id: a string of 5000000 bytes" in problem.reason
+    assert (out / "errors.csv").stat().st_size < 10_000
+
+
 def test_an_in_tree_external_link_between_two_passes_is_refused_and_the_rest_processed(tree, clean):
     src, out = tree
     first, second = sorted(src.rglob("*.h5"))[:2]
@@ -579,3 +629,32 @@ def test_a_descriptive_created_by_that_is_empty_or_not_utf8_does_not_cost_the_pa
     report = batch.process_directory(src, out, SETTINGS, options())
     assert report.errors == [] and report.n_passes == CONFIG.cycles * 2
     assert "created_by is not UTF-8 text" in caplog.text
+
+
+def test_a_file_whose_structure_hdf5_never_finishes_reading_or_crashes_on_costs_the_run_that_file_only(
+        tmp_path, monkeypatch):
+    """A flipped bit can send HDF5 into a loop no Python code interrupts (an independent tester's fuzzing):
+    headers are read first in a child process with a deadline, so such a file is named and never opened by
+    the run; the same for one that kills its reader."""
+    import os
+
+    from uwbcl import batch
+
+    files = [tmp_path / f"{name}.h5" for name in ("good", "loops", "crashes", "good2")]
+    for f in files:
+        f.write_bytes(b"x")
+    real = batch.archive.read_pass_header
+
+    def header(path, limits):
+        if "loops" in str(path):
+            while True:
+                pass
+        if "crashes" in str(path):
+            os._exit(11)
+        return real(path, limits)
+
+    monkeypatch.setattr(batch.archive, "read_pass_header", header)  # the forked reader inherits it
+    bad = batch.unreadable_structures(files, batch.ReadLimits(), deadline_s=1.0)
+    assert sorted(bad) == [files[2], files[1]] or sorted(bad) == sorted([files[1], files[2]])
+    assert "did not finish reading the file's structure within 1 s" in bad[files[1]]
+    assert "crashed the reader" in bad[files[2]]

@@ -400,7 +400,7 @@ def read_pass_header(path: str | os.PathLike[str], limits: ReadLimits = ReadLimi
     Keys: the root, /radar and /geometry attributes under their own names (``format`` excepted), plus
     ``n_pulses``, ``echo_layout``, ``echo_scale`` and ``path``. Values are plain Python types.
     """
-    with _open(path) as f:
+    with _open(path, limits) as f:
         return _read_header(f, path, limits)
 
 
@@ -410,7 +410,7 @@ def read_pass(path: str | os.PathLike[str], limits: ReadLimits = ReadLimits()) -
     Raises ArchiveError (naming the file, the object and the reason) for anything the format does not allow or
     `limits` do not admit, OSError when the file cannot be opened at all.
     """
-    with _open(path) as f:
+    with _open(path, limits) as f:
         h = _read_header(f, path, limits)
         time_s = _read_values(f, path, "/pulses/time_s").astype(np.float64)
         position_m = _read_values(f, path, "/pulses/position_m").astype(np.float64)
@@ -459,10 +459,15 @@ def read_pass(path: str | os.PathLike[str], limits: ReadLimits = ReadLimits()) -
     )
 
 
-def check_regular_file(path: str | os.PathLike[str]) -> None:
+def check_regular_file(path: str | os.PathLike[str], limits: ReadLimits | None = None) -> None:
     """ArchiveError unless `path` (after symlinks) is a regular file: a FIFO would block the reader forever, a
-    device could stream without end, a directory is not an archive."""
-    mode = os.stat(path).st_mode
+    device could stream without end, a directory is not an archive; with `limits`, nor a file larger than
+    limits.max_file_bytes."""
+    st = os.stat(path)
+    mode = st.st_mode
+    if limits is not None and stat.S_ISREG(mode) and st.st_size > limits.max_file_bytes:
+        raise ArchiveError(path, "/", f"{st.st_size} bytes, more than the limit of {limits.max_file_bytes} "
+                           "(limits.max_file_bytes): not read")
     if not stat.S_ISREG(mode):
         kind = ("a FIFO" if stat.S_ISFIFO(mode) else "a directory" if stat.S_ISDIR(mode) else
                 "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "a socket" if stat.S_ISSOCK(mode)
@@ -471,10 +476,10 @@ def check_regular_file(path: str | os.PathLike[str]) -> None:
 
 
 @contextlib.contextmanager
-def _open(path: str | os.PathLike[str]) -> Iterator[h5py.File]:
+def _open(path: str | os.PathLike[str], limits: ReadLimits | None = None) -> Iterator[h5py.File]:
     # A missing or unreadable file is the caller's problem, not the file's: those OSErrors pass through.
     # Everything else h5py raises means "not an HDF5 file" or a damaged one.
-    check_regular_file(path)
+    check_regular_file(path, limits)
     try:
         f = h5py.File(path, "r", locking=False)
     except (FileNotFoundError, PermissionError, IsADirectoryError):
@@ -810,8 +815,21 @@ def _scalar(obj: h5py.HLObject, name: str, path: Any) -> np.ndarray:
     return value.reshape(())
 
 
+# The longest string attribute (bytes) a pass may carry: ids and names are tens of bytes; a value of megabytes
+# is not a name, and every message that quotes it would carry it too.
+MAX_STRING_ATTR_BYTES = 4096
+
+
+def _short_string(value: Any, obj: h5py.HLObject, name: str, path: Any) -> None:
+    n = len(value) if isinstance(value, (bytes, str)) else 0
+    if n > MAX_STRING_ATTR_BYTES:
+        raise ArchiveError(path, f"{obj.name}@{name}", f"a string of {n} bytes, more than the "
+                           f"{MAX_STRING_ATTR_BYTES} a string attribute may hold (docs/archive-format.md)")
+
+
 def _str_attr(obj: h5py.HLObject, name: str, path: Any) -> str:
     value = _scalar(obj, name, path).item()
+    _short_string(value, obj, name, path)
     if isinstance(value, bytes):
         try:
             value = value.decode("utf-8")
@@ -833,6 +851,7 @@ def _free_text_attr(obj: h5py.HLObject, name: str, path: Any) -> str:
     if isinstance(raw, h5py.Empty):
         return ""
     value = _scalar(obj, name, path).item()
+    _short_string(value, obj, name, path)
     if isinstance(value, bytes):
         try:
             value = value.decode("utf-8")

@@ -54,6 +54,7 @@ from .records import (
     PassTooSmall,
     Problem,
     ProcessingSettings,
+    ReadLimits,
     SeriesRow,
 )
 from .utc import utc_seconds
@@ -734,7 +735,61 @@ def _run_pool_of(pool: cf.Executor, todo: list[tuple[Path, str, str]], settings:
     return [item for k, item in enumerate(todo) if k not in done]
 
 
-def _from_cache(files: list[Path], in_dir: Path, cache: PassCache) -> tuple[
+# Reading one archive's HDF5 structure (its header) takes milliseconds; a damaged file can send the HDF5
+# library into a loop that never returns (a flipped bit in the root's attribute storage, an independent
+# tester's fuzzing), which no Python code can interrupt. So the structures are read first in a child process
+# with this much time per file: a file that does not finish, or takes the child down, is reported by name
+# and never opened by the run itself.
+STRUCTURE_DEADLINE_S = 30.0
+
+
+def _read_structures(paths: list[str], limits: ReadLimits, conn) -> None:
+    """Child: read each header (any error is the worker's to report later) and say which is done."""
+    for k, path in enumerate(paths):
+        with contextlib.suppress(Exception):
+            archive.read_pass_header(path, limits)
+        conn.send(k)
+    conn.close()
+
+
+def unreadable_structures(paths: list[Path], limits: ReadLimits, deadline_s: float | None = None
+                          ) -> dict[Path, str]:
+    """The files among `paths` whose HDF5 structure did not finish reading within deadline_s, or whose
+    reading killed the reading process, with the reason (`STRUCTURE_DEADLINE_S`); read in child processes
+    (a fresh one after each such file), so a library loop or crash costs the run one file and its time."""
+    deadline_s = STRUCTURE_DEADLINE_S if deadline_s is None else deadline_s
+    method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"  # fork: milliseconds
+    ctx = multiprocessing.get_context(method)
+    bad: dict[Path, str] = {}
+    start = 0
+    while start < len(paths):
+        recv, send = ctx.Pipe(duplex=False)
+        child = ctx.Process(target=_read_structures, args=([str(p) for p in paths[start:]], limits, send),
+                            daemon=True)
+        child.start()
+        send.close()
+        done = start
+        try:
+            while done < len(paths):
+                if not recv.poll(deadline_s):
+                    bad[paths[done]] = (f"HDF5 did not finish reading the file's structure within "
+                                        f"{deadline_s:g} s (damaged); not read")
+                    break
+                try:
+                    done = start + recv.recv() + 1
+                except EOFError:
+                    bad[paths[done]] = ("reading the file's HDF5 structure crashed the reader (damaged); "
+                                        "not read")
+                    break
+        finally:
+            child.kill()
+            child.join()
+            recv.close()
+        start = done + 1
+    return bad
+
+
+def _from_cache(files: list[Path], in_dir: Path, cache: PassCache, limits: ReadLimits) -> tuple[
         list[PassRecord], list[Problem], list[tuple[Path, str, str]], dict[str, list[int]]]:
     """The cached records, the unreadable files' problems, the (path, name, sha256) left to focus, and the
     `file_identity` each of those had when it was hashed (by name)."""
@@ -746,6 +801,12 @@ def _from_cache(files: list[Path], in_dir: Path, cache: PassCache) -> tuple[
         rel = archive.display_name(path.relative_to(in_dir).as_posix())
         try:
             identity = file_identity(path)
+            if identity[2] > limits.max_file_bytes:  # never read end to end to hash it
+                reason = (f"{identity[2]} bytes, more than the limit of {limits.max_file_bytes} "
+                          "(limits.max_file_bytes): not read")
+                log.error("%s: %s", rel, reason)
+                problems.append(Problem(rel, "invalid_archive", f"/: {reason}"))
+                continue
             sha = file_sha256(path)
             if file_identity(path) != identity:
                 raise OSError(CHANGED)
@@ -792,7 +853,13 @@ def detect_all(files: list[Path], in_dir: Path, settings: ProcessingSettings, ca
                ) -> tuple[list[PassRecord], list[Problem], set[str]]:
     """Records of every readable archive, from the cache or by focusing (in this machine's worker processes,
     or by `runner`); problems of the others; the files focused in this run."""
-    records, problems, todo, identities = _from_cache(files, in_dir, cache)
+    records, problems, todo, identities = _from_cache(files, in_dir, cache, settings.limits)
+    hung = unreadable_structures([path for path, _, _ in todo], settings.limits)
+    for path, rel, _ in todo:
+        if path in hung:
+            log.error("%s: /: %s", rel, hung[path])
+            problems.append(Problem(rel, "invalid_archive", f"/: {hung[path]}"))
+    todo = [item for item in todo if item[0] not in hung]
     progress = Progress(len(todo), options.progress)
     done = 0
 

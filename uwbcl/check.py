@@ -83,8 +83,12 @@ def check_directory(in_dir: Path, settings: ProcessingSettings | None = None,
     problems = [Problem(*p) for p in walk.problems]
     warnings = [Problem(*w) for w in walk.warnings]
     passes = []
+    hung = batch.unreadable_structures(list(walk.files), settings.limits)  # as process: never opened here
     for path in walk.files:
         name = path.relative_to(in_dir).as_posix()
+        if path in hung:
+            problems.append(Problem(name, "invalid_archive", f"/: {hung[path]}"))
+            continue
         try:
             with _reader_warnings() as said:
                 passes.append(summarise_pass(path, name, settings))

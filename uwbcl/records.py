@@ -192,6 +192,10 @@ class ReadLimits:
     max_pulses: int = 1 << 20
     max_samples_per_pulse: int = 1 << 16
     max_echo_samples: int = 1 << 25  # pulses x samples
+    # bytes of the file itself, checked before it is hashed or opened: the largest pass the other limits admit
+    # is ~0.5 GB as complex128 (1.3 GB with archive 1.1's raw RF beside it); a file far larger is not a pass
+    # (a disk image named .h5, a sparse tail) and would be read end to end by the cache's hash
+    max_file_bytes: int = 1 << 31
     # cells of a pass's focus grid (azimuth rows x range bins), BP image or detection window, checked before
     # focusing
     max_focus_cells: int = 1 << 26
