@@ -136,6 +136,20 @@ def test_the_new_detection_keys_are_read_from_the_site_file_and_their_ranges_che
         assert err.value.key == key
 
 
+def test_range_bins_spread_over_kilometres_cost_memory_for_their_pixels_not_their_span():
+    # positions off by orders of magnitude spread R_c over 1e9 m: 1e11 bins of 1 cm, 1,200 pixels
+    rng = np.random.default_rng(4)
+    mag = rng.rayleigh(size=(40, 30))
+    valid = rng.random(mag.shape) > 0.2
+    rc = 2.0 + np.linspace(0.0, 1e9, 40)[:, None] + np.linspace(0.0, 0.3, 30)[None, :]
+    level = peaks.range_bin_medians(mag, valid, rc, 0.01)
+    bins = np.floor((rc - np.floor(rc[valid].min() / 0.01) * 0.01) / 0.01).astype(np.int64)
+    for b in np.unique(bins[valid]):
+        here = bins == b
+        assert np.allclose(level[here], np.median(mag[here & valid]))
+    assert np.all(level[~np.isin(bins, bins[valid])] == 0.0)
+
+
 def test_the_range_bin_medians_equal_numpys_median_over_each_bins_valid_pixels():
     rng = np.random.default_rng(3)
     mag = rng.rayleigh(size=(40, 30))

@@ -114,6 +114,13 @@ def range_bin_medians(mag: np.ndarray, valid: np.ndarray, rc_m: np.ndarray | Non
         bins = np.floor((rc_m - lowest) / bin_m).astype(np.int64)
     b_valid = bins[valid]
     n_bins = int(b_valid.max()) + 1 if b_valid.size else 1
+    if n_bins > max(b_valid.size, mag.shape[1]):
+        # far more bins than pixels (positions off by orders of magnitude spread R_c over kilometres): the
+        # occupied bins renumbered in order, so memory follows the pixels, not the span (same medians)
+        occupied = np.unique(b_valid)
+        k = np.clip(np.searchsorted(occupied, bins), 0, occupied.size - 1)
+        bins = np.where(occupied[k] == bins, k, -1)
+        b_valid, n_bins = bins[valid], occupied.size
     if at is not None:  # only the bins holding a valid pixel of `at`
         wanted = np.zeros(n_bins, dtype=bool)
         wanted[bins[at & valid]] = True
