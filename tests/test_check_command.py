@@ -30,6 +30,16 @@ def test_check_summarises_each_rigs_cycles_heights_radar_and_geometry_and_exits_
     assert 0.7 < lo <= hi < 1.3  # the format's conventions: about +1
 
 
+def test_check_names_the_cycles_missing_between_a_rigs_first_and_last(archive_dir, tmp_path, capsys):
+    src = tmp_path / "in"
+    shutil.copytree(archive_dir, src)
+    for f in pass_files(src):
+        if "_c000001_" in f.name:
+            f.unlink()
+    assert main(["check", str(src)]) == 0
+    assert "rig rig-1: 4 passes, 2 cycles (0-2, none of cycle 1), 2 usable" in capsys.readouterr().out
+
+
 def test_check_finds_the_problems_process_reports_and_exits_1(archive_dir, tmp_path, capsys):
     src = tmp_path / "in"
     shutil.copytree(archive_dir, src)

@@ -161,8 +161,12 @@ def rig_lines(report: CheckReport, options: BatchOptions | None = None) -> list[
         forward = sum(p.rail_m[1] > p.rail_m[0] for p in ps)
         ratios = [p.doppler_ratio for p in ps if p.doppler_ratio is not None]
         side = {int(q["boresight_y_sign"]) for q in par}
+        gaps = (sorted(set(range(cycles[0], cycles[-1] + 1)) - set(cycles)) if cycles[-1] - cycles[0] < 10**6
+                else [])
+        missing = (f", none of cycle{'s' if len(gaps) > 1 else ''} "
+                   f"{', '.join(map(str, gaps[:10]))}{' ...' if len(gaps) > 10 else ''}" if gaps else "")
         out += [
-            f"rig {rig}: {len(ps)} passes, {len(cycles)} cycles ({cycles[0]}-{cycles[-1]}), "
+            f"rig {rig}: {len(ps)} passes, {len(cycles)} cycles ({cycles[0]}-{cycles[-1]}{missing}), "
             f"{len(usable)} usable (two or more heights that agree)",
             "  heights: " + ", ".join(f"{h / 1000:g} m x {n}" for h, n in sorted(heights.items())),
             f"  radar: carrier {_span([q['carrier_frequency_hz'] / 1e9 for q in par], '.4g', 'GHz')}, "
