@@ -820,3 +820,25 @@ def test_a_reply_of_another_function_code_is_damage_and_read_again(tmp_path, cap
     assert report.ok and len(report.passes_written) == 2
     assert report.faults.corrupt >= 3 and "function code 3, not 4" in caplog.text
     assert_archives_match_device(report, server)
+
+
+class _PushMidPassOnce(RigController):
+    """The face's counter steps 20 pulses into the first pass, the pass left running (map section 4.2 says
+    the controller must abort it)."""
+
+    pushed = False
+
+    def advance(self, now):
+        super().advance(now)
+        p = self.pass_
+        if p is not None and not self.pushed and p.produced >= 20:
+            self.pushed = True
+            self.cycle_counter += 1
+
+
+def test_a_pass_cut_by_a_cycle_change_counts_as_an_incomplete_attempt(tmp_path):
+    device = _PushMidPassOnce(FAST_DEVICE)
+    with RigServer(device, LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, cycles=2))
+    assert device.pushed
+    assert any("cycle superseded" in line for line in report.passes_incomplete), report.passes_incomplete

@@ -27,6 +27,7 @@ from pathlib import Path
 from .. import archive
 from ..config import read_toml
 from ..records import HEIGHT_TOLERANCE_M, ConfigError
+from ..utc import utc_seconds
 from . import registers as R
 from .recorder import (
     AbsurdValue,
@@ -515,6 +516,8 @@ class AcquisitionSession:
         self._late: set[str] = set()  # passes of _unwritten whose write failed at least once
         self._refused: set[str] = set()  # passes the archive refused (never written, not processed)
         self._current_pass: str | None = None  # the pass being attempted (named if a stop abandons it)
+        self._started: int | None = None  # the token of the attempt's pass once START_PASS was sent
+        self._last_start_s: float | None = None  # the last pass's START_TIME (s since 1970)
         self._heartbeat = 0
         self._last_heartbeat_t = 0.0
         self._active_token: int | None = None
@@ -757,6 +760,9 @@ class AcquisitionSession:
                 try:
                     scan, token, boot = self._run_pass(cycle, height)
                 except CycleSuperseded as exc:
+                    if self._started is not None:  # a pass was under way: an incomplete attempt, counted
+                        self.report.passes_incomplete.append(f"{name} attempt {attempt}: cycle superseded "
+                                                             f"({exc})")
                     log.warning("cycle %d superseded during its scan (%s): %d of %d heights acquired", cycle,
                                 exc, len(passes), len(self.settings.heights_m))
                     self.report.cycles_incomplete.append(cycle)
@@ -772,6 +778,7 @@ class AcquisitionSession:
                     if attempt > 1:  # a fault that repeats is not retried at full speed
                         self.link.sleep(min(0.05 * 2 ** (attempt - 2), self.settings.reconnect_max_s))
                     continue
+                self._check_clock(name, scan)
                 # the height in the id and the name is the one the archive records (PASS.HEIGHT), as the
                 # archive format names files: a carriage a fraction of a millimetre off gives h0149
                 pass_id = f"{archive.default_pass_id(scan)}-b{boot:08X}-p{token}"
@@ -804,12 +811,23 @@ class AcquisitionSession:
         self._submit(cycle, passes, complete=complete, start_time=start_time)
         return None
 
+    def _check_clock(self, name: str, scan) -> None:
+        """A warning when the controller's clock, which dates every archive (PASS.START_TIME), goes back
+        between passes: archived as the controller says, but `uwbcl process` orders and dates cycles by it.
+        (Not compared with this machine's clock: a simulated rig runs its own, time-compressed.)"""
+        start_s = utc_seconds(scan.pass_start_time)
+        if self._last_start_s is not None and start_s < self._last_start_s:
+            log.warning("pass %s: START_TIME %s is %.0f s before the previous pass's: the controller's clock "
+                        "went back", name, scan.pass_start_time, self._last_start_s - start_s)
+        self._last_start_s = start_s
+
     # ------------------------------------------------------------------------------------------ one pass
 
     def _run_pass(self, cycle: int, height_m: float):
         """One attempt: returns (scan, token, boot id), the scan carrying the IDENTITY and RADAR the
         controller had for the whole pass; PassIncomplete (or a subclass), DeviceRebooted or LinkDown
         otherwise."""
+        self._started = None  # the token of this attempt's pass once START_PASS was sent
         if self.stop.is_set():  # a stop request never starts motion or a pass
             raise Interrupted()
         status = self._status()
@@ -828,7 +846,7 @@ class AcquisitionSession:
         self._token = self._token % 2_000_000_000 + 1
         token = self._token
         self._command(R.Command.START_PASS, token, wait=False)
-        self._active_token = token
+        self._active_token = self._started = token
         desc = self.link.read_block(R.PASS)
         if desc["TOKEN"] != token:
             raise PassIncomplete(f"PASS.TOKEN is {desc['TOKEN']}, not the {token} just started")
