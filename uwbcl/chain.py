@@ -626,9 +626,10 @@ class RigChain:
                 self._extend_old_chain(links, [*between, b])
                 return
         # a warning, as the restart it undoes was: the log then ends with what the outputs say
-        log.warning("rig %s: cycles %s joined to cycle %d by the later cycles' step; chain %d continues "
+        log.warning("rig %s: %s %s joined to cycle %d by the later cycles' step; chain %d continues "
                     "chain %d, the restart above undone (re-issued as revision 1)", b.rig_id,
-                    ", ".join(str(y.cycle) for _, y, _ in links), a.cycle, self._chain, chain_a)
+                    "cycle" if len(links) == 1 else "cycles", ", ".join(str(y.cycle) for _, y, _ in links),
+                    a.cycle, self._chain, chain_a)
         cum, var = cum_a, var_a
         fresh = {}
         for x, y, d in links:
@@ -733,8 +734,9 @@ class RigChain:
                 # (chain + 1, visible) instead of bridging a gap that the plates seen by both may not span.
                 self._chain += 1
                 log.warning("rig %s: cycle %d matches cycle %d but not the chain at cycle %d; the cumulative "
-                            "values start again from 0 at cycle %d (chain %d)", cur.rig_id, cur.cycle,
-                            last.cycle.cycle, anchor.cycle, last.cycle.cycle, self._chain)
+                            "values start again from 0 at cycle %d (chain %d) unless later cycles join it "
+                            "back (said so below if they do)", cur.rig_id, cur.cycle, last.cycle.cycle,
+                            anchor.cycle, last.cycle.cycle, self._chain)
                 last.cumulative_m, last.cumulative_bound_m, last.chain = np.zeros(3), np.zeros(3), self._chain
                 self._rejoin = (anchor, self._anchor_cum, self._anchor_var, self._chain - 1, last.cycle)
                 self._restart(last.cycle)
@@ -747,8 +749,9 @@ class RigChain:
         if cur.cycle - anchor.cycle >= self.max_bridge_cycles:
             # Start a new chain here: its cumulative values count from this cycle, not from the rig's first.
             log.warning("rig %s: no trusted match for %d cycles up to cycle %d; the cumulative values start "
-                        "again from 0 at cycle %d (chain %d)", cur.rig_id, cur.cycle - anchor.cycle,
-                        cur.cycle, cur.cycle, self._chain + 1)
+                        "again from 0 at cycle %d (chain %d) unless later cycles join it back (said so below "
+                        "if they do)", cur.rig_id, cur.cycle - anchor.cycle, cur.cycle, cur.cycle,
+                        self._chain + 1)
             self._chain += 1
             row.cumulative_m, row.cumulative_bound_m, row.chain = np.zeros(3), np.zeros(3), self._chain
             self._rejoin = (anchor, self._anchor_cum, self._anchor_var, self._chain - 1, cur)
