@@ -692,11 +692,11 @@ def test_a_pass_the_archive_refuses_at_the_write_is_named_as_lost_and_does_not_b
 
     real, calls = client_module.write_scan, []
 
-    def first_refused(out, scan, pass_id, unique):
+    def first_refused(out, scan, pass_id, **names):
         calls.append(pass_id)
         if len(calls) == 1:
             raise archive.ArchiveError(out, "/geometry@rotation_table_angle_deg", "must be within (-90, 90)")
-        return real(out, scan, pass_id, unique=unique)
+        return real(out, scan, pass_id, **names)
 
     monkeypatch.setattr(client_module, "write_scan", first_refused)
     with RigServer(RigController(FAST_DEVICE), LOOPBACK, 0) as server:

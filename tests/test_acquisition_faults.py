@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import re
 import subprocess
 import sys
 import threading
@@ -305,6 +306,27 @@ def test_a_decreasing_cycle_counter_is_logged_and_its_passes_written_beside_the_
     assert any("decreased" in r.getMessage() and "1002" in r.getMessage() and "1001" in r.getMessage()
                for r in caplog.records)
     assert_archives_match_device(report, server)
+
+
+def test_every_pass_of_a_cycle_scanned_again_after_the_counter_went_back_is_named_apart(tmp_path):
+    """Map section 12.1: to measure the two scans of one number, one scan's files are moved out; so every pass
+    of the second scan gets the unique name, also a height whose usual name the first scan left free."""
+    device = RigController(dataclasses.replace(FAST_DEVICE, cycle_interval_s=1e9))
+
+    def longwall(server):  # 1001 (one height, then pushed) -> 1002 -> back to 1001
+        for passes, value in ((1, 1002), (3, 1001)):
+            deadline = time.monotonic() + 20.0
+            while len(server.snapshot()["completed_passes"]) < passes and time.monotonic() < deadline:
+                time.sleep(0.02)
+            with server.lock:
+                server.controller.cycle_counter = value
+
+    with RigServer(device, LOOPBACK, 0) as server:
+        threading.Thread(target=longwall, args=(server,), daemon=True).start()
+        report = run_session(settings_for(server, tmp_path, cycles=3))
+    rescan = [Path(p).name for p in report.passes_written if archive.read_pass_header(p)["cycle"] == 1001][1:]
+    assert len(rescan) == 2, report.passes_written
+    assert all(re.search(r"_b[0-9A-F]{8}_p\d+\.h5$", n) for n in rescan), rescan
 
 
 class _ShortPassOnce(RigController):

@@ -96,3 +96,12 @@ def test_every_command_refuses_an_output_under_a_file_naming_the_file_and_writes
     err = capsys.readouterr().err
     assert f"{blocker} is not a directory" in err and "Traceback" not in err
     assert blocker.read_text() == "x" and sorted(p.name for p in tmp_path.iterdir()) == ["afile", "rec.p440"]
+
+
+def test_a_negative_number_in_scientific_notation_is_a_value_not_an_option():
+    from uwbcl.cli import build_parser
+
+    args = build_parser().parse_args(["import", "p440", "x.p440", "--out", "o", "--pulse-window-m", "-2e-1",
+                                      "3e-1", "--range-delay-s", "-1e-9", "--time-offset-s", "-3.4e3"])
+    assert args.pulse_window_m == [-0.2, 0.3]
+    assert args.range_delay_s == -1e-9 and args.time_offset_s == -3400.0

@@ -279,3 +279,12 @@ def test_save_image_writes_the_complex_image_whose_peaks_are_the_detections_of_d
     assert abs(az[i] - float(strongest["image_azimuth_m"])) <= abs(az[1] - az[0])
     assert abs(rg[k] - float(strongest["image_range_m"])) <= abs(rg[1] - rg[0])
     assert np.abs(image[i, k]) == pytest.approx(float(strongest["amplitude"]), rel=0.05)
+
+
+def test_focus_applies_the_site_files_limits(single_pass, tmp_path, capsys):
+    path, scan = single_pass
+    site = tmp_path / "site.toml"
+    site.write_text(f"[limits]\nmax_echo_samples = {scan.n_pulses * scan.samples_per_pulse - 1}\n")
+    assert main(["focus", str(path), "--out", str(tmp_path / "out"), "--backend", "numpy",
+                 "--config", str(site)]) == 1
+    assert "(limits.max_echo_samples)" in capsys.readouterr().err

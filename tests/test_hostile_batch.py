@@ -101,6 +101,15 @@ def test_a_string_attribute_of_megabytes_is_refused_by_name_and_never_quoted_who
     assert (out / "errors.csv").stat().st_size < 10_000
 
 
+def test_the_string_limit_counts_utf8_bytes_not_characters(archive_dir, tmp_path):
+    path = tmp_path / "a.h5"
+    shutil.copy(a_pass(archive_dir), path)
+    with h5py.File(path, "r+") as f:
+        f.attrs["pass_id"] = "\u00e9" * 3000  # 3000 characters, 6000 bytes of UTF-8
+    with pytest.raises(archive.ArchiveError, match="/@pass_id: a string of 6000 bytes"):
+        archive.read_pass_header(path)
+
+
 def test_an_in_tree_external_link_between_two_passes_is_refused_and_the_rest_processed(tree, clean):
     src, out = tree
     first, second = sorted(src.rglob("*.h5"))[:2]

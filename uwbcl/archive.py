@@ -821,7 +821,9 @@ MAX_STRING_ATTR_BYTES = 4096
 
 
 def _short_string(value: Any, obj: h5py.HLObject, name: str, path: Any) -> None:
-    n = len(value) if isinstance(value, (bytes, str)) else 0
+    if isinstance(value, str):
+        value = value.encode("utf-8", errors="surrogatepass")
+    n = len(value) if isinstance(value, bytes) else 0  # bytes, as stored: not characters
     if n > MAX_STRING_ATTR_BYTES:
         raise ArchiveError(path, f"{obj.name}@{name}", f"a string of {n} bytes, more than the "
                            f"{MAX_STRING_ATTR_BYTES} a string attribute may hold (docs/archive-format.md)")

@@ -10,6 +10,7 @@ import json
 import logging
 import math
 import os
+import re
 import signal
 import sys
 from pathlib import Path
@@ -626,12 +627,20 @@ def _add_import_commands(sub) -> None:
         r.set_defaults(func=_import)
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, reading a negative number in scientific notation (`--range-delay-s -1e-9`,
+    `--pulse-window-m -2e-1 3e-1`) as a value, as it reads -0.2, not as an unknown option."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="uwbcl",
-                                description="UWB SAR measurement of longwall retreat and creep.")
+    p = _Parser(prog="uwbcl", description="UWB SAR measurement of longwall retreat and creep.")
     p.add_argument("--version", action="version", version=f"uwbcl {__version__}")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
-    sub = p.add_subparsers(dest="command", required=True)
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     s = sub.add_parser("simulate", help="write the scan archives of a simulated scenario and its truth.json")
     s.add_argument("out_dir")

@@ -221,7 +221,7 @@ def focus_one(path: Path, png: Path, settings: ProcessingSettings, label: str,
     """Read, focus and detect one pass, measure its detections and write its PNG, and with `image_h5` its
     complex image (`write_image_h5`) (ArchiveError, OSError, ValueError for a pass that cannot be read or
     focused)."""
-    scan = archive.read_pass(path)
+    scan = archive.read_pass(path, settings.limits)
     products, detections = pipeline.focus_pass(scan, settings)
     if image_h5 is not None:
         write_image_h5(image_h5, scan, products, settings, label)

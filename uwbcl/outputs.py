@@ -638,7 +638,7 @@ def plot_cycle_images(plot_dir: Path, groups: dict, in_dir: Path, settings,
                     shutil.copy2(carried_from / name, path)
                     continue
             plt = plt or _pyplot()
-            scan = archive.read_pass(in_dir / rec.file)
+            scan = archive.read_pass(in_dir / rec.file, settings.limits)
             prod = pipeline.focus_only(scan, settings)
             if settings.algorithm == "bp":
                 az, rg = prod.u_axis_m, prod.r_axis_m

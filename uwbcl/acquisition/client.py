@@ -511,7 +511,10 @@ class AcquisitionSession:
         self._result_seq: int | None = None  # continues from the controller's RESULT_SEQ (map 5.3)
         self._to_publish: collections.deque[dict] = collections.deque()  # results waiting for RESULT_HOLD_S
         self._published_at = -math.inf  # time.monotonic() of the last RESULT written
-        self._unwritten: collections.deque[tuple] = collections.deque()  # (name, scan, pass id, unique)
+        # (name, scan, pass id, unique, plain name allowed)
+        self._unwritten: collections.deque[tuple] = collections.deque()
+        self._highest_cycle: int | None = None  # the highest cycle number scanned in this session
+        self._rescan = False  # the cycle being scanned has a number scanned before (a counter that went back)
         self._unwritten_tried_at = -math.inf
         self._late: set[str] = set()  # passes of _unwritten whose write failed at least once
         self._refused: set[str] = set()  # passes the archive refused (never written, not processed)
@@ -537,8 +540,8 @@ class AcquisitionSession:
             self.report.interrupted = True
             if self._current_pass is not None:
                 log.warning("stopping: shutdown requested; pass %s abandoned (%s), not written",
-                            self._current_pass, "aborted on the rig" if self._active_token is not None
-                            else "not started")
+                            self._current_pass, "an ABORT is sent to the rig, if it answers"
+                            if self._active_token is not None else "not started")
             else:
                 log.warning("stopping: shutdown requested; no pass was in progress")
             self._abort_quietly()
@@ -689,6 +692,11 @@ class AcquisitionSession:
                                 "(its archives are named so that they cannot replace earlier ones)", last,
                                 cycle, cycle)
                 last = cycle
+                # a number at or below the highest scanned (modulo 2^32): every pass of this scan is named
+                # apart from the first scan's, so one scan's files can be moved out whole (map section 12.1)
+                self._rescan = self._highest_cycle is not None and R.seq_diff(cycle, self._highest_cycle) <= 0
+                if not self._rescan:
+                    self._highest_cycle = cycle
                 try:
                     pending = self._scan_cycle(cycle)
                 except Interrupted:  # stopped mid-cycle: the report says this cycle was not completed
@@ -713,9 +721,9 @@ class AcquisitionSession:
             return
         self._unwritten_tried_at = time.monotonic()
         while self._unwritten:
-            name, scan, pass_id, unique = self._unwritten[0]
+            name, scan, pass_id, unique, plain = self._unwritten[0]
             try:
-                path = write_scan(self.out, scan, pass_id, unique=unique)
+                path = write_scan(self.out, scan, pass_id, unique=unique, plain=plain)
             except OSError as exc:
                 self._late.update(n for n, *_ in self._unwritten)
                 log.warning("%d passes wait for the archive directory (%s)", len(self._unwritten), exc)
@@ -730,8 +738,9 @@ class AcquisitionSession:
             self.report.passes_written.append(str(path))
             if path.name != archive.default_relative_path(scan).name:
                 self.link.counts.names_taken += 1
-                log.warning("pass %s: the usual archive name was taken (cycle %d acquired before); written "
-                            "as %s", name, scan.cycle, path.name)
+                log.warning("pass %s: %s; written as %s", name, "the usual archive name was taken (cycle "
+                            f"{scan.cycle} acquired before)" if plain else f"cycle {scan.cycle} was scanned "
+                            "before in this session (the counter went back): named apart", path.name)
             if name in self._late:
                 self._late.discard(name)
                 log.warning("pass %s: written late to %s", name, path)
@@ -788,7 +797,7 @@ class AcquisitionSession:
                     log.error("pass %s lost: %d unwritten passes already wait", name, len(self._unwritten))
                     break
                 # one way to the archive: queued behind any pass still waiting (order kept), written now
-                self._unwritten.append((name, scan, pass_id, f"b{boot:08X}_p{token}"))
+                self._unwritten.append((name, scan, pass_id, f"b{boot:08X}_p{token}", not self._rescan))
                 self._write_unwritten(force=True)
                 if name in self._refused:  # named as lost by _write_unwritten
                     break

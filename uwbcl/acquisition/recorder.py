@@ -183,12 +183,14 @@ class PassAssembler:
         return scan
 
 
-def write_scan(out_dir: Path, scan: ScanPass, pass_id: str, unique: str) -> Path:
+def write_scan(out_dir: Path, scan: ScanPass, pass_id: str, unique: str, plain: bool = True) -> Path:
     """Write the pass atomically under its archive path. If that name is taken (a cycle counter that went
-    back, a pass acquired twice), the name gets `_<unique>` (the controller's boot id and pass token), then
+    back, a pass acquired twice), or not `plain` (a cycle number scanned again in this session: every pass of
+    the second scan named apart), the name gets `_<unique>` (the controller's boot id and pass token), then
     `_2`, `_3`, ...: a whole pass is never dropped for its name, and never overwrites another."""
     path = Path(out_dir) / archive.default_relative_path(scan)
-    candidates = [path, path.with_name(f"{path.stem}_{unique}{path.suffix}")]
+    candidates = [path] if plain else []
+    candidates.append(path.with_name(f"{path.stem}_{unique}{path.suffix}"))
     candidates += [path.with_name(f"{path.stem}_{unique}_{k}{path.suffix}") for k in range(2, 1000)]
     for candidate in candidates:
         try:
