@@ -284,21 +284,27 @@ def test_the_cycle_counter_and_cmd_seq_wrap_at_the_boundary(tmp_path):
 # ============================================================================================== item 4
 
 
-def test_a_decreasing_cycle_counter_is_logged_and_its_passes_written_beside_the_earlier_ones(
-        tmp_path, caplog):
-    device = RigController(dataclasses.replace(FAST_DEVICE, cycle_interval_s=1e9))
+def _set_counter_after(server, schedule) -> None:
+    """The longwall, in a thread: CYCLE_COUNTER set to each value once that many passes are complete."""
 
-    def longwall(server):  # 1001 -> 1002 -> back to 1001 (a reset of the longwall control system)
-        for passes, value in ((2, 1002), (4, 1001)):
+    def longwall():
+        for passes, value in schedule:
             deadline = time.monotonic() + 20.0
             while len(server.snapshot()["completed_passes"]) < passes and time.monotonic() < deadline:
                 time.sleep(0.02)
             with server.lock:
                 server.controller.cycle_counter = value
 
+    threading.Thread(target=longwall, daemon=True).start()
+
+
+def test_a_decreasing_cycle_counter_is_logged_and_its_passes_written_beside_the_earlier_ones(
+        tmp_path, caplog):
+    device = RigController(dataclasses.replace(FAST_DEVICE, cycle_interval_s=1e9))
     caplog.set_level(logging.WARNING, logger="uwbcl.acquire")
     with RigServer(device, LOOPBACK, 0) as server:
-        threading.Thread(target=longwall, args=(server,), daemon=True).start()
+        # 1001 -> 1002 -> back to 1001 (a reset of the longwall control system)
+        _set_counter_after(server, ((2, 1002), (4, 1001)))
         report = run_session(settings_for(server, tmp_path, cycles=3))
     assert report.ok and len(report.passes_written) == 6, report
     assert len(set(report.passes_written)) == 6 and len(archive.find_pass_files(tmp_path)) == 6
@@ -312,17 +318,8 @@ def test_every_pass_of_a_cycle_scanned_again_after_the_counter_went_back_is_name
     """Map section 12.1: to measure the two scans of one number, one scan's files are moved out; so every pass
     of the second scan gets the unique name, also a height whose usual name the first scan left free."""
     device = RigController(dataclasses.replace(FAST_DEVICE, cycle_interval_s=1e9))
-
-    def longwall(server):  # 1001 (one height, then pushed) -> 1002 -> back to 1001
-        for passes, value in ((1, 1002), (3, 1001)):
-            deadline = time.monotonic() + 20.0
-            while len(server.snapshot()["completed_passes"]) < passes and time.monotonic() < deadline:
-                time.sleep(0.02)
-            with server.lock:
-                server.controller.cycle_counter = value
-
     with RigServer(device, LOOPBACK, 0) as server:
-        threading.Thread(target=longwall, args=(server,), daemon=True).start()
+        _set_counter_after(server, ((1, 1002), (3, 1001)))  # 1001 (one height, then pushed) -> 1002 -> 1001
         report = run_session(settings_for(server, tmp_path, cycles=3))
     rescan = [Path(p).name for p in report.passes_written if archive.read_pass_header(p)["cycle"] == 1001][1:]
     assert len(rescan) == 2, report.passes_written
