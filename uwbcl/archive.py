@@ -830,16 +830,7 @@ def _short_string(value: Any, obj: h5py.HLObject, name: str, path: Any) -> None:
 
 
 def _str_attr(obj: h5py.HLObject, name: str, path: Any) -> str:
-    value = _scalar(obj, name, path).item()
-    _short_string(value, obj, name, path)
-    if isinstance(value, bytes):
-        try:
-            value = value.decode("utf-8")
-        except UnicodeDecodeError:
-            raise ArchiveError(path, f"{obj.name}@{name}", "not valid UTF-8") from None
-    if not isinstance(value, str):
-        raise ArchiveError(path, f"{obj.name}@{name}", f"expected a string, got {type(value).__name__}")
-    return value
+    return _text(obj, name, path, lenient=False)
 
 
 # Descriptive text no value depends on: read whatever a writer stored (an empty dataspace, as h5py.Empty
@@ -849,15 +840,22 @@ _FREE_TEXT = ("created_by",)
 
 
 def _free_text_attr(obj: h5py.HLObject, name: str, path: Any) -> str:
-    raw = _raw_attr(obj, name, path)
-    if isinstance(raw, h5py.Empty):
+    if isinstance(_raw_attr(obj, name, path), h5py.Empty):
         return ""
+    return _text(obj, name, path, lenient=True)
+
+
+def _text(obj: h5py.HLObject, name: str, path: Any, lenient: bool) -> str:
+    """A scalar string attribute, at most MAX_STRING_ATTR_BYTES; bytes that are not UTF-8 refused, or with
+    `lenient` read with replacement characters and a warning."""
     value = _scalar(obj, name, path).item()
     _short_string(value, obj, name, path)
     if isinstance(value, bytes):
         try:
             value = value.decode("utf-8")
         except UnicodeDecodeError:
+            if not lenient:
+                raise ArchiveError(path, f"{obj.name}@{name}", "not valid UTF-8") from None
             value = value.decode("utf-8", errors="replace")
             _warn_once("%s: %s@%s is not UTF-8 text; read with replacement characters (descriptive only)",
                        path, obj.name, name)
