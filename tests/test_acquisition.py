@@ -842,3 +842,17 @@ def test_a_pass_cut_by_a_cycle_change_counts_as_an_incomplete_attempt(tmp_path):
         report = run_session(settings_for(server, tmp_path, cycles=2))
     assert device.pushed
     assert any("cycle superseded" in line for line in report.passes_incomplete), report.passes_incomplete
+
+
+def test_a_controller_whose_every_reply_arrives_damaged_is_said_to_answer_damaged_not_to_be_silent(
+        tmp_path, caplog):
+    # map section 9: DAMAGED, then the request fails (REFUSED): a corrupting cable, not a silent controller
+    stop, damaging = threading.Event(), parse_faults("corrupt=1.0,seed=4")
+    with RigServer(RigController(FAST_DEVICE), LOOPBACK, 0, faults=damaging) as server, \
+            caplog.at_level(logging.WARNING, logger="uwbcl"):
+        session = AcquisitionSession(settings_for(server, tmp_path, reconnect_max_s=0.2), stop=stop)
+        threading.Timer(4.0, stop.set).start()
+        report = session.run()
+    assert "answering, but STATUS: 10 replies in a row damaged (CRC)" in caplog.text
+    assert "not answering" not in caplog.text
+    assert report.faults.requests_failed >= 1 and not report.passes_written

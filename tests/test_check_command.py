@@ -40,6 +40,17 @@ def test_check_names_the_cycles_missing_between_a_rigs_first_and_last(archive_di
     assert "rig rig-1: 4 passes, 2 cycles (0-2, none of cycle 1), 2 usable" in capsys.readouterr().out
 
 
+def test_check_counts_the_missing_cycles_beyond_the_ten_it_names(archive_dir, tmp_path, capsys):
+    src = tmp_path / "in"
+    shutil.copytree(archive_dir, src)
+    for f in pass_files(src):
+        if "_c000002_" in f.name:
+            with h5py.File(f, "r+") as h:
+                h.attrs["cycle"] = 20  # cycles 2-19 never scanned
+    main(["check", str(src)])
+    assert "none of cycles 2, 3, 4, 5, 6, 7, 8, 9, 10, 11 ... (18 in all)" in capsys.readouterr().out
+
+
 def test_check_finds_the_problems_process_reports_and_exits_1(archive_dir, tmp_path, capsys):
     src = tmp_path / "in"
     shutil.copytree(archive_dir, src)

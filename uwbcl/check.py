@@ -164,7 +164,8 @@ def rig_lines(report: CheckReport, options: BatchOptions | None = None) -> list[
         gaps = (sorted(set(range(cycles[0], cycles[-1] + 1)) - set(cycles)) if cycles[-1] - cycles[0] < 10**6
                 else [])
         missing = (f", none of cycle{'s' if len(gaps) > 1 else ''} "
-                   f"{', '.join(map(str, gaps[:10]))}{' ...' if len(gaps) > 10 else ''}" if gaps else "")
+                   f"{', '.join(map(str, gaps[:10]))}{f' ... ({len(gaps)} in all)' if len(gaps) > 10 else ''}"
+                   if gaps else "")
         out += [
             f"rig {rig}: {len(ps)} passes, {len(cycles)} cycles ({cycles[0]}-{cycles[-1]}{missing}), "
             f"{len(usable)} usable (two or more heights that agree)",

@@ -262,6 +262,7 @@ class RigLink:
         while not self.client.connected:
             if self.stop.is_set():
                 raise Interrupted()
+            why = "not answering"
             if self.client.connect():
                 # every connection after the first is a reconnect, also one whose set-up reads then failed
                 # (counted); the log says so only of one that got through them (a booting controller may
@@ -272,8 +273,12 @@ class RigLink:
                 try:
                     status = self._read_block_once(R.STATUS)
                     identity, radar = self._describe_once()
-                except (_NoReply, LinkDown):
+                except _NoReply:
                     log.debug("connection to %s:%d dropped before its set-up reads", self.host, self.port)
+                    self.client.close()
+                except LinkDown as exc:  # it answers, but every reply arrives damaged (a cable, EMI)
+                    self.counts.requests_failed += 1
+                    why = f"answering, but {exc}"
                     self.client.close()
                 else:
                     if again:
@@ -287,8 +292,8 @@ class RigLink:
                         log.warning("fault: controller rebooted (BOOT_ID now 0x%08X)", self.boot_id)
                         raise DeviceRebooted()
                     return
-            log.log(logging.WARNING if delay >= 0.4 else logging.DEBUG,
-                    "fault: %s:%d not answering; retrying in %.2f s", self.host, self.port, delay)
+            log.log(logging.WARNING if delay >= 0.4 or why != "not answering" else logging.DEBUG,
+                    "fault: %s:%d %s; retrying in %.2f s", self.host, self.port, why, delay)
             self.sleep(delay * (0.8 + 0.4 * self._jitter.random()))
             delay = min(2.0 * delay, self.reconnect_max_s)
 
@@ -403,7 +408,8 @@ class RigLink:
             except R.RegisterError as exc:
                 self.counts.corrupt += 1
                 log.warning("fault: %s", exc)
-        raise LinkDown(f"{block.name}: no trustworthy reply while connecting")
+        raise LinkDown(f"{block.name}: {self.MAX_CRC_RETRIES} replies in a row damaged (CRC) or refused "
+                       "while connecting")
 
     def read_block(self, block: R.Block) -> dict:
         for _ in range(self.MAX_CRC_RETRIES):
