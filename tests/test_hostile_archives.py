@@ -211,3 +211,34 @@ def test_tighter_limits_refuse_a_pass_the_defaults_accept(good):
     read_pass(good)
     with pytest.raises(ArchiveError, match="max_echo_samples"):
         read_pass(good, ReadLimits(max_echo_samples=100))
+
+
+@pytest.mark.parametrize("short", [4096, 246_000])
+def test_a_deflate_chunk_that_inflates_short_without_a_checksum_is_refused_not_read_as_zeros(good, short):
+    """HDF5 fills the rest of a chunk whose deflate stream ends early with zeros, or with whatever its buffer
+    held (different on every read), without an error; the format allows gzip without Fletcher-32."""
+    import zlib
+
+    def truncated_stream(f):
+        echo = f["echo"][()]
+        attrs = dict(f["echo"].attrs)
+        del f["echo"]
+        ds = f.create_dataset("echo", shape=echo.shape, dtype=echo.dtype, chunks=echo.shape,
+                              compression="gzip")
+        raw = echo.tobytes()
+        ds.id.write_direct_chunk((0,) * echo.ndim, zlib.compress(raw[:max(8, len(raw) - short)]))
+        ds.attrs.update(attrs)
+
+    bad = copy_with(good, good.with_name("short.h5"), truncated_stream)
+    refused(bad, "/echo", "inflates to")
+    # the same dataset, whole, reads: gzip without a checksum is legal
+    whole = copy_with(good, good.with_name("whole.h5"), lambda f: _regzip(f, zlib))
+    assert read_pass(whole).echo.shape == read_pass(good).echo.shape
+
+
+def _regzip(f, zlib):
+    echo, attrs = f["echo"][()], dict(f["echo"].attrs)
+    del f["echo"]
+    ds = f.create_dataset("echo", shape=echo.shape, dtype=echo.dtype, chunks=echo.shape, compression="gzip")
+    ds.id.write_direct_chunk((0,) * echo.ndim, zlib.compress(echo.tobytes()))
+    ds.attrs.update(attrs)

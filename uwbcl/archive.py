@@ -21,6 +21,7 @@ import logging
 import math
 import os
 import stat
+import zlib
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, NoReturn
@@ -636,9 +637,44 @@ def _check_echo_storage(path: Any, ds: h5py.Dataset, layout: str) -> None:
 
 def _read_values(f: h5py.File, path: Any, name: str) -> np.ndarray:
     try:
-        return f[name][()]
+        ds = f[name]
+        _check_deflate_chunks(path, ds)
+        return ds[()]
+    except ArchiveError:
+        raise
     except (OSError, RuntimeError, ValueError, TypeError) as e:  # checksum, filter or I/O failure
         raise ArchiveError(path, name, f"cannot read data (corrupt or truncated?): {e}") from e
+
+
+_DEFLATE, _FLETCHER32 = 1, 3  # HDF5 filter codes (ALLOWED_FILTERS)
+
+
+def _check_deflate_chunks(path: Any, ds: h5py.Dataset) -> None:
+    """ArchiveError for a deflate-compressed chunk, without Fletcher-32, that does not inflate to exactly its
+    chunk's size: HDF5 reads a stream that ends early without an error, the rest of the chunk as zeros or as
+    whatever its buffer held (different on every read). Only where deflate is the pipeline's last filter (the
+    first undone on reading); with Fletcher-32 HDF5 itself refuses damaged chunks."""
+    if ds.chunks is None:
+        return
+    dcpl = ds.id.get_create_plist()
+    codes = [dcpl.get_filter(i)[0] for i in range(dcpl.get_nfilters())]
+    if not codes or codes[-1] != _DEFLATE or _FLETCHER32 in codes:
+        return
+    want = math.prod(ds.chunks) * ds.dtype.itemsize
+    skipped = 1 << (len(codes) - 1)  # the chunk's filter mask: deflate not applied to it
+    for i in range(ds.id.get_num_chunks()):
+        offset = ds.id.get_chunk_info(i).chunk_offset
+        mask, raw = ds.id.read_direct_chunk(offset)
+        if mask & skipped:
+            continue
+        inflate = zlib.decompressobj()
+        try:
+            size = len(inflate.decompress(raw, want + 1))
+        except zlib.error as e:
+            raise ArchiveError(path, ds.name, f"chunk at {list(offset)}: bad compressed data ({e})") from None
+        if size != want or not inflate.eof:
+            raise ArchiveError(path, ds.name, f"chunk at {list(offset)}: inflates to {size} bytes, not its "
+                               f"{want} (a truncated or damaged compressed stream)")
 
 
 # ----------------------------------------------------------------------------------------------- checks
