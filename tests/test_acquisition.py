@@ -856,3 +856,25 @@ def test_a_controller_whose_every_reply_arrives_damaged_is_said_to_answer_damage
     assert "answering, but STATUS: 10 replies in a row damaged (CRC)" in caplog.text
     assert "not answering" not in caplog.text
     assert report.faults.requests_failed >= 1 and not report.passes_written
+
+
+class _TableOff(RigController):
+    """The table settles 1 deg from every commanded angle (PASS.TABLE_ANGLE says so)."""
+
+    def read(self, now, table, address, count):
+        regs = super().read(now, table, address, count)
+        if table is R.Table.INPUT and address == R.PASS.address and self.pass_ is not None:
+            full = [0] * R.PASS.address + regs
+            angle = R.PASS.decode(full[R.PASS.address:R.PASS.address + R.PASS.length])["TABLE_ANGLE"]
+            regs = _patch_block(full, R.PASS, TABLE_ANGLE=angle + 1.0)[R.PASS.address:]
+        return regs
+
+
+def test_a_table_angle_off_its_command_is_said_and_the_pass_archived_at_the_rigs_angle(tmp_path, caplog):
+    with RigServer(_TableOff(FAST_DEVICE), LOOPBACK, 0) as server, \
+            caplog.at_level(logging.WARNING, logger="uwbcl"):
+        report = run_session(settings_for(server, tmp_path))
+    assert len(report.passes_written) == 2
+    assert caplog.text.count("deg from the 30.000 deg commanded; archived at the rig's") == 2
+    assert all(archive.read_pass_header(p)["rotation_table_angle_deg"] == pytest.approx(31.0)
+               for p in report.passes_written)

@@ -77,6 +77,7 @@ RESULT_HOLD_S = 1.0
 # written again, in order, every UNWRITTEN_RETRY_S while the session runs: the face has moved on, so such a
 # pass can never be acquired again. At most this many are kept (a few MB each); beyond, a pass is lost.
 MAX_UNWRITTEN_PASSES = 64
+TABLE_ANGLE_WARN_DEG = 0.1  # a table this far from the commanded angle is said (a fifth of process's 0.5 deg)
 UNWRITTEN_RETRY_S = 10.0
 
 
@@ -876,6 +877,14 @@ class AcquisitionSession:
             tol_mm = 1e3 * self.settings.height_tolerance_m
             raise PassIncomplete(f"PASS.HEIGHT is {desc['HEIGHT']:.4f} m, {1e3 * off_m:.1f} mm from the "
                                  f"{height_m:.4f} m commanded (tolerance {tol_mm:g} mm)")
+        commanded_deg = round(self.settings.rotation_table_angle_deg * 1e3) / 1e3  # as SET_TABLE_ANGLE sent
+        if abs(desc["TABLE_ANGLE"] - commanded_deg) > TABLE_ANGLE_WARN_DEG:
+            # archived at the angle the rig reports (it focuses the pass); a cycle's passes more than 0.5 deg
+            # apart are `mismatched_parameters` in `uwbcl process`, so say it now, where the rig can be fixed
+            angle = desc["TABLE_ANGLE"]
+            log.warning("pass c%06d h%04d: PASS.TABLE_ANGLE is %.3f deg, %.3f deg from the %.3f deg "
+                        "commanded; archived at the rig's", cycle, round(height_m * 1000), angle,
+                        abs(angle - commanded_deg), commanded_deg)
         try:
             assembler = PassAssembler(desc, radar, self.settings.limits)
         except AbsurdValue:
