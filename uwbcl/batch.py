@@ -801,15 +801,14 @@ def _from_cache(files: list[Path], in_dir: Path, cache: PassCache, limits: ReadL
         rel = archive.display_name(path.relative_to(in_dir).as_posix())
         try:
             identity = file_identity(path)
-            if identity[2] > limits.max_file_bytes:  # never read end to end to hash it
-                reason = (f"{identity[2]} bytes, more than the limit of {limits.max_file_bytes} "
-                          "(limits.max_file_bytes): not read")
-                log.error("%s: %s", rel, reason)
-                problems.append(Problem(rel, "invalid_archive", f"/: {reason}"))
-                continue
+            archive.check_regular_file(path, limits)  # a file past max_file_bytes is never read to hash it
             sha = file_sha256(path)
             if file_identity(path) != identity:
                 raise OSError(CHANGED)
+        except archive.ArchiveError as e:
+            log.error("%s: %s: %s", rel, e.field, e.reason)
+            problems.append(Problem(rel, "invalid_archive", f"{e.field}: {e.reason}"))
+            continue
         except OSError as e:
             log.error("%s: cannot read: %s", rel, e.strerror or e)
             problems.append(Problem(rel, "unreadable", f"cannot read: {e.strerror or e}"))

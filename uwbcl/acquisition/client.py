@@ -495,6 +495,12 @@ class _DrainState:
     empty_after_end: int = 0
 
 
+def micrometres(height_m: float) -> int:
+    """A height as the registers carry it (MOVE_HEIGHT's argument, PASS.HEIGHT, HEIGHT_MIN/MAX): whole
+    micrometres, so limits and tolerances compare as the rig does."""
+    return round(height_m * 1e6)
+
+
 def _state_name(state: int) -> str:
     return R.State(state).name if state in R.State._value2member_map_ else str(state)
 
@@ -629,8 +635,8 @@ class AcquisitionSession:
         if math.isfinite(lo) and math.isfinite(hi) and hi > lo:
             for h in self.settings.heights_m:
                 # in whole micrometres, as MOVE_HEIGHT sends it and the rig compares it with its limits
-                if not round(lo * 1e6) <= round(h * 1e6) <= round(hi * 1e6):
-                    raise DeviceRefused(f"MOVE_HEIGHT {round(h * 1e6)}: outside the rig's range (height "
+                if not micrometres(lo) <= micrometres(h) <= micrometres(hi):
+                    raise DeviceRefused(f"MOVE_HEIGHT {micrometres(h)}: outside the rig's range (height "
                                         f"{h:g} m, RADAR HEIGHT_MIN..HEIGHT_MAX {lo:g}..{hi:g} m; check "
                                         f"heights)")
         table_max = radar["TABLE_MAX"]
@@ -839,26 +845,28 @@ class AcquisitionSession:
 
     # ------------------------------------------------------------------------------------------ one pass
 
+    def _not_stopping(self) -> None:
+        """Interrupted once a stop was requested: no motion and no pass is started after it."""
+        if self.stop.is_set():
+            raise Interrupted()
+
     def _run_pass(self, cycle: int, height_m: float):
         """One attempt: returns (scan, token, boot id), the scan carrying the IDENTITY and RADAR the
         controller had for the whole pass; PassIncomplete (or a subclass), DeviceRebooted or LinkDown
         otherwise."""
         self._started = None  # the token of this attempt's pass once START_PASS was sent
-        if self.stop.is_set():  # a stop request never starts motion or a pass
-            raise Interrupted()
+        self._not_stopping()
         status = self._status()
         if status["CYCLE_COUNTER"] != cycle:
             raise CycleSuperseded(status["CYCLE_COUNTER"])
         self._adopt_description()
         boot, identity, radar, rig_id = self.link.boot_id, self.identity, self.radar, self.rig_id
         self._make_idle(status, cycle)
-        if self.stop.is_set():
-            raise Interrupted()
-        self._command(R.Command.MOVE_HEIGHT, round(height_m * 1e6), cycle=cycle)
-        self._command(R.Command.SET_TABLE_ANGLE, round(self.settings.rotation_table_angle_deg * 1e3),
-                      cycle=cycle)
-        if self.stop.is_set():
-            raise Interrupted()
+        self._not_stopping()
+        self._command(R.Command.MOVE_HEIGHT, micrometres(height_m), cycle=cycle)
+        angle_mdeg = round(self.settings.rotation_table_angle_deg * 1e3)  # SET_TABLE_ANGLE's argument
+        self._command(R.Command.SET_TABLE_ANGLE, angle_mdeg, cycle=cycle)
+        self._not_stopping()
         self._token = self._token % 2_000_000_000 + 1
         token = self._token
         self._command(R.Command.START_PASS, token, wait=False)
@@ -872,12 +880,12 @@ class AcquisitionSession:
                 self._abort_quietly()
                 raise CycleSuperseded(counter)
             raise PassIncomplete(f"PASS.CYCLE is {desc['CYCLE']}, not the cycle {cycle} CYCLE_COUNTER shows")
-        off_m = abs(round(desc["HEIGHT"] * 1e6) - round(height_m * 1e6)) * 1e-6  # as the registers hold them
-        if round(off_m * 1e6) > round(self.settings.height_tolerance_m * 1e6):
+        off_um = abs(micrometres(desc["HEIGHT"]) - micrometres(height_m))  # as the registers hold them
+        if off_um > micrometres(self.settings.height_tolerance_m):
             tol_mm = 1e3 * self.settings.height_tolerance_m
-            raise PassIncomplete(f"PASS.HEIGHT is {desc['HEIGHT']:.4f} m, {1e3 * off_m:.1f} mm from the "
+            raise PassIncomplete(f"PASS.HEIGHT is {desc['HEIGHT']:.4f} m, {1e-3 * off_um:.1f} mm from the "
                                  f"{height_m:.4f} m commanded (tolerance {tol_mm:g} mm)")
-        commanded_deg = round(self.settings.rotation_table_angle_deg * 1e3) / 1e3  # as SET_TABLE_ANGLE sent
+        commanded_deg = angle_mdeg / 1e3
         if abs(desc["TABLE_ANGLE"] - commanded_deg) > TABLE_ANGLE_WARN_DEG:
             # archived at the angle the rig reports (it focuses the pass); a cycle's passes more than 0.5 deg
             # apart are `mismatched_parameters` in `uwbcl process`, so say it now, where the rig can be fixed
@@ -917,8 +925,7 @@ class AcquisitionSession:
         now = time.monotonic()
         d = _DrainState(last_progress=now, last_status=now)
         while True:
-            if self.stop.is_set():
-                raise Interrupted()
+            self._not_stopping()
             self._check_watchdog(asm, d)
             try:  # a wrong-length reply (_Corrupt) to the first read is damage as much as a bad CRC
                 first = self.link.read(R.Table.INPUT, R.WINDOW_ADDRESS,
