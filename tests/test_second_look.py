@@ -300,3 +300,41 @@ def test_every_trusted_cumulative_is_its_references_plus_its_own_advance_through
                     checked += 1
                 joined += any(r.revision and r.chain == 0 for r in rows)
     assert checked > 500 and joined > 10
+
+
+def _issued(row):
+    d = row.displacement
+    values = np.concatenate([d.advance_m, d.bound_m, row.cumulative_m, row.cumulative_bound_m])
+    return row.cycle.cycle, row.reference.cycle, d.status, values.tobytes(), row.chain, row.revision
+
+
+def test_a_live_chain_that_forgets_what_no_later_cycle_consults_stays_small_and_issues_the_same_rows():
+    """`uwbcl acquire --process` runs for months: its chain keeps only what later cycles can consult
+    (`RigChain.forget` after every cycle), and every row it issues or re-issues is the whole chain's."""
+    compared = restarts = reserved = 0
+    for seed, sigma in ((300, 0.004), (301, 0.004), (302, 0.004), (303, 0.008), (304, 0.008), (305, 0.008)):
+        for settings in (BLIND, PRIOR):
+            cycles, _ = noisy_cycles(45, seed=seed, window=(0.0, 2.0), sigma=sigma)
+            whole, live_chain = chain.RigChain(settings), chain.RigChain(settings)
+            longest = 0
+            for c in cycles:
+                rows = [whole.add(c), *whole.revised]
+                kept = [live_chain.add(c), *live_chain.revised]
+                live_chain.forget()
+                assert [None if r is None else _issued(r) for r in kept] == \
+                    [None if r is None else _issued(r) for r in rows]
+                compared += len(rows)
+                # what the rows depend on: the rejoin's witnesses and the reserve row
+                for r in whole.rows:
+                    if r.displacement.status == "ok" and r.chain == whole._chain:
+                        probe = (chain._step_per_cycle(r), np.full(3, 1e-9))  # its own witness only
+                        assert (live_chain._confirmed(probe) is None) == (whole._confirmed(probe) is None)
+                if whole._reserve is not None:
+                    reserved += 1
+                    assert live_chain.rows[live_chain._reserve[0]] is not None and \
+                        live_chain.rows[live_chain._reserve[0]].cycle is whole.rows[whole._reserve[0]].cycle
+                longest = max(longest, len(live_chain.rows), len(live_chain._covs))
+            restarts += max(r.chain for r in whole.rows)
+            bound = 2 * (chain.LEARN_PAIRS + chain.DEFAULT_MAX_BRIDGE_CYCLES)
+            assert len(whole.rows) == 44 and longest <= bound
+    assert compared > 500 and restarts > 0 and reserved > 0  # restarts, joins and a reserve exercised

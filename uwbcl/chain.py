@@ -252,6 +252,8 @@ class RigChain:
         # +1 / -1 per ok row whose carrier phases were tested with spare looks (eq. M8): held / did not. Kept
         # across chain restarts: whether a rig's plates keep their phase is the site's, not the chain's.
         self._phase_checks: list[int] = []
+        # per chain number, the per-cycle advance of the ok rows `forget` dropped: `_confirmed`'s witnesses
+        self._forgotten_steps: dict[int, list[np.ndarray]] = {}
 
     def motion(self) -> tuple[np.ndarray, np.ndarray] | None:
         """(median per-cycle step, its per-cycle standard deviation) of the last MOTION_HISTORY ok steps (m),
@@ -668,8 +670,9 @@ class RigChain:
             return None
         step, sigma = learned
         witnesses = [] if self._learned is None else [self._learned[0]]
-        witnesses += [r.displacement.advance_m / (r.cycle.cycle - r.reference.cycle) for r in self.rows
-                      if r.chain == self._chain and r.displacement.status == "ok"]
+        witnesses += self._forgotten_steps.get(self._chain, [])
+        witnesses += [_step_per_cycle(r) for r in self.rows if r.chain == self._chain and
+                      r.displacement.status == "ok"]
         return learned if any(np.all(np.abs(w - step) <= 3.0 * sigma) for w in witnesses) else None
 
     def _extend_old_chain(self, links: list[tuple[CycleResult, CycleResult, Displacement]],
@@ -758,11 +761,44 @@ class RigChain:
             self._restart(cur)
         return row
 
+    def forget(self) -> None:
+        """Drop what no later cycle can consult: the rows and location covariances before the oldest cycle
+        the chain may still measure from or re-issue (its anchor and last members, the recent cycles of the
+        learned step, the anchor of a restart not yet joined; a cycle held in reserve is after the anchor),
+        and the motion, scale, vertical and phase histories beyond their windows. For `uwbcl acquire
+        --process`, which runs for months (a batch keeps every row: it writes them). The rows later cycles
+        give are those without it."""
+        if self._anchor is None:
+            return
+        keep = [self._anchor.cycle, *(c.cycle for c, _, _ in self._members),
+                *(c.cycle for c in self._history)]
+        if self._rejoin is not None:
+            keep.append(self._rejoin[0].cycle)
+        floor = min(keep)
+        n = next((k for k, r in enumerate(self.rows) if r.cycle.cycle >= floor), len(self.rows))
+        for r in self.rows[:n]:  # final: nothing re-issues or shifts a row before the floor
+            if r.displacement.status == "ok":
+                self._forgotten_steps.setdefault(r.chain, []).append(_step_per_cycle(r))
+        del self.rows[:n]
+        if self._reserve is not None:
+            index, *rest = self._reserve
+            self._reserve = (index - n, *rest)
+        self._covs = {c: cov for c, cov in self._covs.items() if c >= floor}
+        # only the current chain's witnesses, and the one before while a restart may still be joined to it
+        self._forgotten_steps = {k: v for k, v in self._forgotten_steps.items()
+                                 if k in (self._chain - 1, self._chain)}
+        del self._steps[:-MOTION_HISTORY], self._fits[:-SCALE_HISTORY]
+        del self._vertical[:-VERTICAL_HISTORY], self._phase_checks[:-PHASE_HISTORY]
+
     def _append(self, row: SeriesRow, restart: CycleResult | None = None) -> SeriesRow:
         self.rows.append(row)
         if restart is not None:
             self._restart(restart)
         return row
+
+
+def _step_per_cycle(row: SeriesRow) -> np.ndarray:
+    return row.displacement.advance_m / (row.cycle.cycle - row.reference.cycle)
 
 
 def rig_series(cycles: Sequence[CycleResult], association: AssociationSettings,

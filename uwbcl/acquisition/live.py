@@ -146,6 +146,7 @@ class LiveProcessor:
         for old in sorted(self._recent)[:-KEEP_CYCLES]:
             del self._recent[old]
         row = self._chain.add(located)
+        self._chain.forget()  # a service runs for months: only what later cycles can consult is kept
         if row is None:
             return [self._row(cycle, start_time, None, None, "reference", located=len(located.plates))]
         return [self._series_row(r) for r in (row, *self._chain.revised)]
