@@ -338,3 +338,24 @@ def test_a_live_chain_that_forgets_what_no_later_cycle_consults_stays_small_and_
             bound = 2 * (chain.LEARN_PAIRS + chain.DEFAULT_MAX_BRIDGE_CYCLES)
             assert len(whole.rows) == 44 and longest <= bound
     assert compared > 500 and restarts > 0 and reserved > 0  # restarts, joins and a reserve exercised
+
+
+def test_a_chain_that_starts_on_a_cycle_with_no_plates_counts_from_the_next_cycle_with_one_origin():
+    """One origin per chain (docs/outputs.md section 3): a restart that lands on an empty cycle, and an empty
+    first cycle, move the origin to the next cycle; the empty cycle's row is nan, not a second 0."""
+    cycles, rigs = noisy_cycles(12, seed=3)
+    empty = {0, 4, 5, 6}  # the rig's first cycle, and three in a row: max_bridge_cycles restarts on cycle 6
+    cycles = [dataclasses.replace(c, plates=[]) if c.cycle in empty else c for c in cycles]
+    rows = chain.rig_series(cycles, PRIOR)
+    by_cycle = {r.cycle.cycle: r for r in rows}
+    origins = {}
+    for r in rows:
+        if np.all(r.cumulative_m == 0) and np.all(r.cumulative_bound_m == 0):
+            assert r.chain not in origins, (r.chain, origins[r.chain], r.cycle.cycle)
+            origins[r.chain] = r.cycle.cycle
+    assert origins == {0: 1, 1: 7}
+    assert np.all(np.isnan(by_cycle[6].cumulative_m)) and by_cycle[6].chain == 1
+    for r in rows:  # every trusted cumulative counts from its chain's origin
+        if r.displacement.status == "ok" and np.all(np.isfinite(r.cumulative_m)):
+            np.testing.assert_allclose(r.cumulative_m[:2], (rigs[r.cycle.cycle] - rigs[origins[r.chain]])[:2],
+                                       atol=0.02)

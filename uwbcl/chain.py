@@ -705,7 +705,7 @@ class RigChain:
         anchor = self._anchor
         d = self._measure(anchor, cur)
         if not anchor.plates:  # nothing to measure from (an empty first cycle, or a restart on one)
-            return self._append(SeriesRow(cur, anchor, d, np.zeros(3), self._chain, np.zeros(3)), restart=cur)
+            return self._origin_after_empty(cur, anchor, d)
         if trusted(d):
             return self._extend(cur, anchor, d, self._anchor_cum, self._anchor_var)
         if self._reserve is not None:
@@ -789,6 +789,20 @@ class RigChain:
                                  if k in (self._chain - 1, self._chain)}
         del self._steps[:-MOTION_HISTORY], self._fits[:-SCALE_HISTORY]
         del self._vertical[:-VERTICAL_HISTORY], self._phase_checks[:-PHASE_HISTORY]
+
+    def _origin_after_empty(self, cur: CycleResult, empty: CycleResult, d: Displacement) -> SeriesRow:
+        """The chain's origin moves from the `empty` anchor (no plate to measure from) to `cur`: the empty
+        cycle's row, if it was the origin, is a flagged row like any other (nan): one origin per chain
+        (docs/outputs.md section 3); a restart not yet joined now starts at `cur`."""
+        for r in self.rows[::-1]:
+            if r.cycle is empty:
+                r.cumulative_m, r.cumulative_bound_m = np.full(3, np.nan), np.full(3, np.nan)
+                log.warning("rig %s: cycle %d, where chain %d started again, located no plate; the chain "
+                            "counts from cycle %d", cur.rig_id, empty.cycle, self._chain, cur.cycle)
+                break
+        if self._rejoin is not None and self._rejoin[4] is empty:
+            self._rejoin = (*self._rejoin[:4], cur)
+        return self._append(SeriesRow(cur, empty, d, np.zeros(3), self._chain, np.zeros(3)), restart=cur)
 
     def _append(self, row: SeriesRow, restart: CycleResult | None = None) -> SeriesRow:
         self.rows.append(row)
