@@ -746,3 +746,22 @@ def test_settings_json_does_not_depend_on_the_order_the_heights_were_given_in():
         return outputs.settings_text(SETTINGS, BatchOptions(heights_m=heights))
 
     assert text((0.6, 0.2)) == text((0.2, 0.6)) and '"heights_m": [\n   0.2,' in text((0.6, 0.2))
+
+
+def test_a_cycles_start_time_is_its_earliest_pass_by_the_clock_not_by_the_text():
+    """As text, '...:00.500Z' sorts before '...:00Z' and '+00:00' before 'Z' (indepZc F3)."""
+    from types import SimpleNamespace
+
+    from uwbcl import pipeline
+    from uwbcl.records import PassRecord
+
+    for early, late in (("2026-01-01T10:00:00Z", "2026-01-01T10:00:00.500Z"),
+                        ("2026-01-01T10:00:00z", "2026-01-01T10:00:00.250Z"),
+                        ("2026-01-01T10:00:01Z", "2026-01-01T10:00:01.5+00:00")):
+        passes = [SimpleNamespace(geometry=SimpleNamespace(height_m=h, boresight_y_sign=-1),
+                                  pass_start_time=t, rig_id="r", cycle=1)
+                  for h, t in ((0.5, late), (1.0, early))]
+        assert pipeline.locate_detections(passes, [[], []]).start_time == early
+        recs = {k: PassRecord(f"{k}.h5", "0" * 64, "r", 1, h, f"p{k}", t, {"boresight_y_sign": -1}, ())
+                for k, (h, t) in enumerate(((0.5, late), (1.0, early)))}
+        assert batch.locate_records(recs).start_time == early

@@ -57,7 +57,7 @@ from .records import (
     ReadLimits,
     SeriesRow,
 )
-from .utc import utc_seconds
+from .utc import time_order, utc_seconds
 
 log = logging.getLogger("uwbcl")
 
@@ -469,7 +469,7 @@ def locate_records(recs: dict[int, PassRecord], detection: DetectionSettings = D
                    range_sigma_m: float = AssociationSettings.range_sigma_m) -> CycleResult:
     """The located plates of one cycle from its passes' records (keyed by height in mm; range_sigma_m:
     `chain.locate_cycle`)."""
-    first = min(recs.values(), key=lambda r: (r.pass_start_time, r.file))
+    first = min(recs.values(), key=lambda r: (*time_order(r.pass_start_time), r.file))
     return chain.locate_cycle(first.rig_id, first.cycle, first.pass_start_time,
                               {r.height_m: r.detections for r in recs.values()},
                               int(first.parameters["boresight_y_sign"]), detection, range_sigma_m)
@@ -637,7 +637,7 @@ def suspicious(records: list[PassRecord], now_s: float | None = None) -> list[Pr
     by_rig: dict[str, dict[int, tuple[float, str]]] = defaultdict(dict)  # cycle -> its earliest start
     for r in records:
         try:
-            start = (utc_seconds(r.pass_start_time), r.pass_start_time)
+            start = time_order(r.pass_start_time)
         except ValueError:
             continue
         known = by_rig[r.rig_id].get(r.cycle)

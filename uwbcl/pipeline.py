@@ -33,6 +33,7 @@ from .records import (
     PassTooSmall,
     ProcessingSettings,
 )
+from .utc import time_order
 
 log = logging.getLogger("uwbcl")
 
@@ -222,7 +223,7 @@ def locate_detections(passes: Sequence[ScanPass], detections: Sequence[Sequence[
                       range_sigma_m: float = AssociationSettings.range_sigma_m) -> CycleResult:
     """The plates of one cycle from its passes and each pass's detections (same order; range_sigma_m:
     `chain.locate_cycle`)."""
-    first = min(passes, key=lambda p: p.pass_start_time)
+    first = min(passes, key=lambda p: time_order(p.pass_start_time))
     by_height = {p.geometry.height_m: list(d) for p, d in zip(passes, detections)}
     return chain.locate_cycle(first.rig_id, first.cycle, first.pass_start_time, by_height,
                               passes[0].geometry.boresight_y_sign, detection, range_sigma_m)

@@ -25,6 +25,12 @@ def utc_seconds(text: str | None) -> float:
     return parse_utc(text).timestamp() if text else 0.0
 
 
+def time_order(text: str) -> tuple[float, str]:
+    """Sort key of an ISO 8601 UTC time: the instant, then the text. As text, '...:00.500Z' sorts before
+    '...:00Z' and '+00:00' before 'Z'; ValueError for text that is no UTC time."""
+    return utc_seconds(text), text
+
+
 def format_utc(epoch_s: float) -> str:
     """'YYYY-MM-DDTHH:MM:SS.mmmZ' for seconds since 1970 (rounded to the millisecond)."""
     t = dt.datetime.fromtimestamp(round(epoch_s, 3), tz=dt.timezone.utc)
