@@ -11,7 +11,7 @@ import pytest
 from uwbcl import chain, config
 from uwbcl.displacement import COVERAGE, estimate_advance, location_covariance_m2
 from uwbcl.locate import locate_target
-from uwbcl.records import AssociationSettings, CycleResult, Located
+from uwbcl.records import AssociationSettings, CycleResult, Detection, Located
 
 HEIGHTS = (0.2, 0.6)
 PRIOR = AssociationSettings(prior_advance_m=(0.9, 0.0, 0.0))
@@ -365,3 +365,20 @@ def test_too_few_targets_says_how_many_plates_did_match():
     a, b = cycles
     d = estimate_advance(a.plates, b.plates, dataclasses.replace(PRIOR, min_targets=50))
     assert d.status == "too_few_targets" and 1 <= d.n_targets < 50 and d.pairs == []
+
+
+def test_a_plate_missed_at_a_height_is_weighted_by_its_own_baseline_not_the_cycles():
+    """A plate seen at 0.3 and 0.6 m of a 0.3 / 0.6 / 2.4 m cycle: its y and z are as poor as that 0.3 m
+    baseline makes them, widened (MISSED_HEIGHT_SIGMA_FACTOR), never tighter (indepZc F2)."""
+    sigma_m, heights, truth = 0.003, (0.3, 0.6, 2.4), np.array([1.0, -4.0, 2.0])
+    seen = heights[:2]
+    looks = []
+    for h in seen:
+        rc = float(np.hypot(truth[1], truth[2] - h))
+        looks.append((h, Detection(x_m=truth[0], rc_m=rc, t_n_s=0.0, r0_m=rc, image_azimuth_m=0.0,
+                                   image_range_m=rc, amplitude=1.0, snr_db=30.0)))
+    p = Located(position_m=truth, residual_m=0.0, n_passes=2, amplitude=1.0, looks=tuple(looks))
+    given = chain.plate_covariances(CycleResult("r", 1, "2026-01-01T00:00:00Z", heights, [p]), sigma_m)[0]
+    own = location_covariance_m2(truth, seen, sigma_m)
+    np.testing.assert_allclose(np.diag(given)[1:], chain.MISSED_HEIGHT_SIGMA_FACTOR**2 * np.diag(own)[1:],
+                               rtol=1e-9)

@@ -146,9 +146,10 @@ def plate_covariances(cycle: CycleResult, range_sigma_m: float) -> np.ndarray:
     A plate seen at fewer heights than the cycle has is uncertain twice over: its baseline may be shorter, and
     it is often not one plate at all (a cross-height grouping of two plates, or clutter): in the availability
     study 41 % of such plates were > 3 cm off with three heights and 5 of 5 with four, against 5 % of the
-    others. Its covariance is that of the extreme heights widened by MISSED_HEIGHT_SIGMA_FACTOR, so it matches
-    only loosely and weighs little. A plate whose looks shared with a neighbour (eq. L1) were set aside is
-    located from its clean looks and has their covariance. A look split from a peak that held two plates
+    others. Its covariance is that of the heights it was seen at (the cycle's extreme heights for a plate
+    without looks) widened by MISSED_HEIGHT_SIGMA_FACTOR, so it matches only loosely and weighs little. A
+    plate whose looks shared with a neighbour (eq. L1) were set aside is located from its clean looks and has
+    their covariance. A look split from a peak that held two plates
     (eq. S2) has `locate.look_sigma_factor` times a lone plate's standard deviation (eq. S3).
     """
     heights = np.asarray(cycle.heights_m)
@@ -165,7 +166,8 @@ def plate_covariances(cycle: CycleResult, range_sigma_m: float) -> np.ndarray:
             cov = location_covariance_m2(p.position_m, used if p.looks else heights, sigma)
             cov[0, 0] += beyond_rail_common_var_m2(p, range_sigma_m)
         else:
-            cov = location_covariance_m2(p.position_m, heights[[0, -1]],
+            # its own heights' baseline (often shorter than the cycle's), widened
+            cov = location_covariance_m2(p.position_m, used if len(used) >= 2 else heights[[0, -1]],
                                          np.max(sigma) * MISSED_HEIGHT_SIGMA_FACTOR)
         out.append(cov * misfit_scale(p, range_sigma_m))
     return np.array(out).reshape(-1, 3, 3)
