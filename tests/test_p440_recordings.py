@@ -210,8 +210,9 @@ def test_positions_in_millimetres_are_warned_about(tmp_path, recording, caplog):
                                            for r in rows[1:]))
     with caplog.at_level(logging.WARNING, logger="uwbcl"):
         rc = cli.main(["import", "p440", str(scan_file), "--out", str(tmp_path / "out"), "--positions",
-                       str(mm), "--config", str(site), "--pass-start-time", "2026-11-23T06:00:00Z"])
-    assert rc == 0 and "the pass spans 1999.8 m along the rail" in caplog.text
+                       str(mm), "--config", str(site), "--pass-start-time", "2026-11-23T06:00:00Z",
+                       "--time-offset-s", "0"])
+    assert rc == 0 and "the pass spans 1999.9 m along the rail" in caplog.text
     assert "are the positions in metres (x_m)?" in caplog.text
 
 
@@ -288,3 +289,21 @@ def test_a_scan_counter_that_stays_put_is_warned_about_since_scans_lost_whole_ca
         assert cli.main(["import", "p440", str(path), "--out", str(tmp_path / "out"), "--speed-m-s", "0.1",
                          "--height-m", "0.3"]) == 0
     assert "scan counter (message_id) stays or goes back at 11 of 11 scans" in caplog.text
+
+
+def test_a_recording_that_starts_after_the_rail_is_refused_unless_the_offset_is_given(tmp_path, recording,
+                                                                                       capsys):
+    """First-motion alignment assumes both ends at rest; checked on the last motion: a recording whose first
+    74 scans were not recorded (its 1.5 s rest is 73) was shifted along the rail by the 0.17 s the rail had
+    moved (indepZb F1)."""
+    scan_file, positions, site = recording
+    data = scan_file.read_bytes()
+    per_scan = int.from_bytes(data[32 + 50:32 + 52], "big")  # num_messages_total of the first record
+    late = tmp_path / "late.p440"
+    late.write_bytes(data[:32] + data[32 + 1452 * per_scan * 74:])
+    args = ["import", "p440", str(late), "--out", str(tmp_path / "out"), "--positions", str(positions),
+            "--config", str(site), "--pass-start-time", "2026-11-23T06:00:00Z", "--range-delay-s", "2.3e-9"]
+    assert cli.main(args) == 1
+    err = capsys.readouterr().err
+    assert "late.p440: cannot align the clocks on the motion" in err and "the last motion +0.040 s" in err
+    assert cli.main([*args, "--time-offset-s", "0"]) == 0

@@ -39,6 +39,11 @@ MOTION_THRESHOLD_M = 0.002  # a position this far from the first one has moved (
 LONG_RAIL_M = 20.0  # a pass longer than this is warned about (positions in mm for m?)
 BANDWIDTH_WARN_FRACTION = 0.2  # a given bandwidth this far off the measured one is warned about
 _REST_SCANS = 8  # scans at the start assumed at rest for the radar's motion detector
+_MOTION_SCANS = 2000  # scans searched for the first (last) motion from the start (end)
+# the offsets the first and the last motion give (both ends at rest) may differ by this much: the echo shows
+# a gentle start or stop later than the log's 2 mm (54 ms apart on the synthetic set, whose slow turn back at
+# the end stop lags most); a 2-scan rest or a late recording is 0.1 s off and more
+ALIGN_MISMATCH_S = 0.1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,7 +152,22 @@ def radar_first_motion_s(recording: RawRecording, factor: float = 5.0) -> float 
     the first scan from which three in a row differ from the rest echo by more than ``factor`` x that level
     is the first motion (the phases of the scene's echoes change within a fraction of a wavelength).
     """
-    x = recording.samples[: min(recording.n_scans, 2000)].astype(np.float64)
+    k = _echo_departure(recording.samples[: min(recording.n_scans, _MOTION_SCANS)], factor)
+    return None if k is None else float(recording.scan_time_s[k])
+
+
+def radar_last_motion_s(recording: RawRecording, factor: float = 5.0) -> float | None:
+    """Time (radar clock) of the last scan whose echo departs from the final rest echo (the last
+    `_REST_SCANS` scans), or None: `radar_first_motion_s` run backwards."""
+    n = min(recording.n_scans, _MOTION_SCANS)
+    k = _echo_departure(recording.samples[recording.n_scans - n:][::-1], factor)
+    return None if k is None else float(recording.scan_time_s[recording.n_scans - 1 - k])
+
+
+def _echo_departure(samples: np.ndarray, factor: float) -> int | None:
+    """Index of the first scan from which three in a row differ from the mean of the first `_REST_SCANS` by
+    more than `factor` x their own spread, or None."""
+    x = samples.astype(np.float64)
     if x.shape[0] <= _REST_SCANS + 3:
         return None
     rest = x[:_REST_SCANS]
@@ -157,18 +177,56 @@ def radar_first_motion_s(recording: RawRecording, factor: float = 5.0) -> float 
     moving = e > factor * max(noise, 1e-30)
     run = moving[:-2] & moving[1:-1] & moving[2:]
     hits = np.flatnonzero(run[_REST_SCANS:]) + _REST_SCANS
-    return float(recording.scan_time_s[hits[0]]) if hits.size else None
+    return int(hits[0]) if hits.size else None
 
 
 def positions_first_motion_s(positions: Positions) -> float | None:
-    moved = np.flatnonzero(np.abs(positions.x_m - positions.x_m[0]) > MOTION_THRESHOLD_M)
+    """Logger time at which the positions are first MOTION_THRESHOLD_M from their first value, or None."""
+    return _crossing_s(positions.time_s, positions.x_m)
+
+
+def positions_last_motion_s(positions: Positions, until_s: float) -> float | None:
+    """Logger time after which the positions up to `until_s` stay within MOTION_THRESHOLD_M of their last
+    value there, or None (backwards `positions_first_motion_s`)."""
+    upto = positions.time_s <= until_s
+    t = _crossing_s(-positions.time_s[upto][::-1], positions.x_m[upto][::-1])
+    return None if t is None else -t
+
+
+def _crossing_s(time_s: np.ndarray, x_m: np.ndarray) -> float | None:
+    moved = np.flatnonzero(np.abs(x_m - x_m[0]) > MOTION_THRESHOLD_M) if x_m.size else np.zeros(0, int)
     if not moved.size:
         return None
     i = moved[0]
     # Interpolate the crossing: the log may be sparse.
-    x0, x1 = abs(positions.x_m[i - 1] - positions.x_m[0]), abs(positions.x_m[i] - positions.x_m[0])
-    t0, t1 = positions.time_s[i - 1], positions.time_s[i]
+    x0, x1 = abs(x_m[i - 1] - x_m[0]), abs(x_m[i] - x_m[0])
+    t0, t1 = time_s[i - 1], time_s[i]
     return float(t0 + (MOTION_THRESHOLD_M - x0) / (x1 - x0) * (t1 - t0)) if i > 0 else float(t0)
+
+
+def _check_last_motion(recording: RawRecording, positions: Positions, offset_s: float) -> None:
+    """The first-motion alignment checked on the last motion (both ends at rest): RecordingError when the
+    two offsets differ by more than ALIGN_MISMATCH_S (a recording that started after the rail, a rest too
+    short to learn the echo from, a log of another pass); a warning when the ends are not at rest."""
+    t_radar = radar_last_motion_s(recording)
+    t_pos = positions_last_motion_s(positions, float(recording.scan_time_s[-1]) + offset_s)
+    if t_radar is None or t_pos is None:
+        log.warning("%s: the clocks aligned on the first motion could not be checked on the last one (%s "
+                    "does not end at rest); an error in the offset shifts the pass along the rail",
+                    recording.source, "the recording" if t_radar is None else "the log")
+        return
+    end_s = t_pos - t_radar
+    if abs(end_s - offset_s) > ALIGN_MISMATCH_S:
+        span_m = float(np.ptp(positions.x_m))
+        units = (f" (the log spans {span_m:.1f} m: are its positions in metres?)" if span_m > LONG_RAIL_M
+                 else "")
+        raise RecordingError(
+            recording.source, None,
+            f"cannot align the clocks on the motion: the first motion gives positions time = scan time "
+            f"{offset_s:+.3f} s, the last motion {end_s:+.3f} s ({abs(end_s - offset_s) * 1e3:.0f} ms apart, "
+            f"more than {ALIGN_MISMATCH_S * 1e3:.0f}): the recording or {positions.source or 'the log'} did "
+            "not start or end at rest (a recording started after the rail, a rest shorter than "
+            f"{_REST_SCANS} scans), or they are not of the same pass{units}; give --time-offset-s")
 
 
 LATE_LOG_SPEED_FRACTION = 0.5  # a log whose first interval moves this fast (of its median speed) started late
@@ -260,6 +318,7 @@ def track_from_positions(
             )
         _check_log_starts_at_rest(recording, positions)
         time_offset_s = t_pos - t_radar
+        _check_last_motion(recording, positions, time_offset_s)
         log.info("clocks aligned on the first motion: positions time = scan time %+.3f s", time_offset_s)
     t = recording.scan_time_s + time_offset_s
     inside = np.flatnonzero((t >= positions.time_s[0]) & (t <= positions.time_s[-1]))
