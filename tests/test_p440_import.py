@@ -260,6 +260,22 @@ def test_a_repeated_scan_is_dropped_naming_both_byte_offsets_and_counted_apart_f
     assert (np.diff(rec.scan_time_s) > 0).all()
 
 
+@needs_real
+def test_lost_packets_and_scans_lost_whole_are_each_counted_once(tmp_path):
+    """A scan losing a middle message is one incomplete scan (not two: its later messages are its own), and
+    only incomplete scans between complete ones fill counter gaps: the partial last scan is no scan lost
+    whole less (indepZb F2)."""
+    data = REAL.read_bytes()
+    records = [data[_record(i):_record(i + 1)] for i in range((len(data) - 32) // p440.RECORD_BYTES)]
+    for scan in (600, 550, 500, 450, 420):  # lost packets: message 1 of these scans
+        del records[4 * scan + 1]
+    del records[400:440]  # scans 100-109 lost whole
+    path = tmp_path / "lost.p440"
+    path.write_bytes(data[:32] + b"".join(records))
+    rec = p440.READER.read(path)
+    assert rec.n_scans == 695 and rec.n_dropped == 6 and rec.n_lost == 10
+
+
 @pytest.mark.parametrize(("stamps", "message"), [
     ([1000, 1020, 1020, 1040], "has the timestamp of a different scan"),
     ([5_000_000, 5_000_020, 40, 60], "the radar clock goes back"),

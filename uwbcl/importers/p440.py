@@ -149,6 +149,9 @@ class _StreamState:
         self.scan: _Scan | None = None
         self.n_complete = 0
         self.n_dropped = 0
+        # of them, those between two complete scans (their counter numbers are in a gap), and those since the
+        # last complete scan
+        self.n_dropped_between = self.n_pending_drops = 0
         self.n_repeated = 0
 
     def fail(self, offset: int, reason: str) -> None:
@@ -206,6 +209,7 @@ class _StreamState:
                     f"scan {scan.message_id} at byte {scan.offset} is interrupted at byte {offset} by "
                     f"message {index} of scan {mid}"
                 )
+                self.orphan = scan.message_id  # its own later messages (one lost between) drop no other scan
             if mid != self.orphan:  # a scan whose message 0 is lost (or came first elsewhere): dropped once
                 self.orphan = mid
                 self.drop(f"message {index} of scan {mid} at byte {offset} has no message 0")
@@ -220,6 +224,9 @@ class _StreamState:
         row[scan.filled : end] = np.frombuffer(block, dtype=">i4", count=n_msg, offset=at + HEADER.size)
         scan.filled = end
         if index == n_messages - 1:
+            if self.n_complete:
+                self.n_dropped_between += self.n_pending_drops
+            self.n_pending_drops = 0
             self.times_ms.append(scan.timestamp_ms)
             self.ids.append(scan.message_id)
             self.offsets.append(scan.offset)
@@ -288,6 +295,7 @@ class _StreamState:
 
     def drop(self, why: str) -> None:
         self.n_dropped += 1
+        self.n_pending_drops += 1
         self.first_drop = self.first_drop or why
         if self.n_dropped <= LISTED_DROPS:
             log.warning("%s: dropped an incomplete scan: %s", self.path, why)
@@ -308,8 +316,9 @@ class _StreamState:
             log.warning("%s: %d more incomplete scans dropped (not listed)", self.path,
                         self.n_dropped - LISTED_DROPS)
         if self.n_complete == 0:
-            why = (f"; {self.n_dropped} incomplete scan(s) dropped, the first because {self.first_drop}"
-                   if self.n_dropped else "")
+            why = (f"; {self.n_dropped} incomplete scan(s) dropped, the first because {self.first_drop} (a "
+                   "scan is num_messages_total consecutive messages, message_index 0, 1, ..., sharing one "
+                   "message_id, the scan counter)" if self.n_dropped else "")
             raise RecordingError(self.path, None, f"no complete scan in the file{why}")
         start, stop, res, n_total, _ = self.shape
         self.check_header(cfg)
@@ -336,7 +345,8 @@ class _StreamState:
             radar="p440",
             n_dropped=self.n_dropped,
             n_repeated=self.n_repeated,
-            n_lost=max(0, skipped - self.n_dropped),  # the incomplete scans skip counter numbers too
+            # the incomplete scans between complete ones skip counter numbers too
+            n_lost=max(0, skipped - self.n_dropped_between),
             scan_id=np.asarray(self.ids, dtype=np.int64),
             metadata=metadata,
         )
