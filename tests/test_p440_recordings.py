@@ -59,6 +59,15 @@ def test_a_bandwidth_far_from_the_measured_one_is_warned_about_and_a_bad_one_is_
     assert "--bandwidth-hz: must be > 0" in capsys.readouterr().err
 
 
+def test_a_carrier_far_from_the_measured_centre_is_warned_about(tmp_path, recording, caplog):
+    # measured: centre 4.081 GHz, -10 dB width 1.618 GHz; 10 % of the width is 162 MHz
+    with caplog.at_level(logging.WARNING, logger="uwbcl"):
+        assert _import(tmp_path, recording, "--carrier-hz", "4.05e9") == 0
+        assert "from the measured -10 dB centre" not in caplog.text
+        assert _import(tmp_path / "b", recording, "--carrier-hz", "3.85e9") == 0
+    assert "the carrier given, 3.85e+09 Hz, is 231 MHz from the measured -10 dB centre" in caplog.text
+
+
 def test_a_measured_pulse_window_holding_only_noise_is_a_usage_error(tmp_path, recording, capsys):
     # 3.0-3.3 m: between the clutter at 1.3 / 3.6 m and the reflectors' ranges, nothing stationary; the
     # coupling at 2 m is the default window's and is accepted.
@@ -157,6 +166,13 @@ def test_a_fifo_given_as_the_recording_or_the_positions_is_refused_without_block
                 pass
             pytest.fail(f"{read.__qualname__} blocked on a FIFO")
         assert errors and "not a regular file" in errors[0]
+
+
+def test_a_directory_given_as_the_recording_or_the_positions_is_refused_by_its_name(tmp_path):
+    for read in (p440.READER.read, passes.read_positions_csv):
+        with pytest.raises(RecordingError) as err:
+            read(tmp_path)
+        assert str(err.value).startswith(f"{tmp_path}: ") and "not a regular file" in str(err.value)
 
 
 def test_a_recording_without_signal_is_refused_as_such(tmp_path, capsys):

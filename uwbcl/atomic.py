@@ -136,11 +136,16 @@ def open_regular_file(path, *, follow_symlinks: bool = True) -> io.BufferedReade
     flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0)
     if not follow_symlinks:
         flags |= getattr(os, "O_NOFOLLOW", 0)
-    f = os.fdopen(os.open(path, flags), "rb")
-    if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
-        f.close()
+    fd = os.open(path, flags)
+    try:  # checked on the descriptor: a directory opens, but as a file object it fails naming the descriptor
+        regular = stat.S_ISREG(os.fstat(fd).st_mode)
+    except OSError:
+        os.close(fd)
+        raise
+    if not regular:
+        os.close(fd)
         raise ValueError("not a regular file (a FIFO, a device or a directory); not read")
-    return f
+    return os.fdopen(fd, "rb")
 
 
 def read_regular_file(path, max_bytes: int, *, follow_symlinks: bool = True) -> bytes:

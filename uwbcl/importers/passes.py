@@ -38,6 +38,9 @@ DEFAULT_REFERENCE_RANGE_M = 3.0  # the scene centre's range when the recording's
 MOTION_THRESHOLD_M = 0.002  # a position this far from the first one has moved (about where the echo shows it)
 LONG_RAIL_M = 20.0  # a pass longer than this is warned about (positions in mm for m?)
 BANDWIDTH_WARN_FRACTION = 0.2  # a given bandwidth this far off the measured one is warned about
+# a given carrier this far (of the measured -10 dB width) from the measured centre is warned about: 0.2 of the
+# width (3.7 GHz for a 4.01 GHz centre) split one plate into two 14 mm apart on an independent tester's pass
+CARRIER_WARN_FRACTION = 0.1
 _REST_SCANS = 8  # scans at the start assumed at rest for the radar's motion detector
 _MOTION_SCANS = 2000  # scans searched for the first (last) motion from the start (end)
 # the offsets the first and the last motion give (both ends at rest) may differ by this much: the echo shows
@@ -404,7 +407,8 @@ def build_pass(
     if not recording.is_real_rf:
         raise NotImplementedError("complex (already demodulated) recordings: not yet")  # e.g. a Novelda X4
     if track.scans.size < 2:
-        raise RecordingError(recording.source, None, f"only {track.scans.size} scans left for the pass")
+        raise RecordingError(recording.source, None,
+                             f"only {track.scans.size} scan(s) left for the pass, too few to focus")
     window_start_s = _window_start_s(recording, options)
     height = options.height_m
     if height is None:
@@ -448,14 +452,20 @@ def build_pass(
     _warn_undersampled(recording.source, track.x_m, carrier)
     extent_m = abs(float(track.x_m[-1] - track.x_m[0]))
     if extent_m > LONG_RAIL_M:
-        log.warning("%s: the pass spans %.1f m along the rail, more than any face-end rail (%g m): are the "
-                    "positions in metres (x_m)?", track.positions.source if track.positions else
-                    recording.source, extent_m, LONG_RAIL_M)
+        log.warning("%s: the pass spans %.1f m along the rail, more than any face-end rail (%g m): %s",
+                    track.positions.source if track.positions else recording.source, extent_m, LONG_RAIL_M,
+                    "are the positions in metres (x_m)?" if track.positions else "is --speed-m-s in m/s?")
     measured = None
     if options.pulse == "measured":
         measured = baseband.measure_pulse(echo, rate, window_start_s, carrier, options.pulse_window_start_m,
                                           options.pulse_window_stop_m, recording.source)
     bandwidth = options.bandwidth_hz or band.bandwidth_hz
+    if abs(carrier - band.centre_hz) > CARRIER_WARN_FRACTION * band.bandwidth_hz:
+        log.warning("%s: the carrier given, %.4g Hz, is %.0f MHz from the measured -10 dB centre %.4g Hz "
+                    "(%.0f %% of the -10 dB width): the archive's pulse model will not fit the echo, and a "
+                    "plate may focus as two (another radar's value?)", recording.source, carrier,
+                    abs(carrier - band.centre_hz) / 1e6, band.centre_hz,
+                    100 * abs(carrier - band.centre_hz) / band.bandwidth_hz)
     if abs(bandwidth / band.bandwidth_hz - 1.0) > BANDWIDTH_WARN_FRACTION:
         log.warning("%s: the bandwidth given, %.4g Hz, is %.0f %% off the measured -10 dB width %.4g Hz: "
                     "the archive's pulse model will not fit the echo (another radar's value?)",
