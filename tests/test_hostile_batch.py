@@ -23,7 +23,7 @@ from shift_case import CONFIG, OUTPUTS, SETTINGS, options
 
 from uwbcl import archive, batch, config, interrupt, outputs, shift
 from uwbcl.cli import main
-from uwbcl.records import OutputOptions
+from uwbcl.records import BatchError, OutputOptions
 
 
 def problems(out: Path) -> dict[str, str]:
@@ -273,15 +273,57 @@ def test_plain_outputs_of_a_version_before_generations_are_kept_as_the_previous_
     src, _ = tree
     out = tmp_path / "old-out"
     out.mkdir()
-    (out / "displacements.csv").write_text("rig_id,cycle\nold,1\n")
+    old = "rig_id,cycle,from_cycle,start_time\nold,1,0,2026-01-01T00:00:00Z\n"
+    (out / "displacements.csv").write_text(old)
     (out / "plots").mkdir()
-    (out / "plots" / "mine.txt").write_text("kept")
+    (out / "plots" / "timeseries_old.png").write_bytes(b"\x89PNG")
     batch.process_directory(src, out, SETTINGS, options())
     previous = out / outputs.GENERATIONS_DIR / "g-000001"
-    assert (previous / "displacements.csv").read_text() == "rig_id,cycle\nold,1\n"
-    assert (previous / "plots" / "mine.txt").read_text() == "kept"
+    assert (previous / "displacements.csv").read_text() == old
+    assert (previous / "plots" / "timeseries_old.png").read_bytes() == b"\x89PNG"
     assert os.readlink(out / outputs.CURRENT_LINK).endswith("g-000002")
     assert (out / "displacements.csv").read_text().startswith("rig_id,cycle,from_cycle")
+
+
+@pytest.mark.parametrize("entry", ["displacements.csv", "errors.csv/", "plots/mine.png", "settings.json",
+                                   ".uwbcl-current", ".uwbcl.lock|"])
+def test_someone_elses_file_where_uwbcl_puts_its_outputs_or_lock_stops_the_run_and_is_left_alone(
+        tree, tmp_path, entry):
+    """uwbcl replaces its fixed output names by links and moves an earlier version's plain outputs into a
+    generation it later removes: only its own (indepZd F1-F3). A FIFO as the lock would hang the run."""
+    src, _ = tree
+    out = tmp_path / "shared-out"
+    out.mkdir()
+    name = entry.rstrip("/|")
+    path = out / name
+    if entry.endswith("|"):
+        os.mkfifo(path)
+    elif entry.endswith("/"):
+        path.mkdir()
+        (path / "theirs.txt").write_text("theirs")
+    else:
+        path.parent.mkdir(exist_ok=True)
+        path.write_text("a,b\n")
+    (out / ".notes.partial").write_text("theirs too")
+    with pytest.raises(BatchError, match=f"{name.split('/')[0]}: (not|.*not a regular file)"):
+        batch.process_directory(src, out, SETTINGS, options())
+    assert (out / ".notes.partial").read_text() == "theirs too"
+    assert not (out / outputs.GENERATIONS_DIR).exists()
+    if entry.endswith("/"):
+        assert (path / "theirs.txt").read_text() == "theirs"
+    elif not entry.endswith("|"):
+        assert path.read_text() == "a,b\n"
+
+
+def test_a_partial_file_that_is_not_uwbcls_is_left_alone_and_its_own_are_removed(tree, tmp_path):
+    src, _ = tree
+    out = tmp_path / "fresh-out"
+    out.mkdir()
+    (out / ".notes.partial").write_text("theirs")
+    (out / ".displacements.csv.abc123.partial").write_text("a killed run's")
+    batch.process_directory(src, out, SETTINGS, options())
+    assert (out / ".notes.partial").read_text() == "theirs"
+    assert not (out / ".displacements.csv.abc123.partial").exists()
 
 
 # ----------------------------------------------------------------------------------------------- names

@@ -510,7 +510,7 @@ def _exclusive(out_dir: Path):
                              "writes only inside the output directory: remove the link")
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
-        lock = (out_dir / LOCK_FILE).open("a")
+        lock = _open_lock(out_dir / LOCK_FILE)
     except OSError as e:
         raise BatchError(f"{e.filename or out_dir}: cannot create or lock the output directory: "
                          f"{e.strerror or e}") from None
@@ -519,12 +519,37 @@ def _exclusive(out_dir: Path):
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             raise BatchError(f"{out_dir}: another uwbcl process is writing here") from None
+        foreign = outputs.foreign_entries(out_dir)
+        if foreign:
+            raise BatchError(f"{foreign[0]}{f' (and {len(foreign) - 1} more)' if len(foreign) > 1 else ''}; "
+                             "uwbcl replaces only its own files: move it away or choose another --out")
         # Temporary files and unpublished output sets of a run that was killed mid-write; nobody else writes
-        # here while we hold the lock.
-        for stale in [*out_dir.glob(".*.partial"), *(out_dir / CACHE_DIR).rglob(".*.partial")]:
+        # here while we hold the lock. Only uwbcl's own names: `.NAME.<random>.partial` of an output name.
+        own = tuple(f".{n}." for n in (*outputs.OUTPUT_NAMES, outputs.CURRENT_LINK))
+        for stale in [*(p for p in out_dir.glob(".*.partial") if p.name.startswith(own)),
+                      *(out_dir / CACHE_DIR).rglob(".*.partial")]:
             stale.unlink(missing_ok=True)
         outputs.prune_generations(out_dir)
         yield
+
+
+def _open_lock(path: Path):
+    """The lock file opened for appending, created if missing: never through a symbolic link (it would lock,
+    and create, outside OUT) and never blocking (a FIFO in its place would hang the run): OSError naming it
+    for anything but a regular file."""
+    refusal = OSError(errno.EINVAL, "not a regular file where uwbcl keeps its lock file (a symbolic link, a "
+                      "FIFO, a device or a directory): remove it", str(path))
+    if os.path.lexists(path) and not stat.S_ISREG(os.lstat(path).st_mode):
+        raise refusal
+    try:  # the flags again, should it be replaced meanwhile
+        flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NONBLOCK | getattr(os, "O_NOFOLLOW", 0)
+        fd = os.open(path, flags, 0o644)
+    except OSError as e:
+        raise (refusal if e.errno in (errno.ELOOP, errno.ENXIO, errno.EISDIR) else e) from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise refusal
+    return os.fdopen(fd, "a")
 
 
 def discover(in_dir: Path, out_dir: Path, follow_symlinks: bool = False

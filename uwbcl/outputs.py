@@ -26,6 +26,7 @@ from .atomic import (
     PARTIAL_SUFFIX,
     csv_bytes,
     fsync_directory,
+    open_regular_file,
     read_regular_file,
     write_bytes_atomic,
     write_hdf5_atomic,
@@ -484,6 +485,58 @@ def publish(out_dir: Path, gen: Path) -> None:
             link.unlink()
     fsync_directory(out_dir)
     prune_generations(out_dir)
+
+
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+_OWN_PLOT = ("timeseries_", "cycles", ".")  # what plots/ of an earlier uwbcl holds (names starting so)
+
+
+def _plain_output_is_ours(path: Path, name: str) -> bool:
+    """Whether a plain (not linked) OUT/NAME is an output of a uwbcl version without generations: a CSV with
+    its header, JSON with its processing settings, an HDF5 file, plots/ of time-series PNGs. Read without
+    blocking and only its start: someone else's file is never read whole."""
+    if name == "plots":
+        return path.is_dir() and not path.is_symlink() and all(
+            e.name.startswith(_OWN_PLOT) for e in path.iterdir())
+    try:
+        with open_regular_file(path, follow_symlinks=False) as f:
+            head = f.read(1 << 20 if name == "settings.json" else 4096)
+    except (OSError, ValueError):
+        return False
+    if name.endswith(".csv"):
+        first = {"displacements.csv": DISPLACEMENT_COLUMNS, "targets.csv": TARGET_COLUMNS,
+                 "errors.csv": ERROR_COLUMNS}[name][:3]
+        return head.startswith(",".join(first).encode())
+    if name == "settings.json":
+        try:
+            doc = json.loads(head)
+        except ValueError:
+            return False
+        return isinstance(doc, dict) and "processing" in doc
+    return head.startswith(_HDF5_SIGNATURE)
+
+
+def foreign_entries(out_dir: Path) -> list[str]:
+    """What in OUT is in the way of the output set and not uwbcl's, for a refusal before the run (uwbcl
+    replaces these names by links, and would otherwise move someone's files into a generation it later
+    removes): `.uwbcl-current` that is not a link into `.uwbcl-generations` (nor a directory: a set copied
+    with its links dereferenced, adopted), and a plain file or directory at a fixed output name that is not
+    an earlier uwbcl's output (`_plain_output_is_ours`)."""
+    out = []
+    current = out_dir / CURRENT_LINK
+    if current.is_symlink():
+        target = os.readlink(current)
+        if not (target.startswith(f"{GENERATIONS_DIR}/") and _generation_number(Path(target).name) >= 0):
+            out.append(f"{current}: a symbolic link to {target!r}, not into {GENERATIONS_DIR}")
+    elif current.exists() and not current.is_dir():
+        out.append(f"{current}: not uwbcl's symbolic link to the published set")
+    for name in OUTPUT_NAMES:
+        path = out_dir / name
+        if path.is_symlink():
+            continue  # uwbcl's fixed link (or one uwbcl replaces: a link is never followed to delete)
+        if (path.exists() or os.path.lexists(path)) and not _plain_output_is_ours(path, name):
+            out.append(f"{path}: not an output of uwbcl, where uwbcl links its {name}")
+    return out
 
 
 def _adopt_plain_outputs(out_dir: Path) -> None:
