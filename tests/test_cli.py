@@ -105,3 +105,27 @@ def test_a_negative_number_in_scientific_notation_is_a_value_not_an_option():
                                       "3e-1", "--range-delay-s", "-1e-9", "--time-offset-s", "-3.4e3"])
     assert args.pulse_window_m == [-0.2, 0.3]
     assert args.range_delay_s == -1e-9 and args.time_offset_s == -3400.0
+
+
+@pytest.mark.parametrize("flags, words", [
+    (["--cycles", "0"], "--cycles: must be >= 1, got 0"),
+    (["--first-cycle", "-5"], "--first-cycle: must be >= 0, got -5"),
+    (["--rigs", "0"], "--rigs: must be >= 1, got 0"),
+    (["--speed-jitter", "-5"], "--speed-jitter: must be a finite number in [0, 1)"),
+    (["--snr-db", "nan"], "--snr-db: must be a finite number"),
+])
+def test_simulate_refuses_a_count_or_value_it_cannot_simulate_as_a_usage_error(flags, words, tmp_path,
+                                                                                capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["simulate", str(tmp_path / "sim"), "--scenario", "shift", *flags])
+    assert stop.value.code == 2 and words in capsys.readouterr().err
+
+
+def test_simulate_into_existing_archives_names_one_and_the_flag_without_a_traceback(tmp_path, capsys):
+    args = ["simulate", str(tmp_path / "sim"), "--scenario", "shift", "--rigs", "1", "--cycles", "1"]
+    assert main(args) == 0
+    capsys.readouterr()
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("uwbcl simulate: ") and "scan file exists (--overwrite" in err
+    assert "Traceback" not in err

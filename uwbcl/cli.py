@@ -49,8 +49,40 @@ def _simulate(args: argparse.Namespace) -> int:
     if blocker := file_in_the_way(Path(args.out_dir)):
         print(f"uwbcl simulate: {args.out_dir}: {blocker} is not a directory", file=sys.stderr)
         return 2
-    if args.scenario == "shift":
-        return _simulate_shift(args)
+    try:
+        return _simulate_shift(args) if args.scenario == "shift" else _simulate_scenario(args)
+    except OSError as exc:  # an archive already there (without --overwrite), a full disk
+        print(f"uwbcl simulate: {exc.filename or args.out_dir}: {exc.strerror or exc}", file=sys.stderr)
+        return 1
+
+
+def _int_at_least(minimum: int):
+    """An argparse type: an integer >= minimum."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+    return parse
+
+
+def _finite_in(low: float, high: float):
+    """An argparse type: a finite number in [low, high)."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        if not (math.isfinite(value) and low <= value < high):
+            raise argparse.ArgumentTypeError(f"must be a finite number in [{low:g}, {high:g}), got {text}")
+        return value
+    return parse
+
+
+def _simulate_scenario(args: argparse.Namespace) -> int:
     scenario = SCENARIOS[args.scenario]
     out = Path(args.out_dir)
     heights = config.parse_heights(args.heights)
@@ -646,16 +678,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("out_dir")
     s.add_argument("--scenario", choices=[*sorted(SCENARIOS), "shift"], default="paper-sim1",
                    help="a paper scenario (2 cycles), or 'shift': rigs x cycles of a production shift")
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--snr-db", type=float, default=None,
+    s.add_argument("--seed", type=_int_at_least(0), default=0)
+    s.add_argument("--snr-db", type=_finite_in(-math.inf, math.inf), default=None,
                    help="receiver SNR per raw sample relative to a unit echo (default: no noise)")
-    s.add_argument("--speed-jitter", type=float, default=0.0,
+    s.add_argument("--speed-jitter", type=_finite_in(0.0, 1.0), default=0.0,
                    help="rail speed fluctuation as a fraction of the set speed, e.g. 0.1 for +-10%%")
     s.add_argument("--heights", nargs="+", help="rail heights in metres, e.g. 0.2 0.6 or 0.2,0.6 "
                    "(default: the scenario's; shift: 0.2 0.6)")
-    s.add_argument("--cycles", type=int, default=40, help="shift: cutting cycles per rig (default 40)")
-    s.add_argument("--rigs", type=int, default=3, help="shift: rigs (default 3)")
-    s.add_argument("--first-cycle", type=int, default=0,
+    s.add_argument("--cycles", type=_int_at_least(1), default=40,
+                   help="shift: cutting cycles per rig (default 40)")
+    s.add_argument("--rigs", type=_int_at_least(1), default=3, help="shift: rigs (default 3)")
+    s.add_argument("--first-cycle", type=_int_at_least(0), default=0,
                    help="shift: first cycle to write, to append a later shift to an archive tree")
     s.add_argument("--rig-id", help=f"the rig's id (default {SIMULATED_RIG_ID}); shift: the prefix of its "
                    "rigs' ids, ID-1, ID-2, ... (default rig)")
