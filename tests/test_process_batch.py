@@ -722,6 +722,17 @@ def test_the_published_set_says_which_settings_produced_it(archive_dir, clean, t
     assert processing["association"]["min_margin"] == 9.0 and processing["detection"]["cfar_db"] == 11.0
     assert processing["detection"]["separation_m"] == SETTINGS.detection.separation_m  # a default
     assert processing["backend"] == "numpy" and doc["batch"]["heights_m"] == [0.2, 0.6]
+    assert processing["association"]["prior_window_m"] == [0.4, 0.3, 0.5]
+
+
+def test_settings_json_gives_no_prior_window_without_a_prior():
+    from uwbcl import outputs
+    from uwbcl.records import BatchOptions
+
+    blind = dataclasses.replace(SETTINGS, association=dataclasses.replace(SETTINGS.association,
+                                                                          prior_advance_m=None))
+    doc = json.loads(outputs.settings_text(blind, BatchOptions()))
+    assert doc["processing"]["association"]["prior_window_m"] is None
 
 
 def test_a_rig_whose_rows_are_often_withheld_gets_a_low_availability_warning():

@@ -76,6 +76,12 @@ def test_without_a_file_the_defaults_apply():
     ("[detection]\ncross_height_x_tol_m = 0.0\n", "detection.cross_height_x_tol_m"),
     ("[detection]\ncross_height_rc_tol_m = nan\n", "detection.cross_height_rc_tol_m"),
     ("[detection]\ncross_height_wall_tol_m = -0.1\n", "detection.cross_height_wall_tol_m"),
+    ("[site]\nweb_depth_m = 1e308\n", "site.web_depth_m"),  # finite, but no length of a gate road
+    ("[site]\nheights_m = [0.2, 1e300]\n", "site.heights_m"),
+    ("[site]\nheight_tolerance_m = 1e9\n", "site.height_tolerance_m"),
+    ("[association]\ntolerance_m = [1e300, 0.1, 0.1]\n", "association.tolerance_m"),
+    ("[association]\nmax_bridge_cycles = 9223372036854775807\n", "association.max_bridge_cycles"),
+    ("[site]\nprior_window_m = [0.4, 0.3, 0.5]\n", "site.prior_window_m"),  # the window of no prior
     ("[site\n", ""),  # the file itself: no key
     ("web_depth_m = 0.9\n", "web_depth_m"),  # a key outside any table
 ])

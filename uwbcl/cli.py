@@ -712,7 +712,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--web-depth", type=float, default=None,
                    help="nominal advance per cycle in metres: the prior that resolves look-alike plates")
     q.add_argument("--prior-window", type=float, nargs=3, metavar=("X", "Y", "Z"),
-                   help="half-widths of the prior window in metres (default 0.4 0.3 0.5)")
+                   help="half-widths of the web-depth prior's window in metres (default 0.4 0.3 0.5; needs "
+                   "a web depth: --web-depth or the site file's)")
     q.add_argument("--heights", nargs="+",
                    help="expected rail heights in metres; passes at others are errors")
     q.add_argument("--plots", action="store_true", help="write plots/timeseries_<rig>.png (needs matplotlib)")

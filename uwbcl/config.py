@@ -193,6 +193,17 @@ def parse_config(data: dict[str, Any], path: str | os.PathLike[str] | None = Non
     return cfg
 
 
+MAX_LENGTH_M = 1000.0  # no length of a gate road's survey is larger (and a larger one overflows the maths)
+MAX_BRIDGE_CYCLES = 1000
+
+
+def _check_length(path, key: str, v) -> None:
+    """ConfigError unless every value of a length (one, or a tuple) is within +-MAX_LENGTH_M."""
+    values = v if isinstance(v, (tuple, list)) else (v,)
+    if v is not None and not all(abs(x) <= MAX_LENGTH_M for x in values):
+        raise ConfigError(path, key, f"must be within +-{MAX_LENGTH_M:g} m, got {v!r}")
+
+
 def _positive(v) -> bool:
     return all(math.isfinite(x) and x > 0 for x in (v if isinstance(v, tuple) else (v,)))
 
@@ -241,6 +252,8 @@ def _check_ranges(settings: ProcessingSettings, path) -> None:
                 v if isinstance(v, tuple) else (v,))), "finite"))
             if not check(value):
                 raise ConfigError(path, key, f"must be {want}, got {value!r}")
+            if key.endswith("_m"):
+                _check_length(path, key, value)
     d = settings.detection
     if d.background not in BACKGROUND_MODES:
         raise ConfigError(path, "detection.background",
@@ -267,6 +280,9 @@ def validate(cfg: SiteConfig, path=None) -> None:
     for key in ("site.prior_creep_m", "site.prior_vertical_m"):
         if not math.isfinite(getattr(cfg, key.split(".")[1])):
             raise ConfigError(path, key, "must be finite")
+    if cfg.prior_window_m is not None and cfg.web_depth_m is None:
+        raise ConfigError(path, "site.prior_window_m", "is the window of the web-depth prior: give "
+                          "site.web_depth_m (--web-depth) too, or leave it out (without a prior, unused)")
     if cfg.prior_window_m is not None and not _positive(tuple(cfg.prior_window_m)):
         raise ConfigError(path, "site.prior_window_m",
                           f"must be finite and > 0, got {list(cfg.prior_window_m)}")
@@ -278,8 +294,12 @@ def validate(cfg: SiteConfig, path=None) -> None:
     for key in ("max_backward_m", "min_margin"):
         if cfg.association.get(key, 0.0) < 0:
             raise ConfigError(path, f"association.{key}", f"must be >= 0, got {cfg.association[key]}")
-    if cfg.max_bridge_cycles < 1:
-        raise ConfigError(path, "association.max_bridge_cycles", f"must be >= 1, got {cfg.max_bridge_cycles}")
+    if not 1 <= cfg.max_bridge_cycles <= MAX_BRIDGE_CYCLES:
+        raise ConfigError(path, "association.max_bridge_cycles",
+                          f"must be between 1 and {MAX_BRIDGE_CYCLES}, got {cfg.max_bridge_cycles}")
+    for key in ("web_depth_m", "height_tolerance_m", "prior_window_m", "prior_creep_m", "prior_vertical_m",
+                "heights_m"):
+        _check_length(path, f"site.{key}", getattr(cfg, key))
     try:
         settings = cfg.processing_settings()
     except ConfigError as e:

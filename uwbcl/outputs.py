@@ -369,8 +369,11 @@ def settings_text(settings, batch_options) -> str:
     """settings.json (docs/outputs.md section 2): every setting in effect that shapes the outputs, from the
     site file, the flags and the defaults together, so a published set says what produced it."""
     opts = batch_options
+    processing = dataclasses.asdict(settings)
+    if processing["association"]["prior_advance_m"] is None:  # the window of no prior is used nowhere
+        processing["association"]["prior_window_m"] = None
     doc = {"format": SETTINGS_FORMAT, "format_version": SETTINGS_FORMAT_VERSION, "uwbcl": __version__,
-           "processing": _jsonable(dataclasses.asdict(settings)),
+           "processing": _jsonable(processing),
            "batch": _jsonable({"heights_m": sorted(opts.heights_m) if opts.heights_m else opts.heights_m,
                                "height_tolerance_m": opts.height_tolerance_m,
                                "max_bridge_cycles": opts.max_bridge_cycles,
