@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import pickle
 from pathlib import Path
@@ -205,6 +206,25 @@ def test_one_element_arrays_are_accepted_as_scalars(scan, scan_file):
         f.attrs["cycle"] = np.array([12], dtype=np.int32)
 
     assert_same_metadata(read_pass(edit(scan_file, as_arrays)), scan)
+
+
+def test_a_column_or_row_vector_is_accepted_for_a_three_vector(scan, scan_file):
+    # MATLAB writes a vector attribute as (3, 1) or (1, 3) (indepZa F7)
+    for shape in ((3, 1), (1, 3)):
+        def as_matrix(f, shape=shape):
+            f["geometry"].attrs["reference_point_m"] = np.reshape(scan.geometry.reference_point_m, shape)
+
+        assert_same_metadata(read_pass(edit(scan_file, as_matrix)), scan)
+
+
+def test_a_sample_rate_below_the_bandwidth_is_read_with_a_warning(scan_file, caplog):
+    def undersampled(f):
+        f["radar"].attrs["sample_rate_hz"] = 0.8 * f["radar"].attrs["bandwidth_hz"]
+
+    path = edit(scan_file, undersampled)
+    with caplog.at_level(logging.WARNING, logger="uwbcl"):
+        read_pass(path)
+    assert f"{path}: /radar@sample_rate_hz" in caplog.text and "is below bandwidth_hz" in caplog.text
 
 
 def test_recommended_file_name(scan):

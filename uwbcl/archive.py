@@ -562,6 +562,10 @@ def _read_header(f: h5py.File, path: Any, limits: ReadLimits = ReadLimits()) -> 
             raise ArchiveError(path, ds.name, f"expected a real numeric dtype, got {ds.dtype}")
     _check_header(path, h)
     _read_additions(f, path, h)
+    if h["sample_rate_hz"] < h["bandwidth_hz"]:  # complex sampling: fs must hold the -10 dB band
+        _warn_once("%s: /radar@sample_rate_hz %.4g Hz is below bandwidth_hz %.4g Hz: the pulse's -10 dB band "
+                   "does not fit the complex sampling and aliases (1.41 x bandwidth holds its -20 dB band)",
+                   path, h["sample_rate_hz"], h["bandwidth_hz"])
     h.pop("format")
     h["path"] = str(path)
     return h
@@ -916,6 +920,8 @@ def _float_attr(obj: h5py.HLObject, name: str, path: Any) -> float:
 
 def _vector_attr(obj: h5py.HLObject, name: str, path: Any, length: int) -> tuple[float, ...]:
     value = np.asarray(_raw_attr(obj, name, path))
+    if value.ndim == 2 and 1 in value.shape and value.size == length:  # a column or row vector (MATLAB's)
+        value = value.reshape(-1)
     if value.shape != (length,) or value.dtype.kind not in "fiu":
         raise ArchiveError(
             path, f"{obj.name}@{name}", f"expected {length} real numbers, got {value.dtype} {value.shape}"
