@@ -359,3 +359,12 @@ def test_a_chain_that_starts_on_a_cycle_with_no_plates_counts_from_the_next_cycl
         if r.displacement.status == "ok" and np.all(np.isfinite(r.cumulative_m)):
             np.testing.assert_allclose(r.cumulative_m[:2], (rigs[r.cycle.cycle] - rigs[origins[r.chain]])[:2],
                                        atol=0.02)
+
+
+def test_a_restart_after_cycles_without_archives_names_them(caplog):
+    """'no trusted match for 4 cycles' read as four failed cycles when two had no archive (indepZa F6)."""
+    cycles, _ = noisy_cycles(12, seed=3)
+    cycles = [dataclasses.replace(c, plates=[]) if c.cycle == 4 else c for c in cycles if c.cycle not in (5, 6)]
+    with caplog.at_level(logging.WARNING, logger="uwbcl"):
+        chain.rig_series(cycles, PRIOR)
+    assert "no trusted match for 4 cycles up to cycle 7 (since cycle 3; without archives: 5, 6)" in caplog.text

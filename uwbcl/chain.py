@@ -753,9 +753,12 @@ class RigChain:
                              self._anchor_var + d.bound_m**2)
         if cur.cycle - anchor.cycle >= self.max_bridge_cycles:
             # Start a new chain here: its cumulative values count from this cycle, not from the rig's first.
-            log.warning("rig %s: no trusted match for %d cycles up to cycle %d; the cumulative values start "
-                        "again from 0 at cycle %d (chain %d) unless later cycles join it back (said so below "
-                        "if they do)", cur.rig_id, cur.cycle - anchor.cycle, cur.cycle, cur.cycle,
+            seen = {r.cycle.cycle for r in self.rows[-(cur.cycle - anchor.cycle):]}
+            absent = ", ".join(str(c) for c in range(anchor.cycle + 1, cur.cycle) if c not in seen)
+            log.warning("rig %s: no trusted match for %d cycles up to cycle %d (since cycle %d%s); the "
+                        "cumulative values start again from 0 at cycle %d (chain %d) unless later cycles "
+                        "join it back (said so below if they do)", cur.rig_id, cur.cycle - anchor.cycle,
+                        cur.cycle, anchor.cycle, f"; without archives: {absent}" if absent else "", cur.cycle,
                         self._chain + 1)
             self._chain += 1
             row.cumulative_m, row.cumulative_bound_m, row.chain = np.zeros(3), np.zeros(3), self._chain
