@@ -364,7 +364,9 @@ def test_a_chain_that_starts_on_a_cycle_with_no_plates_counts_from_the_next_cycl
 def test_a_restart_after_cycles_without_archives_names_them(caplog):
     """'no trusted match for 4 cycles' read as four failed cycles when two had no archive (indepZa F6)."""
     cycles, _ = noisy_cycles(12, seed=3)
-    cycles = [dataclasses.replace(c, plates=[]) if c.cycle == 4 else c for c in cycles if c.cycle not in (5, 6)]
+    cycles = [dataclasses.replace(c, plates=[]) if c.cycle == 4 else c
+              for c in cycles if c.cycle not in (5, 6)]
     with caplog.at_level(logging.WARNING, logger="uwbcl"):
         chain.rig_series(cycles, PRIOR)
-    assert "no trusted match for 4 cycles up to cycle 7 (since cycle 3; without archives: 5, 6)" in caplog.text
+    words = "no trusted match for 4 cycles up to cycle 7 (since cycle 3; without archives: 5, 6)"
+    assert words in caplog.text
