@@ -311,6 +311,8 @@ def test_a_rail_height_where_many_plates_share_their_peak_is_named_in_one_warnin
     assert warning.kind == "shared_peaks" and warning.file == "rig rig-a"
     # at 0.66 m two plates per cycle were seen (Q was not): P, whose peak there is shared, and R
     assert "0.660 m, 4 of 8 located plates" in warning.reason
+    snr = np.median([d.snr_db for p in plates for h, d in p.looks if h == 0.66])
+    assert f"a noise peak beside the plate (the median look here: {snr:.1f} dB)" in warning.reason
     assert batch.shared_peak_warnings(cycles[:3]) == []  # 3 plates: fewer than SHARED_PEAKS_WARN_MIN
     resolved, _ = _column_scene(heights, seen_q=heights, pull_m={})
     assert batch.shared_peak_warnings(

@@ -601,21 +601,30 @@ def shared_peak_warnings(cycles: list[CycleResult]) -> list[Problem]:
     in R_c than the detector separates (the height is at, between or not far enough below the rows for the
     rib's distance), and one of them is lost there (docs/method.md section 5, choosing rail heights)."""
     counts: dict[tuple[str, int], list[int]] = defaultdict(lambda: [0, 0])  # -> [shared, plates seen there]
+    snr: dict[tuple[str, int], list[float]] = defaultdict(list)  # the looks' SNR there (dB)
     for c in cycles:
         for p in c.plates:
             shared = {archive.height_mm(h) for h in p.shared_heights_m}
             for h in shared | {archive.height_mm(h) for h, _ in p.looks}:
                 counts[(c.rig_id, h)][0] += h in shared
                 counts[(c.rig_id, h)][1] += 1
+            for h, d in p.looks:
+                snr[(c.rig_id, archive.height_mm(h))].append(d.snr_db)
     return [Problem(f"rig {rig}", "shared_peaks",
                     f"at rail height {h / 1000:.3f} m, {n_shared} of {n} located plates shared their peak "
                     "with a neighbour's: from this height two plates of a column are closer in range than "
                     "the detector separates and their peaks merge, which a height further from the rows' "
                     "mid-height undoes (docs/method.md section 5, choosing rail heights); where the rows are "
-                    "staggered or resolved at this height, the neighbour is a plate's own edges or bolt head "
-                    "or a clutter point, and moving the height will not help")
+                    "staggered or resolved at this height, the neighbour is a plate's own edges or bolt "
+                    "head, a clutter point or, at low SNR, a noise peak beside the plate (the median look "
+                    f"here: {_median_text(snr[(rig, h)])} dB), and moving the height will not help")
             for (rig, h), (n_shared, n) in sorted(counts.items())
             if n_shared >= SHARED_PEAKS_WARN_MIN and n_shared >= SHARED_PEAKS_WARN_FRACTION * n]
+
+
+def _median_text(values: list[float]) -> str:
+    finite = [v for v in values if math.isfinite(v)]
+    return f"{float(np.median(finite)):.1f}" if finite else "n/a"
 
 
 def q_sign_warnings(records: list[PassRecord], in_dir: Path, settings: ProcessingSettings) -> list[Problem]:
