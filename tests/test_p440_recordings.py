@@ -323,3 +323,17 @@ def test_a_recording_that_starts_after_the_rail_is_refused_unless_the_offset_is_
     err = capsys.readouterr().err
     assert "late.p440: cannot align the clocks on the motion" in err and "the last motion +0.040 s" in err
     assert cli.main([*args, "--time-offset-s", "0"]) == 0
+
+
+def test_a_missing_rail_height_is_a_usage_error_before_the_recording_is_read(tmp_path, capsys):
+    # reading a 1 GB recording takes about a minute: a height neither given nor in the positions (no z_m)
+    # is said first (indepZb)
+    positions = tmp_path / "pos.csv"
+    positions.write_text("time_s,x_m\n0,0\n1,0.1\n2,0.2\n")
+    unread = tmp_path / "not-yet-read.p440"
+    unread.write_text("not a recording: never opened when the flags already fail")
+    assert cli.main(["import", "p440", str(unread), "--out", str(tmp_path / "out"), "--positions",
+                     str(positions)]) == 2
+    err = capsys.readouterr().err
+    assert "--height-m: required: the rail height is the median z_m of the positions" in err
+    assert "not a PulsON 440" not in err

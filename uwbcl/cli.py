@@ -532,10 +532,13 @@ def _import(args: argparse.Namespace) -> int:
         return 2
     made = []  # the directories this import creates, removed again if it fails
     try:
+        # the positions first: a missing height is a usage error before a recording of a minute is read
+        positions = passes.read_positions_csv(args.positions) if args.positions else None
+        if positions is not None:
+            passes.check_height_source(options, positions.z_m)
         recording = registry.get_reader(args.reader).read(source)
-        if args.positions:
-            track = passes.track_from_positions(recording, passes.read_positions_csv(args.positions),
-                                                args.time_offset_s, options.min_step_m)
+        if positions is not None:
+            track = passes.track_from_positions(recording, positions, args.time_offset_s, options.min_step_m)
         else:
             track = passes.constant_speed_track(recording, args.speed_m_s)
         result = passes.build_pass(recording, track, options, file_mtime_s=source.stat().st_mtime)

@@ -412,9 +412,7 @@ def build_pass(
     window_start_s = _window_start_s(recording, options)
     height = options.height_m
     if height is None:
-        if track.z_m is None:
-            raise OptionError("height_m", "required: the rail height is the median z_m of the positions, and "
-                                          "there are none")
+        check_height_source(options, track.z_m)
         height = float(np.median(track.z_m))
     # the antenna's deviations from the straight rail (archive 1.2, compensated in focusing: method.md C14):
     # y_m is the antenna's Y_r (the straight rail is the X_r axis), z_m - height its height above the rail's
@@ -506,6 +504,14 @@ def build_pass(
         antenna_z_m=dz,
     )
     return ImportResult(scan=scan, band=band, decimation=decimation, track=track, notes=notes)
+
+
+def check_height_source(options: ImportOptions, z_m: np.ndarray | None) -> None:
+    """OptionError when the rail height is neither given nor in the positions (z_m): checked again before
+    the recording is read, which may take a minute."""
+    if options.height_m is None and z_m is None:
+        raise OptionError("height_m", "required: the rail height is the median z_m of the positions, and "
+                                      "there are none")
 
 
 def _window_start_s(recording: RawRecording, options: ImportOptions) -> float:
