@@ -81,7 +81,6 @@ def test_without_a_file_the_defaults_apply():
     ("[site]\nheight_tolerance_m = 1e9\n", "site.height_tolerance_m"),
     ("[association]\ntolerance_m = [1e300, 0.1, 0.1]\n", "association.tolerance_m"),
     ("[association]\nmax_bridge_cycles = 9223372036854775807\n", "association.max_bridge_cycles"),
-    ("[site]\nprior_window_m = [0.4, 0.3, 0.5]\n", "site.prior_window_m"),  # the window of no prior
     ("[site\n", ""),  # the file itself: no key
     ("web_depth_m = 0.9\n", "web_depth_m"),  # a key outside any table
 ])
@@ -132,3 +131,17 @@ def test_the_range_delay_is_accepted_within_one_microsecond_inclusive(tmp_path, 
     else:
         with pytest.raises(config.ConfigError, match="radar.range_delay_s"):
             config.load_config(site)
+
+
+def test_a_prior_window_needs_a_web_depth_from_the_file_or_the_flags(tmp_path, capsys):
+    """The window of no prior is a usage error, judged on the file and the flags together (indepZe 5)."""
+    path = write(tmp_path, "[site]\nprior_window_m = [0.4, 0.3, 0.5]\n")
+    site = config.load_config(path)
+    with pytest.raises(config.ConfigError) as info:
+        config.override(site)
+    assert info.value.key == "site.prior_window_m"
+    assert config.override(site, web_depth_m=0.9).processing_settings().association.prior_window_m == \
+        (0.4, 0.3, 0.5)
+    assert main(["process", str(tmp_path), "--out", str(tmp_path / "out"), "--prior-window", "0.4", "0.3",
+                 "0.5"]) == 2
+    assert "site.prior_window_m: is the window of the web-depth prior" in capsys.readouterr().err

@@ -280,9 +280,6 @@ def validate(cfg: SiteConfig, path=None) -> None:
     for key in ("site.prior_creep_m", "site.prior_vertical_m"):
         if not math.isfinite(getattr(cfg, key.split(".")[1])):
             raise ConfigError(path, key, "must be finite")
-    if cfg.prior_window_m is not None and cfg.web_depth_m is None:
-        raise ConfigError(path, "site.prior_window_m", "is the window of the web-depth prior: give "
-                          "site.web_depth_m (--web-depth) too, or leave it out (without a prior, unused)")
     if cfg.prior_window_m is not None and not _positive(tuple(cfg.prior_window_m)):
         raise ConfigError(path, "site.prior_window_m",
                           f"must be finite and > 0, got {list(cfg.prior_window_m)}")
@@ -370,4 +367,8 @@ def override(cfg: SiteConfig, **flags: Any) -> SiteConfig:
     kw = {k: v for k, v in flags.items() if v is not None}
     cfg = dataclasses.replace(cfg, **kw, output=dataclasses.replace(cfg.output, **output))
     validate(cfg, "command line")
+    # on the file and the flags together: a site file's window with the night's --web-depth is a prior
+    if cfg.prior_window_m is not None and cfg.web_depth_m is None:
+        raise ConfigError("command line", "site.prior_window_m", "is the window of the web-depth prior: give "
+                          "site.web_depth_m (--web-depth) too, or leave it out (without a prior, unused)")
     return cfg
