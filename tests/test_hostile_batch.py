@@ -285,7 +285,8 @@ def test_plain_outputs_of_a_version_before_generations_are_kept_as_the_previous_
     assert (out / "displacements.csv").read_text().startswith("rig_id,cycle,from_cycle")
 
 
-@pytest.mark.parametrize("entry", ["displacements.csv", "errors.csv/", "plots/mine.png", "settings.json",
+@pytest.mark.parametrize("entry", ["displacements.csv", "errors.csv/", "plots/mine.png",
+                                   "plots/.my-notes.txt", "settings.json", "displacements.h5",
                                    ".uwbcl-current", ".uwbcl.lock|"])
 def test_someone_elses_file_where_uwbcl_puts_its_outputs_or_lock_stops_the_run_and_is_left_alone(
         tree, tmp_path, entry):
@@ -301,6 +302,9 @@ def test_someone_elses_file_where_uwbcl_puts_its_outputs_or_lock_stops_the_run_a
     elif entry.endswith("/"):
         path.mkdir()
         (path / "theirs.txt").write_text("theirs")
+    elif name.endswith(".h5"):  # someone's own HDF5 file: not uwbcl's format
+        with h5py.File(path, "w") as f:
+            f["my_own_data"] = [1.0]
     else:
         path.parent.mkdir(exist_ok=True)
         path.write_text("a,b\n")
@@ -311,8 +315,33 @@ def test_someone_elses_file_where_uwbcl_puts_its_outputs_or_lock_stops_the_run_a
     assert not (out / outputs.GENERATIONS_DIR).exists()
     if entry.endswith("/"):
         assert (path / "theirs.txt").read_text() == "theirs"
+    elif name.endswith(".h5"):
+        with h5py.File(path, "r") as f:
+            assert list(f) == ["my_own_data"]
     elif not entry.endswith("|"):
         assert path.read_text() == "a,b\n"
+
+
+def test_a_current_link_spelled_otherwise_is_accepted_where_it_reaches_a_generation_and_refused_elsewhere(
+        tree, tmp_path):
+    """An operator's rollback, `ln -sfn $PWD/out/.uwbcl-generations/g-000001 out/.uwbcl-current`, is
+    uwbcl's set; a link that leaves OUT through `..` is not, however it is spelled (indepZe 6, 7)."""
+    src, _ = tree
+    out = tmp_path / "rolled-back"
+    batch.process_directory(src, out, SETTINGS, options())
+    gen = os.readlink(out / outputs.CURRENT_LINK)
+    for target in (str((out / gen).resolve()), f"./{gen}"):
+        (out / outputs.CURRENT_LINK).unlink()
+        os.symlink(target, out / outputs.CURRENT_LINK)
+        batch.process_directory(src, out, SETTINGS, options())
+    elsewhere = tmp_path / "other" / outputs.GENERATIONS_DIR / "g-000001"
+    elsewhere.mkdir(parents=True)
+    (out / outputs.CURRENT_LINK).unlink()
+    os.symlink(f"{outputs.GENERATIONS_DIR}/../../other/{outputs.GENERATIONS_DIR}/g-000001",
+               out / outputs.CURRENT_LINK)
+    with pytest.raises(BatchError, match="not to a generation in"):
+        batch.process_directory(src, out, SETTINGS, options())
+    assert elsewhere.is_dir()
 
 
 def test_a_partial_file_that_is_not_uwbcls_is_left_alone_and_its_own_are_removed(tree, tmp_path):

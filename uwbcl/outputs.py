@@ -491,20 +491,24 @@ def publish(out_dir: Path, gen: Path) -> None:
 
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
-_OWN_PLOT = ("timeseries_", "cycles", ".")  # what plots/ of an earlier uwbcl holds (names starting so)
+
+
+def _own_plot(name: str) -> bool:
+    """A name plots/ of an earlier uwbcl holds: time series, the cycle images, its own temporary files."""
+    return (name.startswith("timeseries_") and name.endswith(".png")) or name == "cycles" or (
+        name.startswith(".timeseries_") and name.endswith(PARTIAL_SUFFIX))
 
 
 def _plain_output_is_ours(path: Path, name: str) -> bool:
     """Whether a plain (not linked) OUT/NAME is an output of a uwbcl version without generations: a CSV with
     its header, JSON with its processing settings, an HDF5 file, plots/ of time-series PNGs. Read without
     blocking and only its start: someone else's file is never read whole."""
-    if name == "plots":
-        return path.is_dir() and not path.is_symlink() and all(
-            e.name.startswith(_OWN_PLOT) for e in path.iterdir())
     try:
+        if name == "plots":
+            return path.is_dir() and not path.is_symlink() and all(_own_plot(e.name) for e in path.iterdir())
         with open_regular_file(path, follow_symlinks=False) as f:
             head = f.read(1 << 20 if name == "settings.json" else 4096)
-    except (OSError, ValueError):
+    except (OSError, ValueError):  # unreadable: not known to be ours
         return False
     if name.endswith(".csv"):
         first = {"displacements.csv": DISPLACEMENT_COLUMNS, "targets.csv": TARGET_COLUMNS,
@@ -516,7 +520,16 @@ def _plain_output_is_ours(path: Path, name: str) -> bool:
         except ValueError:
             return False
         return isinstance(doc, dict) and "processing" in doc
-    return head.startswith(_HDF5_SIGNATURE)
+    if not head.startswith(_HDF5_SIGNATURE):
+        return False
+    import h5py  # only here: h5py is needed where an HDF5 file is read or written
+
+    try:  # uwbcl's own format attribute (docs/outputs.md section 2.2), not any HDF5 file
+        with h5py.File(path, "r") as f:
+            fmt = f.attrs.get("format", "")
+        return (fmt.decode("utf-8", "replace") if isinstance(fmt, bytes) else str(fmt)) == H5_FORMAT
+    except (OSError, ValueError, TypeError):
+        return False
 
 
 def foreign_entries(out_dir: Path) -> list[str]:
@@ -529,8 +542,10 @@ def foreign_entries(out_dir: Path) -> list[str]:
     current = out_dir / CURRENT_LINK
     if current.is_symlink():
         target = os.readlink(current)
-        if not (target.startswith(f"{GENERATIONS_DIR}/") and _generation_number(Path(target).name) >= 0):
-            out.append(f"{current}: a symbolic link to {target!r}, not into {GENERATIONS_DIR}")
+        resolved = Path(os.path.realpath(current))
+        if not (resolved.parent == Path(os.path.realpath(out_dir / GENERATIONS_DIR))
+                and _generation_number(resolved.name) >= 0):
+            out.append(f"{current}: a symbolic link to {target!r}, not to a generation in {GENERATIONS_DIR}")
     elif current.exists() and not current.is_dir():
         out.append(f"{current}: not uwbcl's symbolic link to the published set")
     for name in OUTPUT_NAMES:
