@@ -362,11 +362,29 @@ def test_a_chain_that_starts_on_a_cycle_with_no_plates_counts_from_the_next_cycl
 
 
 def test_a_restart_after_cycles_without_archives_names_them(caplog):
-    """'no trusted match for 4 cycles' read as four failed cycles when two had no archive (indepZa F6)."""
+    """'no trusted match for 4 cycles' read as four failed cycles when two had no archive (indepZa F6); they
+    may also have had archives none of which could be used (errors.csv says which)."""
     cycles, _ = noisy_cycles(12, seed=3)
     cycles = [dataclasses.replace(c, plates=[]) if c.cycle == 4 else c
               for c in cycles if c.cycle not in (5, 6)]
     with caplog.at_level(logging.WARNING, logger="uwbcl"):
         chain.rig_series(cycles, PRIOR)
-    words = "no trusted match for 4 cycles up to cycle 7 (since cycle 3; without archives: 5, 6)"
+    words = ("no trusted match for 4 cycles up to cycle 7 (since cycle 3; not in the series, no archive or "
+             "none usable: 5, 6)")
     assert words in caplog.text
+
+
+def test_a_live_chain_keeps_a_bounded_state_over_hundreds_of_cycles():
+    """Rows, covariances, histories and the witnesses of the learned step stay bounded (indepZg F4)."""
+    cycles, _ = noisy_cycles(300, seed=9, webs_m=np.full(300, 0.15))
+    live_chain = chain.RigChain(dataclasses.replace(BLIND, motion_model=False))  # witnesses consulted often
+    sizes = []
+    for c in cycles:
+        live_chain.add(c)
+        live_chain.forget()
+        sizes.append((len(live_chain.rows), len(live_chain._covs),
+                      sum(len(v) for v in live_chain._forgotten_steps.values()), len(live_chain._steps)))
+    late = np.array(sizes[100:])
+    assert late[:, 0].max() <= 2 * (chain.LEARN_PAIRS + chain.DEFAULT_MAX_BRIDGE_CYCLES)
+    assert late[:, 1].max() <= 2 * (chain.LEARN_PAIRS + chain.DEFAULT_MAX_BRIDGE_CYCLES)
+    assert late[:, 2].max() <= 2 * chain.WITNESS_HISTORY and late[:, 3].max() <= chain.MOTION_HISTORY

@@ -51,6 +51,8 @@ MOTION_SIGMA_FLOOR_M = np.array([0.05, 0.15, 0.10])
 # Without a configured prior and before the motion model has its steps, the per-cycle step is learned from the
 # last LEARN_PAIRS consecutive cycle pairs together (eq. M4), once LEARN_MIN_PAIRS are available.
 LEARN_PAIRS = 6
+WITNESS_HISTORY = 20  # a step learned for a rejoin or catch-up is confirmed by one of the chain's last ok
+# rows (`_confirmed`)
 LEARN_MIN_PAIRS = 2
 # The carrier phases (eq. M8) refine rows without spare looks only once the rig's own ok rows have shown that
 # its phases hold between cycles: among the last PHASE_HISTORY fits that could fail (PHASE_TEST_REDUNDANCY
@@ -672,9 +674,10 @@ class RigChain:
             return None
         step, sigma = learned
         witnesses = [] if self._learned is None else [self._learned[0]]
-        witnesses += self._forgotten_steps.get(self._chain, [])
-        witnesses += [_step_per_cycle(r) for r in self.rows if r.chain == self._chain and
-                      r.displacement.status == "ok"]
+        steps = [*self._forgotten_steps.get(self._chain, []),
+                 *(_step_per_cycle(r) for r in self.rows if r.chain == self._chain and
+                   r.displacement.status == "ok")]
+        witnesses += steps[-WITNESS_HISTORY:]  # the chain's recent ok rows: the step they agree on now
         return learned if any(np.all(np.abs(w - step) <= 3.0 * sigma) for w in witnesses) else None
 
     def _extend_old_chain(self, links: list[tuple[CycleResult, CycleResult, Displacement]],
@@ -755,11 +758,11 @@ class RigChain:
             # Start a new chain here: its cumulative values count from this cycle, not from the rig's first.
             seen = {r.cycle.cycle for r in self.rows[-(cur.cycle - anchor.cycle):]}
             absent = ", ".join(str(c) for c in range(anchor.cycle + 1, cur.cycle) if c not in seen)
+            absent = f"; not in the series, no archive or none usable: {absent}" if absent else ""
             log.warning("rig %s: no trusted match for %d cycles up to cycle %d (since cycle %d%s); the "
                         "cumulative values start again from 0 at cycle %d (chain %d) unless later cycles "
                         "join it back (said so below if they do)", cur.rig_id, cur.cycle - anchor.cycle,
-                        cur.cycle, anchor.cycle, f"; without archives: {absent}" if absent else "", cur.cycle,
-                        self._chain + 1)
+                        cur.cycle, anchor.cycle, absent, cur.cycle, self._chain + 1)
             self._chain += 1
             row.cumulative_m, row.cumulative_bound_m, row.chain = np.zeros(3), np.zeros(3), self._chain
             self._rejoin = (anchor, self._anchor_cum, self._anchor_var, self._chain - 1, cur)
@@ -790,7 +793,7 @@ class RigChain:
             self._reserve = (index - n, *rest)
         self._covs = {c: cov for c, cov in self._covs.items() if c >= floor}
         # only the current chain's witnesses, and the one before while a restart may still be joined to it
-        self._forgotten_steps = {k: v for k, v in self._forgotten_steps.items()
+        self._forgotten_steps = {k: v[-WITNESS_HISTORY:] for k, v in self._forgotten_steps.items()
                                  if k in (self._chain - 1, self._chain)}
         del self._steps[:-MOTION_HISTORY], self._fits[:-SCALE_HISTORY]
         del self._vertical[:-VERTICAL_HISTORY], self._phase_checks[:-PHASE_HISTORY]
@@ -798,15 +801,14 @@ class RigChain:
     def _origin_after_empty(self, cur: CycleResult, empty: CycleResult, d: Displacement) -> SeriesRow:
         """The chain's origin moves from the `empty` anchor (no plate to measure from) to `cur`: the empty
         cycle's row, if it was the origin, is a flagged row like any other (nan): one origin per chain
-        (docs/outputs.md section 3); a restart not yet joined now starts at `cur`."""
+        (docs/outputs.md section 3). (A restart on an empty cycle is not joined back: `_rejoin_chains` needs
+        plates at both ends.)"""
         for r in self.rows[::-1]:
             if r.cycle is empty:
                 r.cumulative_m, r.cumulative_bound_m = np.full(3, np.nan), np.full(3, np.nan)
-                log.warning("rig %s: cycle %d, where chain %d started again, located no plate; the chain "
-                            "counts from cycle %d", cur.rig_id, empty.cycle, self._chain, cur.cycle)
+                log.warning("rig %s: cycle %d, the origin of chain %d, located no plate; the chain counts "
+                            "from cycle %d", cur.rig_id, empty.cycle, self._chain, cur.cycle)
                 break
-        if self._rejoin is not None and self._rejoin[4] is empty:
-            self._rejoin = (*self._rejoin[:4], cur)
         return self._append(SeriesRow(cur, empty, d, np.zeros(3), self._chain, np.zeros(3)), restart=cur)
 
     def _append(self, row: SeriesRow, restart: CycleResult | None = None) -> SeriesRow:
