@@ -121,6 +121,22 @@ def test_simulate_refuses_a_count_or_value_it_cannot_simulate_as_a_usage_error(f
     assert stop.value.code == 2 and words in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("flags, words", [
+    (["--heights", "0.2", "0.2"], "--heights: needs two or more distinct heights"),
+    (["--heights", "0.2"], "--heights: needs two or more distinct heights"),
+    (["--heights", "0.2", "0.2004"], "--heights: two heights within a millimetre"),
+    (["--heights", "0.2", "1e6"], "--heights: must be within +-1000 m"),
+    (["--first-cycle", "19999", "--cycles", "2"], "more than 20000"),
+    (["--scenario", "paper-sim1", "--rigs", "3"], "--rigs: only with --scenario shift"),
+])
+def test_simulate_refuses_heights_and_counts_it_cannot_write_before_writing_anything(flags, words, tmp_path,
+                                                                                      capsys):
+    out = tmp_path / "sim"
+    scenario = [] if "--scenario" in flags else ["--scenario", "shift"]
+    assert main(["simulate", str(out), *scenario, *flags]) == 2
+    assert words in capsys.readouterr().err and not out.exists()
+
+
 def test_simulate_into_existing_archives_names_one_and_the_flag_without_a_traceback(tmp_path, capsys):
     args = ["simulate", str(tmp_path / "sim"), "--scenario", "shift", "--rigs", "1", "--cycles", "1"]
     assert main(args) == 0

@@ -27,9 +27,17 @@ from .pipeline import MIN_FOCUS_PULSES  # noqa: E402
 from .records import ALGORITHMS, BACKENDS, BatchError, ConfigError, NothingRead, OutputError  # noqa: E402
 from .scenarios import SCENARIOS  # noqa: E402
 
+# a shift's rib and truth are simulated from cycle 0, in time growing with the square (10 s for 10,000)
+MAX_SIMULATED_CYCLES = 20_000
+
 
 def _simulate_shift(args: argparse.Namespace) -> int:
     from . import shift
+
+    if args.first_cycle + args.cycles > MAX_SIMULATED_CYCLES:
+        print(f"uwbcl simulate: --first-cycle + --cycles is {args.first_cycle + args.cycles}, more than "
+              f"{MAX_SIMULATED_CYCLES} (the rib and the truth are simulated from cycle 0)", file=sys.stderr)
+        return 2
 
     cfg = shift.ShiftConfig(cycles=args.cycles, rigs=args.rigs, first_cycle=args.first_cycle, seed=args.seed,
                             snr_db=args.snr_db, speed_jitter=args.speed_jitter,
@@ -45,10 +53,24 @@ def _simulate_shift(args: argparse.Namespace) -> int:
 SIMULATED_RIG_ID = "sim-rig"  # a paper scenario's rig
 
 
+SHIFT_DEFAULTS = {"cycles": 40, "rigs": 3, "first_cycle": 0}  # `simulate --scenario shift`
+
+
 def _simulate(args: argparse.Namespace) -> int:
     if blocker := file_in_the_way(Path(args.out_dir)):
         print(f"uwbcl simulate: {args.out_dir}: {blocker} is not a directory", file=sys.stderr)
         return 2
+    heights = config.parse_heights(args.heights)
+    config.check_heights(heights, "command line", "--heights")
+    if heights and len({archive.height_mm(h) for h in heights}) < len(heights):
+        raise ConfigError("command line", "--heights", f"two heights within a millimetre, the archives' name "
+                          f"unit: {list(heights)}")
+    given = [k for k in SHIFT_DEFAULTS if getattr(args, k) is not None]
+    if args.scenario != "shift" and given:
+        raise ConfigError("command line", f"--{given[0].replace('_', '-')}",
+                          f"only with --scenario shift ({args.scenario} has its own rig and cycles)")
+    for k, v in SHIFT_DEFAULTS.items():
+        setattr(args, k, v if getattr(args, k) is None else getattr(args, k))
     try:
         return _simulate_shift(args) if args.scenario == "shift" else _simulate_scenario(args)
     except OSError as exc:  # an archive already there (without --overwrite), a full disk
@@ -688,11 +710,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rail speed fluctuation as a fraction of the set speed, e.g. 0.1 for +-10%%")
     s.add_argument("--heights", nargs="+", help="rail heights in metres, e.g. 0.2 0.6 or 0.2,0.6 "
                    "(default: the scenario's; shift: 0.2 0.6)")
-    s.add_argument("--cycles", type=_int_at_least(1), default=40,
+    s.add_argument("--cycles", type=_int_at_least(1), default=None,
                    help="shift: cutting cycles per rig (default 40)")
-    s.add_argument("--rigs", type=_int_at_least(1), default=3, help="shift: rigs (default 3)")
-    s.add_argument("--first-cycle", type=_int_at_least(0), default=0,
-                   help="shift: first cycle to write, to append a later shift to an archive tree")
+    s.add_argument("--rigs", type=_int_at_least(1), default=None, help="shift: rigs (default 3)")
+    s.add_argument("--first-cycle", type=_int_at_least(0), default=None,
+                   help="shift: first cycle to write, to append a later shift to an archive tree (the rib "
+                   f"and truth.csv cover cycles 0 on: first cycle + cycles <= {MAX_SIMULATED_CYCLES})")
     s.add_argument("--rig-id", help=f"the rig's id (default {SIMULATED_RIG_ID}); shift: the prefix of its "
                    "rigs' ids, ID-1, ID-2, ... (default rig)")
     s.add_argument("--overwrite", action="store_true", help="replace existing archives")

@@ -204,6 +204,18 @@ def _check_length(path, key: str, v) -> None:
         raise ConfigError(path, key, f"must be within +-{MAX_LENGTH_M:g} m, got {v!r}")
 
 
+def check_heights(heights, path, key: str) -> None:
+    """ConfigError unless the rail heights (None: any) are finite, within +-MAX_LENGTH_M and two or more
+    distinct ones."""
+    if heights is None:
+        return
+    if not all(math.isfinite(h) for h in heights):
+        raise ConfigError(path, key, f"must be finite, got {list(heights)}")
+    _check_length(path, key, tuple(heights))
+    if len(set(heights)) < 2:
+        raise ConfigError(path, key, "needs two or more distinct heights")
+
+
 def _positive(v) -> bool:
     return all(math.isfinite(x) and x > 0 for x in (v if isinstance(v, tuple) else (v,)))
 
@@ -283,10 +295,7 @@ def validate(cfg: SiteConfig, path=None) -> None:
     if cfg.prior_window_m is not None and not _positive(tuple(cfg.prior_window_m)):
         raise ConfigError(path, "site.prior_window_m",
                           f"must be finite and > 0, got {list(cfg.prior_window_m)}")
-    if cfg.heights_m is not None and not all(math.isfinite(h) for h in cfg.heights_m):
-        raise ConfigError(path, "site.heights_m", f"must be finite, got {list(cfg.heights_m)}")
-    if cfg.heights_m is not None and len(set(cfg.heights_m)) < 2:
-        raise ConfigError(path, "site.heights_m", "needs two or more distinct heights")
+    check_heights(cfg.heights_m, path, "site.heights_m")
     positive("association.max_bound_m", cfg.association.get("max_bound_m"))
     for key in ("max_backward_m", "min_margin"):
         if cfg.association.get(key, 0.0) < 0:

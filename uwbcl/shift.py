@@ -185,7 +185,7 @@ def cycle_truths(cfg: ShiftConfig, rig: int, rib_: Rib | None = None) -> list[Cy
         bearing = np.degrees(np.arctan2(believed_radar[:, 0], -believed_radar[:, 1]))
         k = int(np.argmin(np.abs(bearing - cfg.look_angle_deg)))
         if abs(bearing[k] - cfg.look_angle_deg) <= cfg.steer_tolerance_deg:
-            ref = believed_radar[k]
+            ref = believed_radar[k].copy()  # not a view: it would keep the whole rib's array of this cycle
         else:
             wall = float(np.median(-believed_radar[:, 1]))
             ref = np.array([wall * math.tan(math.radians(cfg.look_angle_deg)), -wall, model.row_heights_m[0]])
