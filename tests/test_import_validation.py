@@ -246,3 +246,15 @@ def test_the_real_file_without_its_coupling_tells_which_option_sets_the_pulse_wi
     err = capsys.readouterr().err
     assert "--pulse-window-m: the pulse's reference window 1.5-2.6 m holds 0 samples" in err
     assert "spans 5.50-16.02 m" in err and "give --pulse-window-m START STOP" in err
+
+
+def test_an_import_length_beyond_a_kilometre_is_a_usage_error_as_in_the_site_file():
+    # `--height-m 5000` wrote ..._h5000000.h5 (indepZe 9)
+    from uwbcl.importers import OptionError, passes
+
+    for key, value in (("height_m", 5000.0), ("reference_range_m", 5000.0),
+                       ("reference_point_m", (0.0, -2.5, 1001.0))):
+        with pytest.raises(OptionError) as err:
+            passes.check_options(passes.ImportOptions(**{key: value}))
+        assert err.value.key == key and "within +-1000 m" in err.value.reason
+    passes.check_options(passes.ImportOptions(height_m=999.0, reference_point_m=(0.0, -2.5, 1.0)))

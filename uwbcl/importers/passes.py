@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..archive import MAX_RAIL_DEVIATION_M
-from ..config import MAX_RANGE_DELAY_S
+from ..config import MAX_LENGTH_M, MAX_RANGE_DELAY_S
 from ..model import MIN_WINDOW_RANGE_M, SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters, RawRF, ScanPass
 from ..records import ConfigError
 from ..utc import parse_utc
@@ -674,6 +674,18 @@ def options_from_table(table: dict, path: str | os.PathLike[str] | None = None) 
     return out
 
 
+def _check_lengths(options: ImportOptions) -> None:
+    """OptionError for a length (an option ending in _m) beyond the site file's +-MAX_LENGTH_M (one rule for
+    every length, docs/configuration.md)."""
+    for f in dataclasses.fields(options):
+        value = getattr(options, f.name)
+        values = value if isinstance(value, tuple) else (value,)
+        # a value not finite is the other checks' to name
+        if f.name.endswith("_m") and value is not None and any(MAX_LENGTH_M < abs(v) < math.inf
+                                                                for v in values):
+            raise OptionError(f.name, f"must be within +-{MAX_LENGTH_M:g} m, got {value}")
+
+
 def check_options(options: ImportOptions) -> None:
     """OptionError (key, reason) for values no archive could hold, checked before any file is read."""
 
@@ -700,6 +712,7 @@ def check_options(options: ImportOptions) -> None:
         fail("height_m", f"must be finite, got {options.height_m}")
     if options.reference_point_m is not None and not all(map(math.isfinite, options.reference_point_m)):
         fail("reference_point_m", f"must be finite, got {options.reference_point_m}")
+    _check_lengths(options)
     if options.decimation is not None and options.decimation < 1:
         fail("decimation", f"must be >= 1, got {options.decimation}")
     if options.pulse not in ("gaussian", "measured"):
