@@ -22,14 +22,14 @@ T_BIN_S = 32 / (512 * 1.024e9)
 BOOT_S = 3400.0  # the radar's clock at the first scan, s since boot
 
 
-def _recording(path, scan_start_ps=9000, n_bins=480, n_scans=40, spike=None):
+def _recording(path, scan_start_ps=9000, n_bins=480, n_scans=40, spike=None, noise=3):
     """A P440 file: one echo at 14 ns into the window (amplitude 1000 counts, 1.5 GHz -10 dB band at 4 GHz)
-    and +-3 counts of noise; ``spike`` = (scan, bin, value) corrupts one sample."""
+    and +-`noise` counts of noise; ``spike`` = (scan, bin, value) corrupts one sample."""
     t = np.arange(n_bins) * T_BIN_S
     sigma = math.sqrt(math.log(10.0)) / (math.pi * 1.5e9)
     pulse = 1000.0 * np.exp(-0.5 * ((t - 14e-9) / sigma) ** 2) * np.cos(2 * np.pi * 4.0e9 * (t - 14e-9))
     rng = np.random.default_rng(1)
-    rf = np.rint(pulse + rng.uniform(-3, 3, (n_scans, n_bins))).astype(np.int64)
+    rf = np.rint(pulse + rng.uniform(-noise, noise, (n_scans, n_bins))).astype(np.int64)
     if spike is not None:
         rf[spike[0], spike[1]] = spike[2]
     stamps = np.rint(1e3 * BOOT_S + 20.0 * np.arange(n_scans)).astype(int)
@@ -230,6 +230,15 @@ def test_a_corrupt_sample_is_reported_as_an_implausibly_wide_band_naming_the_fil
     assert f"uwbcl import p440: {bad}: the measured spectrum is implausibly wide" in err
     assert "the largest |sample| is 1.67762e+07 (scan 7, sample 123)" in err
     assert "1 scan(s) hold a sample over 100 x it (scans 7)" in err
+
+
+def test_a_noisy_recording_without_a_spike_is_converted_with_a_warning_not_refused(tmp_path, caplog):
+    # a noise floor within 20 dB of the pulse's spectrum is not a corrupt sample (indepZh N2)
+    noisy = _recording(tmp_path / "noisy.p440", noise=150)
+    with caplog.at_level(logging.WARNING, logger="uwbcl"):
+        assert _run(noisy, tmp_path / "out", *TRACK) == 0
+    assert f"{noisy}: the spectrum is never 20 dB down at an end" in caplog.text
+    assert "a noise floor within 20 dB of the pulse" in caplog.text
 
 
 def test_the_summary_prints_the_pass_start_and_where_it_came_from(small, tmp_path, capsys):
