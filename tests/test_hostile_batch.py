@@ -322,6 +322,24 @@ def test_someone_elses_file_where_uwbcl_puts_its_outputs_or_lock_stops_the_run_a
         assert path.read_text() == "a,b\n"
 
 
+def test_a_set_copied_with_its_links_dereferenced_is_adopted_but_not_someone_elses_file_put_in_it(
+        tree, tmp_path):
+    """`cp -rL` makes .uwbcl-current a directory, adopted whole as a generation: only if it holds uwbcl's
+    outputs alone (indepZh N1)."""
+    src, _ = tree
+    out = tmp_path / "made"
+    batch.process_directory(src, out, SETTINGS, options())
+    copy = tmp_path / "copied"
+    shutil.copytree(out, copy, symlinks=False)
+    batch.process_directory(src, copy, SETTINGS, options())  # uwbcl's own: adopted
+    copy2 = tmp_path / "copied-again"
+    shutil.copytree(out, copy2, symlinks=False)
+    (copy2 / outputs.CURRENT_LINK / "notes.txt").write_text("mine")
+    with pytest.raises(BatchError, match="notes.txt: not an output of uwbcl, in a copied"):
+        batch.process_directory(src, copy2, SETTINGS, options())
+    assert (copy2 / outputs.CURRENT_LINK / "notes.txt").read_text() == "mine"
+
+
 def test_a_current_link_spelled_otherwise_is_accepted_where_it_reaches_a_generation_and_refused_elsewhere(
         tree, tmp_path):
     """An operator's rollback, `ln -sfn $PWD/out/.uwbcl-generations/g-000001 out/.uwbcl-current`, is

@@ -546,7 +546,14 @@ def foreign_entries(out_dir: Path) -> list[str]:
         if not (resolved.parent == Path(os.path.realpath(out_dir / GENERATIONS_DIR))
                 and _generation_number(resolved.name) >= 0):
             out.append(f"{current}: a symbolic link to {target!r}, not to a generation in {GENERATIONS_DIR}")
-    elif current.exists() and not current.is_dir():
+    elif current.is_dir():  # a set copied with its links dereferenced: adopted whole, so only uwbcl's in it
+        try:
+            entries = sorted(current.iterdir())
+        except OSError:
+            entries = [current]
+        out += [f"{e}: not an output of uwbcl, in a copied {CURRENT_LINK}" for e in entries
+                if e.name not in OUTPUT_NAMES or not _plain_output_is_ours(e, e.name)]
+    elif current.exists():
         out.append(f"{current}: not uwbcl's symbolic link to the published set")
     for name in OUTPUT_NAMES:
         path = out_dir / name
