@@ -128,6 +128,8 @@ def test_simulate_refuses_a_count_or_value_it_cannot_simulate_as_a_usage_error(f
     (["--heights", "0.2", "1e6"], "--heights: must be within +-1000 m"),
     (["--first-cycle", "19999", "--cycles", "2"], "more than 20000"),
     (["--scenario", "paper-sim1", "--rigs", "3"], "--rigs: only with --scenario shift"),
+    (["--rigs", "100000"], "--rigs: at most 1000"),
+    (["--rig-id", ""], "--rig-id: empty"),
 ])
 def test_simulate_refuses_heights_and_counts_it_cannot_write_before_writing_anything(flags, words, tmp_path,
                                                                                       capsys):

@@ -29,6 +29,7 @@ from .scenarios import SCENARIOS  # noqa: E402
 
 # a shift's rib and truth are simulated from cycle 0, in time growing with the square (10 s for 10,000)
 MAX_SIMULATED_CYCLES = 20_000
+MAX_SIMULATED_RIGS = 1000
 
 
 def _simulate_shift(args: argparse.Namespace) -> int:
@@ -65,6 +66,10 @@ def _simulate(args: argparse.Namespace) -> int:
     if heights and len({archive.height_mm(h) for h in heights}) < len(heights):
         raise ConfigError("command line", "--heights", f"two heights within a millimetre, the archives' name "
                           f"unit: {list(heights)}")
+    if args.rig_id is not None and not args.rig_id.strip():
+        raise ConfigError("command line", "--rig-id", "empty (leave the flag out for the default)")
+    if args.rigs is not None and args.rigs > MAX_SIMULATED_RIGS:
+        raise ConfigError("command line", "--rigs", f"at most {MAX_SIMULATED_RIGS}, got {args.rigs}")
     given = [k for k in SHIFT_DEFAULTS if getattr(args, k) is not None]
     if args.scenario != "shift" and given:
         raise ConfigError("command line", f"--{given[0].replace('_', '-')}",
@@ -99,7 +104,8 @@ def _finite_in(low: float, high: float):
         except ValueError:
             raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
         if not (math.isfinite(value) and low <= value < high):
-            raise argparse.ArgumentTypeError(f"must be a finite number in [{low:g}, {high:g}), got {text}")
+            where = f" in [{low:g}, {high:g})" if math.isfinite(low) or math.isfinite(high) else ""
+            raise argparse.ArgumentTypeError(f"must be a finite number{where}, got {text}")
         return value
     return parse
 
