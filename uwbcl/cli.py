@@ -35,11 +35,6 @@ MAX_SIMULATED_RIGS = 1000
 def _simulate_shift(args: argparse.Namespace) -> int:
     from . import shift
 
-    if args.first_cycle + args.cycles > MAX_SIMULATED_CYCLES:
-        print(f"uwbcl simulate: --first-cycle + --cycles is {args.first_cycle + args.cycles}, more than "
-              f"{MAX_SIMULATED_CYCLES} (the rib and the truth are simulated from cycle 0)", file=sys.stderr)
-        return 2
-
     cfg = shift.ShiftConfig(cycles=args.cycles, rigs=args.rigs, first_cycle=args.first_cycle, seed=args.seed,
                             snr_db=args.snr_db, speed_jitter=args.speed_jitter,
                             **({"heights_m": config.parse_heights(args.heights)} if args.heights else {}),
@@ -76,6 +71,10 @@ def _simulate(args: argparse.Namespace) -> int:
                           f"only with --scenario shift ({args.scenario} has its own rig and cycles)")
     for k, v in SHIFT_DEFAULTS.items():
         setattr(args, k, v if getattr(args, k) is None else getattr(args, k))
+    if args.first_cycle + args.cycles > MAX_SIMULATED_CYCLES:
+        raise ConfigError("command line", "--first-cycle", f"+ --cycles is {args.first_cycle + args.cycles}, "
+                          f"more than {MAX_SIMULATED_CYCLES} (the rib and the truth are simulated from "
+                          "cycle 0)")
     try:
         return _simulate_shift(args) if args.scenario == "shift" else _simulate_scenario(args)
     except OSError as exc:  # an archive already there (without --overwrite), a full disk

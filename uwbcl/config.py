@@ -197,10 +197,16 @@ MAX_LENGTH_M = 1000.0  # no length of a gate road's survey is larger (and a larg
 MAX_BRIDGE_CYCLES = 1000
 
 
+def beyond_max_length(v) -> bool:
+    """Whether a finite value of a length (one, or a tuple or list; None: none) lies beyond +-MAX_LENGTH_M (a
+    value not finite is the finiteness checks' to name)."""
+    values = () if v is None else v if isinstance(v, (tuple, list)) else (v,)
+    return any(MAX_LENGTH_M < abs(x) < math.inf for x in values)
+
+
 def _check_length(path, key: str, v) -> None:
     """ConfigError unless every value of a length (one, or a tuple) is within +-MAX_LENGTH_M."""
-    values = v if isinstance(v, (tuple, list)) else (v,)
-    if v is not None and not all(abs(x) <= MAX_LENGTH_M for x in values):
+    if beyond_max_length(v):
         raise ConfigError(path, key, f"must be within +-{MAX_LENGTH_M:g} m, got {v!r}")
 
 

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..archive import MAX_RAIL_DEVIATION_M
-from ..config import MAX_LENGTH_M, MAX_RANGE_DELAY_S
+from ..config import MAX_LENGTH_M, MAX_RANGE_DELAY_S, beyond_max_length
 from ..model import MIN_WINDOW_RANGE_M, SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters, RawRF, ScanPass
 from ..records import ConfigError
 from ..utc import parse_utc
@@ -679,10 +679,7 @@ def _check_lengths(options: ImportOptions) -> None:
     every length, docs/configuration.md)."""
     for f in dataclasses.fields(options):
         value = getattr(options, f.name)
-        values = value if isinstance(value, tuple) else (value,)
-        # a value not finite is the other checks' to name
-        if f.name.endswith("_m") and value is not None and any(MAX_LENGTH_M < abs(v) < math.inf
-                                                                for v in values):
+        if f.name.endswith("_m") and beyond_max_length(value):
             raise OptionError(f.name, f"must be within +-{MAX_LENGTH_M:g} m, got {value}")
 
 
