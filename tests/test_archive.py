@@ -495,3 +495,12 @@ def test_writer_refuses_a_pass_the_reader_would_reject(tmp_path, changes, field)
 def test_unknown_echo_dtype_is_refused(tmp_path, scan):
     with pytest.raises(ValueError, match="echo_dtype"):
         write_pass(tmp_path / "scan.h5", scan, echo_dtype="float32")
+
+
+@pytest.mark.parametrize("echo_dtype", ["complex64", "int16", "complex128"])
+def test_a_pass_as_stored_is_what_reading_its_archive_gives_to_the_last_bit(scan, tmp_path, echo_dtype):
+    # `acquire --process` measures this, so that its rows are `uwbcl process`'s (indepZi F2)
+    path = write_pass(tmp_path / f"{echo_dtype}.h5", scan, echo_dtype=echo_dtype)
+    np.testing.assert_array_equal(archive.as_stored(scan, echo_dtype).echo, read_pass(path).echo)
+    if echo_dtype != "complex128":
+        assert not np.array_equal(archive.as_stored(scan, echo_dtype).echo, scan.echo)

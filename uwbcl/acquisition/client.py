@@ -820,7 +820,7 @@ class AcquisitionSession:
                 else:
                     log.info("pass %s: %d pulses x %d samples, attempt %d, written to %s", name,
                              scan.n_pulses, scan.samples_per_pulse, attempt, self.report.passes_written[-1])
-                passes.append(scan)  # processed live, written or waiting
+                passes.append(archive.as_stored(scan))  # processed live as archived, written or waiting
                 start_time = start_time or scan.pass_start_time
                 break
             else:
