@@ -420,11 +420,13 @@ def _signals_as_interrupts():
 
     interrupt.clear()
     old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    old_hook, sys.unraisablehook = sys.unraisablehook, interrupt.quiet_unraisable(sys.unraisablehook)
     try:
         yield
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+        sys.unraisablehook = old_hook
         interrupt.clear()
 
 

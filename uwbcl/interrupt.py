@@ -36,6 +36,16 @@ def check() -> None:
         raise Interrupted(_requested)
 
 
+def quiet_unraisable(hook):
+    """A `sys.unraisablehook` that says nothing of an `Interrupted` swallowed in a finalizer or a weakref
+    callback (it is remembered and raised again at the next `check`; printed, it read as a traceback after
+    "stopped by SIGTERM") and passes anything else to `hook`."""
+    def quiet(unraisable) -> None:
+        if not isinstance(unraisable.exc_value, Interrupted):
+            hook(unraisable)
+    return quiet
+
+
 def clear() -> None:
     global _requested
     _requested = None
