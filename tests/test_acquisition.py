@@ -545,6 +545,32 @@ def test_a_cycle_counter_that_goes_back_starts_the_live_measurement_again_instea
     assert "the cycle counter went back" in caplog.text
 
 
+def test_a_counter_that_goes_back_from_an_incomplete_cycle_starts_the_live_measurement_again_too(
+        monkeypatch):
+    """900, 901, then 905 with one height (incomplete), then the counter back at 903: 903 is a reference, as
+    the map says, not a row from 901 (indepZi F4: it was measured from the chain, and `uwbcl process` has
+    no such row)."""
+    from uwbcl.acquisition import live
+    from uwbcl.records import CycleResult
+
+    monkeypatch.setattr(live.pipeline, "locate_cycle", lambda passes, settings: CycleResult(
+        "r", passes[0].cycle, "", (0.15, 0.45), []))
+    monkeypatch.setattr(live.geo, "doppler_wrong_side", lambda scan: None)
+    monkeypatch.setattr(live.pipeline, "apply_range_delay", lambda scan, delay_s: scan)
+    proc = live.LiveProcessor(live.processing_settings("numpy"))
+
+    def cycle(n, heights=(0.15, 0.45)):
+        return [SimpleNamespace(cycle=n, geometry=SimpleNamespace(height_m=h)) for h in heights]
+
+    try:
+        rows = [proc._process(900, cycle(900), True, ""), proc._process(901, cycle(901), True, ""),
+                proc._process(905, cycle(905, (0.15,)), False, ""), proc._process(903, cycle(903), True, "")]
+    finally:
+        proc.close()
+    assert [rs[0]["status"] for rs in rows] == ["reference", rows[1][0]["status"], "incomplete_cycle",
+                                                "reference"]
+
+
 def test_sigint_mid_pass_stops_cleanly_without_a_partial_archive(tmp_path):
     slow = dataclasses.replace(FAST_DEVICE, time_scale=2.0, first_cycle_after_s=1e6)  # a pass lasts 1.5 s
     with RigServer(RigController(slow), LOOPBACK, 0) as server:

@@ -81,7 +81,7 @@ class LiveProcessor:
         self._rib = (registration.RibRegistration(self._recent_pass, pipeline.association_focuser(settings))
                      if settings.association.rib_registration else None)
         self._chain = chain.RigChain(settings.association, rib=self._rib)
-        self._last_cycle: int | None = None  # the last cycle the chain measured
+        self._last_cycle: int | None = None  # the last cycle submitted, complete or not
         self.q_sign_warning = ""  # set by the first complete cycle if its lowest pass fails the check
         self._q_sign_checked = False
         self._stop = threading.Event()
@@ -122,6 +122,16 @@ class LiveProcessor:
 
     def _process(self, cycle: int, passes, complete: bool, start_time) -> list[dict]:
         """The cycle's result, then the earlier cycles it resolved (the chain's second look: revision 1)."""
+        if self._last_cycle is not None and cycle <= self._last_cycle:
+            # A counter that went back (a reset or replaced control system, map section 12.1 item 2) numbers
+            # new cycles below the chain's: measured from nothing before, as a rig's first cycle is; also when
+            # the cycle it went back from, or this one, was not complete (judged on every cycle submitted)
+            log.warning("cycle %d after cycle %d: the cycle counter went back; the live measurement starts "
+                        "again here (for `uwbcl process`, keep the two scans' archives apart)", cycle,
+                        self._last_cycle)
+            self._chain = chain.RigChain(self.settings.association, rib=self._rib)
+            self._recent.clear()
+        self._last_cycle = cycle
         # as `uwbcl process` does (batch.group_cycles): two heights locate the plates, whether or not the scan
         # was cut short (a push between heights, a height given up)
         if len({p.geometry.height_m for p in passes}) < 2:
@@ -132,15 +142,6 @@ class LiveProcessor:
         self._check_q_sign(cycle, passes)
         located = pipeline.locate_cycle(passes, self.settings)
         log.info("cycle %d: %d plates located", cycle, len(located.plates))
-        if self._last_cycle is not None and cycle <= self._last_cycle:
-            # A counter that went back (a reset or replaced control system, map section 12.1 item 2) numbers
-            # new cycles below the chain's: measured from nothing before, as a rig's first cycle is.
-            log.warning("cycle %d after cycle %d: the cycle counter went back; the live measurement starts "
-                        "again here (for `uwbcl process`, keep the two scans' archives apart)", cycle,
-                        self._last_cycle)
-            self._chain = chain.RigChain(self.settings.association, rib=self._rib)
-            self._recent.clear()
-        self._last_cycle = cycle
         self._recent[cycle] = {height_mm(p.geometry.height_m):
                                pipeline.apply_range_delay(p, self.settings.range_delay_s) for p in passes}
         for old in sorted(self._recent)[:-KEEP_CYCLES]:
