@@ -518,10 +518,8 @@ def test_a_cycle_cut_short_after_two_heights_is_measured_live_as_process_measure
     assert cut_one[0]["status_code"] == R.ResultStatus.INCOMPLETE_CYCLE
 
 
-def test_a_cycle_counter_that_goes_back_starts_the_live_measurement_again_instead_of_failing_each_cycle(
-        monkeypatch, caplog):
-    """Register map section 12.1 item 2: a counter that moved back numbers new cycles; each is measured (the
-    first as a reference), never a PROCESSING_ERROR until the numbers pass the old ones."""
+def _stand_in_live_processor(monkeypatch):
+    """A LiveProcessor whose cycles locate no plates (stand-in passes without echoes), and a cycle maker."""
     from uwbcl.acquisition import live
     from uwbcl.records import CycleResult
 
@@ -529,11 +527,18 @@ def test_a_cycle_counter_that_goes_back_starts_the_live_measurement_again_instea
         "r", passes[0].cycle, "", (0.15, 0.45), []))
     monkeypatch.setattr(live.geo, "doppler_wrong_side", lambda scan: None)  # the stand-ins have no echo
     monkeypatch.setattr(live.pipeline, "apply_range_delay", lambda scan, delay_s: scan)
-    proc = live.LiveProcessor(live.processing_settings("numpy"))
 
-    def cycle(n):
-        return [SimpleNamespace(cycle=n, geometry=SimpleNamespace(height_m=h)) for h in (0.15, 0.45)]
+    def cycle(n, heights=(0.15, 0.45)):
+        return [SimpleNamespace(cycle=n, geometry=SimpleNamespace(height_m=h)) for h in heights]
 
+    return live.LiveProcessor(live.processing_settings("numpy")), cycle
+
+
+def test_a_cycle_counter_that_goes_back_starts_the_live_measurement_again_instead_of_failing_each_cycle(
+        monkeypatch, caplog):
+    """Register map section 12.1 item 2: a counter that moved back numbers new cycles; each is measured (the
+    first as a reference), never a PROCESSING_ERROR until the numbers pass the old ones."""
+    proc, cycle = _stand_in_live_processor(monkeypatch)
     try:
         rows = [proc._process(n, cycle(n), True, "") for n in (900, 901, 5, 6)]
     finally:
@@ -550,18 +555,7 @@ def test_a_counter_that_goes_back_from_an_incomplete_cycle_starts_the_live_measu
     """900, 901, then 905 with one height (incomplete), then the counter back at 903: 903 is a reference, as
     the map says, not a row from 901 (indepZi F4: it was measured from the chain, and `uwbcl process` has
     no such row)."""
-    from uwbcl.acquisition import live
-    from uwbcl.records import CycleResult
-
-    monkeypatch.setattr(live.pipeline, "locate_cycle", lambda passes, settings: CycleResult(
-        "r", passes[0].cycle, "", (0.15, 0.45), []))
-    monkeypatch.setattr(live.geo, "doppler_wrong_side", lambda scan: None)
-    monkeypatch.setattr(live.pipeline, "apply_range_delay", lambda scan, delay_s: scan)
-    proc = live.LiveProcessor(live.processing_settings("numpy"))
-
-    def cycle(n, heights=(0.15, 0.45)):
-        return [SimpleNamespace(cycle=n, geometry=SimpleNamespace(height_m=h)) for h in heights]
-
+    proc, cycle = _stand_in_live_processor(monkeypatch)
     try:
         rows = [proc._process(900, cycle(900), True, ""), proc._process(901, cycle(901), True, ""),
                 proc._process(905, cycle(905, (0.15,)), False, ""), proc._process(903, cycle(903), True, "")]
