@@ -59,6 +59,20 @@ def test_without_a_prior_a_single_common_plate_is_always_flagged():
     assert d.status == "ambiguous"  # nothing says it is the same plate
 
 
+def test_without_a_prior_a_single_precise_plate_seen_from_four_heights_is_still_ambiguous():
+    # an independent review: a plate located from four heights, with the chain's covariance scale at its lower
+    # limit, gained 9.5 against "no plate in common" and was reported ok
+    heights = (0.2, 0.6, 1.0, 1.4)
+    p = np.array([1.0, -1.5, 0.8])
+    cov = location_covariance_m2(p, heights, 0.003)[None] * chain.SCALE_LIMITS[0]
+    d = estimate_advance([plate(p)], [plate(p - [0.9, 0.0, 0.0])], AssociationSettings(),
+                         before_cov_m2=cov, after_cov_m2=cov)
+    assert d.margin > AssociationSettings().min_margin and d.status == "ambiguous"
+    with_prior = estimate_advance([plate(p)], [plate(p - [0.9, 0.0, 0.0])], PRIOR, before_cov_m2=cov,
+                                  after_cov_m2=cov)
+    assert with_prior.status == "ok"
+
+
 def test_the_prior_window_scales_with_the_gap_in_cycles():
     two = PRIOR.for_gap(4)
     np.testing.assert_allclose(two.prior_advance_m, (3.6, 0.0, 0.0))
