@@ -12,6 +12,7 @@ import dataclasses
 import fcntl
 import hashlib
 import json
+import logging
 import os
 import shutil
 import threading
@@ -592,6 +593,30 @@ def test_a_published_row_that_changes_gets_the_next_revision_and_revisions_never
             {k: v for k, v in first_text[c].items() if k != "revision"}
 
 
+def test_a_nightly_rerun_says_nothing_is_new_and_logs_the_flags_it_already_published_at_info_level(
+        archive_dir, clean, tmp_path, caplog):
+    # an independent tester's cron log carried every earlier flagged row again as a WARNING every night
+    out = warm_out(clean[0], tmp_path)
+    strict = dataclasses.replace(SETTINGS, association=dataclasses.replace(SETTINGS.association,
+                                                                           max_bound_m=1e-6))
+
+    def flag_lines(level: int) -> list[str]:
+        return [r.getMessage() for r in caplog.records if r.levelno == level and "low_confidence (" in
+                r.getMessage()]
+
+    with caplog.at_level(logging.INFO, logger="uwbcl"):
+        first = batch.process_directory(archive_dir, out, strict, options())
+        flagged = flag_lines(logging.WARNING)
+        assert first.n_new_or_revised == len(first.rows) == len(flagged) > 0
+        caplog.clear()
+        again = batch.process_directory(archive_dir, out, strict, options())
+        assert again.n_new_or_revised == 0
+        assert flag_lines(logging.WARNING) == [] and flag_lines(logging.INFO) == flagged
+        caplog.clear()
+        relaxed = batch.process_directory(archive_dir, out, SETTINGS, options())  # the rows change: revised
+        assert relaxed.n_new_or_revised == len(flagged)
+
+
 def test_a_published_cycle_whose_archives_are_removed_stays_as_a_withdrawn_row_until_they_return(
         archive_dir, clean, tmp_path, capsys):
     src = copy_archive(archive_dir, tmp_path)
@@ -607,7 +632,7 @@ def test_a_published_cycle_whose_archives_are_removed_stays_as_a_withdrawn_row_u
             "--web-depth", "0.9"]
     assert main(args) == 1  # published data disappeared: the nightly job's exit status says so
     std = capsys.readouterr()
-    assert "1 displacements (0 flagged, 1 withdrawn rows kept)" in std.out
+    assert "1 displacements (0 flagged, 1 withdrawn rows kept, 1 new or revised)" in std.out
     assert "rig rig-1: 1 published row(s) withdrawn (cycle 2)" in std.err
     assert [(r["file"], r["kind"]) for r in rows(out / "errors.csv")] == [(".", "withdrawn")]
     gone = _rows_by_cycle(out)

@@ -971,18 +971,22 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
             warnings.append(w)
         rows_series = chain.series(cycles, settings.association, options.max_bridge_cycles,
                                    rib_registration(groups, in_dir, settings))
+        published = outputs.previous_displacements(out_dir)
         for r in rows_series:
             if r.displacement.status != "ok":
-                log.warning("rig %s cycle %d: %s (%d plates matched, runner-up %d)", r.cycle.rig_id,
-                            r.cycle.cycle, r.displacement.status, r.displacement.n_targets,
-                            r.displacement.runner_up_targets)
+                # a row already published with this status was reported by an earlier run: INFO, so that a
+                # nightly log shows what is new (the chain is recomputed every run, section 4)
+                before = published.get((r.cycle.rig_id, r.cycle.cycle), {}).get("status")
+                log.log(logging.INFO if before == r.displacement.status else logging.WARNING,
+                        "rig %s cycle %d: %s (%d plates matched, runner-up %d)", r.cycle.rig_id,
+                        r.cycle.cycle, r.displacement.status, r.displacement.n_targets,
+                        r.displacement.runner_up_targets)
         for w in low_availability_warnings(rows_series):
             log.warning("%s: %s: %s", w.kind, w.file, w.reason)
             warnings.append(w)
         if not files and not problems:  # (a problem of the walk already says why nothing was found)
             problems.append(Problem(".", "no_archives", f"no archive (*.h5, *.hdf5) under {in_dir}"))
             log.error("%s: no archive (*.h5, *.hdf5) found", in_dir)
-        published = outputs.previous_displacements(out_dir)
         if not records and published:
             problems.sort(key=lambda p: (p.file, p.kind, p.reason))
             raise NothingRead(f"{in_dir}: no archive could be read; nothing published, the previous "
@@ -997,4 +1001,4 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
                                  settings_json=outputs.settings_text(settings, options))
     n_cached = len(records) - sum(1 for r in records if r.file in focused)
     return BatchReport(rows, problems, cycles, rows_series, len(files), n_detected, n_cached, cache.damaged,
-                       warnings)
+                       warnings, outputs.new_or_revised(rows, published))

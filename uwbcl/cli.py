@@ -206,7 +206,7 @@ def _process(args: argparse.Namespace) -> int:
     kept = f", {withdrawn} withdrawn rows kept" if withdrawn else ""
     print(f"{report.n_passes} passes ({report.n_detected} focused, {report.n_cached} from the cache{extra}), "
           f"{len(report.cycles)} cycles located, {len(report.rows) - withdrawn} displacements ({flagged} "
-          f"flagged{kept}) written to {out_dir}")
+          f"flagged{kept}, {report.n_new_or_revised} new or revised) written to {out_dir}")
     if report.errors:
         print(f"{len(report.errors)} problems, see {Path(args.out) / 'errors.csv'}:", file=sys.stderr)
         for p in report.errors:

@@ -275,6 +275,15 @@ def carry_revisions(records: list[dict], previous: dict[tuple[str, int], dict],
     return sorted(out, key=lambda r: (r["rig_id"], r["cycle"]))
 
 
+def new_or_revised(rows: list[dict], previous: dict[tuple[str, int], dict]) -> int:
+    """How many of the rows as written (text, `write_all`) a reader of the published set `previous`
+    (`previous_displacements`) has not seen: new rows, and rows whose revision moved (what a run changed)."""
+    def moved(r: dict) -> bool:
+        p = previous.get((r["rig_id"], int(r["cycle"])))
+        return p is None or int(r["revision"]) > int(p.get("revision") or 0)
+    return sum(1 for r in rows if moved(r))
+
+
 def write_displacements_csv(path: Path, rows: list[SeriesRow]) -> list[dict]:
     """displacements.csv of docs/outputs.md from a chain's rows; returns the rows as written (text)."""
     text = _text(displacement_records(rows))

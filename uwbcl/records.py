@@ -387,3 +387,4 @@ class BatchReport:
     n_cached: int = 0  # passes whose detections came from the cache
     n_cache_damaged: int = 0  # damaged cache entries found and recomputed
     warnings: list[Problem] = dataclasses.field(default_factory=list)  # accepted but suspicious input
+    n_new_or_revised: int = 0  # rows not in the published set before, or published with a lower revision
