@@ -4,7 +4,7 @@ section 6.5, eq. M8) compares between two cycles.
 A pass's range-compressed echo, backprojected at a point of the rig frame with the carrier restored
 (`PointEcho.image`), has the phase
 
-    phi(p) = phi_s + 2 k (R(p_true) - R(p)) averaged over the pulses that see the plate               (R5)
+    phi(p) = phi_s + 2 k (R(p) - R(p_true)) averaged over the pulses that see the plate               (R5)
 
 to first order: the plate's scattering phase phi_s plus the two-way carrier wavenumber 2k times how far the
 point p is from the plate along the line of sight. So each detection carries phi at its located (x, R_c),
