@@ -130,11 +130,26 @@ def _device_config(args, world):
                         state_file=str(state) if state else None)
 
 
+def _simulate_device_argument_error(args: argparse.Namespace) -> str:
+    """Why simulate-device's arguments cannot be served (the flag named), or '': a usage error, not a
+    traceback from the socket or the simulator."""
+    if not 0 <= args.port <= 65535:
+        return f"--port {args.port}: must be in 0..65535 (0 picks a free port)"
+    if args.prf is not None and not (math.isfinite(args.prf) and args.prf > 0):
+        return f"--prf {args.prf:g}: must be a finite number of Hz > 0"
+    if not (math.isfinite(args.time_scale) and args.time_scale > 0):
+        return f"--time-scale {args.time_scale:g}: must be a finite number > 0"
+    return ""
+
+
 def _simulate_device(args: argparse.Namespace) -> int:
     from .device import RigController, RigServer
     from .faults import parse_faults
     from .rig import WorldConfig
 
+    if why := _simulate_device_argument_error(args):
+        print(f"uwbcl simulate-device: {why}", file=sys.stderr)
+        return 2
     try:
         world = WorldConfig(scenario=args.scenario, seed=args.seed, snr_db=args.snr_db,
                             speed_jitter=args.speed_jitter, range_samples=args.range_samples, prf_hz=args.prf)

@@ -15,6 +15,7 @@ anything is logged, never written, ABORTed and re-run. What each fault costs is 
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import logging
 import math
@@ -73,10 +74,17 @@ COMMAND_RESEND_MAX_S = 1.0  # the longest interval between writes of an unacknow
 # Two RESULT blocks are published at least this far apart (map section 5.3): a face automation system polling
 # faster sees every one, also when processing that fell behind delivers several results at once.
 RESULT_HOLD_S = 1.0
-# Passes whose archive could not be written (a full disk, a share gone read-only) are kept in memory and
-# written again, in order, every UNWRITTEN_RETRY_S while the session runs: the face has moved on, so such a
-# pass can never be acquired again. At most this many are kept (a few MB each); beyond, a pass is lost.
+# Passes whose archive could not be written (a full disk, a share gone read-only) are kept in memory, as they
+# are archived (a complex64 echo), and written again, in order, every UNWRITTEN_RETRY_S while the session
+# runs: the face has moved on, so such a pass can never be acquired again. At most MAX_UNWRITTEN_PASSES and
+# MAX_UNWRITTEN_BYTES (8 of the largest passes the limits allow, 64 of 4M samples) are kept: beyond, the
+# oldest kept pass is lost, named, so that the newest are kept and the service is never killed for memory.
 MAX_UNWRITTEN_PASSES = 64
+MAX_UNWRITTEN_BYTES = 2 * 2**30
+# The end of a session (--process) publishes the last results for at most this long: a controller that
+# cannot be reached by then does not get them (they are in acquire-results.csv).
+FINAL_PUBLISH_S = 15.0
+HEARTBEAT_POLL_S = 0.2  # how often the side thread of _off_the_link looks whether CLIENT_HEARTBEAT is due
 TABLE_ANGLE_WARN_DEG = 0.1  # a table this far from the commanded angle is said (a fifth of process's 0.5 deg)
 UNWRITTEN_RETRY_S = 10.0
 
@@ -137,6 +145,18 @@ class AcquireSettings:
                               "max_attempts must be >= 1 and cycles >= 0")
         if not 0 < self.port < 65536 or not 0 <= self.unit_id <= 255:
             raise ConfigError(None, "acquire.port/unit_id", "port must be in 1..65535 and unit_id in 0..255")
+        if self.rig_id and rig_id_refused(self.rig_id):  # empty: the controller's RIG_ID
+            raise ConfigError(None, "acquire.rig_id", f"{self.rig_id!r}: {rig_id_refused(self.rig_id)}")
+
+
+def rig_id_refused(rig_id: str) -> str:
+    """Why the archive would refuse `rig_id` as its /@rig_id (archive._check_root_attrs: every pass of the
+    session would be drained only to be refused), or ''."""
+    if "\x00" in rig_id:
+        return "contains a NUL character"
+    if not rig_id.strip():
+        return "is blank"
+    return ""
 
 
 def load_settings(path: str | Path | None, **overrides) -> AcquireSettings:
@@ -225,6 +245,7 @@ class RigLink:
         self.counts = FaultCounts()
         self.requests = 0
         self._ever_connected = False
+        self.deadline: float | None = None  # time.monotonic() after which reconnecting gives up (LinkDown)
         self._jitter = random.Random(port)
         # Request-rate bound (token bucket): a tenth of a second of burst, then at most max_request_rate_hz.
         self._rate_hz = float(max_request_rate_hz)
@@ -263,6 +284,9 @@ class RigLink:
         while not self.client.connected:
             if self.stop.is_set():
                 raise Interrupted()
+            if self.deadline is not None and time.monotonic() > self.deadline:
+                self.counts.requests_failed += 1
+                raise LinkDown(f"{self.host}:{self.port} not reachable before the deadline")
             why = "not answering"
             if self.client.connect():
                 # every connection after the first is a reconnect, also one whose set-up reads then failed
@@ -443,6 +467,25 @@ class RigLink:
         self.counts.requests_failed += 1
         raise LinkDown(f"{desc}: the reply echoed another address or quantity {self.MAX_CRC_RETRIES} times")
 
+    def write_once(self, block: R.Block, values: dict) -> bool:
+        """One FC16 write of the whole block on the open connection, never retried and never reconnecting
+        (a side thread's CLIENT_HEARTBEAT while the session's thread works off the link); False when not
+        done. A write that got no reply closes the connection, as `_request` does: its late reply can never
+        be taken for the next request's, and the session's next request reconnects."""
+        from pymodbus.exceptions import ModbusException
+
+        if not self.client.connected or self.stop.is_set():
+            return False
+        self._rate_bound()
+        self.requests += 1
+        try:
+            reply = self.client.write_registers(block.address, block.encode(values), device_id=self.unit_id)
+        except (ModbusException, OSError) as exc:
+            log.debug("%s not written: %s", block.name, exc)
+            self.client.close()
+            return False
+        return not reply.isError()
+
 
 def _incompatible(identity: dict) -> str:
     """Why a controller is not a rig this client speaks to (fault INCOMPATIBLE), or ''."""
@@ -493,6 +536,11 @@ class _DrainState:
     seen_state: tuple | None = None
     corrupt_in_a_row: int = 0
     empty_after_end: int = 0
+
+
+def _held_bytes(scan) -> int:
+    """Bytes a pass kept in memory holds: its echo as archived and its pulse times and positions."""
+    return scan.echo.nbytes + scan.pulse_time_s.nbytes + scan.pulse_position_m.nbytes
 
 
 def micrometres(height_m: float) -> int:
@@ -567,11 +615,22 @@ class AcquisitionSession:
             log.exception("acquisition stopped by an unexpected error")
             self._abort_quietly()
         finally:
+            try:  # first, and on its own: the kept passes' last chance must not depend on the controller
+                self._write_unwritten(force=True)
+            except Exception as exc:  # a defect while ending: still name what is lost and close the link
+                self.report.error = self.report.error or f"{type(exc).__name__}: {exc}"
+                log.exception("error while writing the kept passes at the end of the session")
             try:
                 if self.processor is not None:
                     self.processor.close(5.0 if self.report.interrupted else 60.0)
+                    # a controller gone at the end must not keep the session from ending (every pass is
+                    # archived, every result in acquire-results.csv): reconnecting gives up at the deadline
+                    self.link.deadline = time.monotonic() + FINAL_PUBLISH_S
                     self._publish_results(final=True)
-                self._write_unwritten(force=True)
+            except Interrupted:  # a stop while the last results wait: they are in acquire-results.csv
+                self.report.interrupted = True
+                log.warning("stopping: shutdown requested while publishing the last results; those not "
+                            "published in the RESULT block are in acquire-results.csv only")
             except Exception as exc:  # a defect while ending: still name what is lost and close the link
                 self.report.error = self.report.error or f"{type(exc).__name__}: {exc}"
                 log.exception("error while ending the session")
@@ -592,6 +651,10 @@ class AcquisitionSession:
         identity, radar = self.link.identity, self.link.radar
         if identity == self.identity and radar == self.radar:  # the usual case: a reconnect, nothing changed
             return
+        if not self.settings.rig_id and identity["RIG_ID"] and rig_id_refused(identity["RIG_ID"]):
+            raise DeviceRefused(f"IDENTITY.RIG_ID {identity['RIG_ID']!r} cannot name an archive (it "
+                                f"{rig_id_refused(identity['RIG_ID'])}); set rig_id in [acquire] "
+                                "(or --rig-id)")
         if not self.rig_id:  # named in the log from the first contact, even while RADAR is refused
             self.rig_id = self.settings.rig_id or identity["RIG_ID"] or "rig"
         try:
@@ -667,12 +730,40 @@ class AcquisitionSession:
         self._client_heartbeat()
         return status
 
-    def _client_heartbeat(self) -> None:
+    def _client_heartbeat(self, once: bool = False) -> None:
+        """CLIENT_HEARTBEAT + 1, at most once a second (map 5.3: at least every 2 s); `once`: one write,
+        never retried (from the side thread of `_off_the_link`)."""
         now = time.monotonic()
         if now - self._last_heartbeat_t >= 1.0:
             self._last_heartbeat_t = now
             self._heartbeat = (self._heartbeat + 1) & 0xFFFF
-            self.link.write_block(R.CLIENT, {"CLIENT_HEARTBEAT": self._heartbeat})
+            if once:
+                self.link.write_once(R.CLIENT, {"CLIENT_HEARTBEAT": self._heartbeat})
+            else:
+                self.link.write_block(R.CLIENT, {"CLIENT_HEARTBEAT": self._heartbeat})
+
+    @contextlib.contextmanager
+    def _off_the_link(self):
+        """Work that sends no request and may take seconds (building, checking, writing a large pass): a side
+        thread keeps writing CLIENT_HEARTBEAT meanwhile, so that a face automation system never takes a
+        working uwbcl for a dead one (map 5.3). The link has one user at a time: the side thread is joined
+        before the session's thread sends again."""
+        done = threading.Event()
+
+        def beat() -> None:
+            while not done.wait(HEARTBEAT_POLL_S):
+                try:
+                    self._client_heartbeat(once=True)
+                except Exception as exc:  # noqa: BLE001 - never fails the work; the next request reconnects
+                    log.debug("client heartbeat not written: %s", exc)
+
+        thread = threading.Thread(target=beat, name="uwbcl-client-heartbeat", daemon=True)
+        thread.start()
+        try:
+            yield
+        finally:
+            done.set()
+            thread.join()
 
     # ------------------------------------------------------------------------------------------ cycles
 
@@ -736,7 +827,8 @@ class AcquisitionSession:
         while self._unwritten:
             name, scan, pass_id, unique, plain = self._unwritten[0]
             try:
-                path = write_scan(self.out, scan, pass_id, unique=unique, plain=plain)
+                with self._off_the_link():  # a large pass, a slow share: seconds
+                    path = write_scan(self.out, scan, pass_id, unique=unique, plain=plain)
             except OSError as exc:
                 self._late.update(n for n, *_ in self._unwritten)
                 log.warning("%d passes wait for the archive directory (%s)", len(self._unwritten), exc)
@@ -757,6 +849,23 @@ class AcquisitionSession:
             if name in self._late:
                 self._late.discard(name)
                 log.warning("pass %s: written late to %s", name, path)
+
+    def _bound_unwritten(self) -> None:
+        """Drop the oldest kept passes, each named as lost, until at most MAX_UNWRITTEN_PASSES of at most
+        MAX_UNWRITTEN_BYTES in all wait (after the newest was queued and tried: a pass the disk took is never
+        counted, and one is lost only when it really is)."""
+        held = sum(_held_bytes(scan) for _, scan, *_ in self._unwritten)
+        while len(self._unwritten) > 1 and (len(self._unwritten) > MAX_UNWRITTEN_PASSES
+                                            or held > MAX_UNWRITTEN_BYTES):
+            name, scan, *_ = self._unwritten.popleft()
+            held -= _held_bytes(scan)
+            self._late.discard(name)
+            self.report.passes_failed.append(
+                f"{name}: its archive could not be written, and it was dropped from memory for a newer pass "
+                f"(at most {MAX_UNWRITTEN_PASSES} passes, {MAX_UNWRITTEN_BYTES / 2**20:.0f} MiB, are kept)")
+            log.error("pass %s lost: its archive could not be written, and the passes kept in memory reached "
+                      "their bound (%d passes, %.0f MiB); the oldest is dropped for the newest", name,
+                      MAX_UNWRITTEN_PASSES, MAX_UNWRITTEN_BYTES / 2**20)
 
     def _wait_cycle(self, last: int) -> int:
         while True:
@@ -804,14 +913,10 @@ class AcquisitionSession:
                 # the height in the id and the name is the one the archive records (PASS.HEIGHT), as the
                 # archive format names files: a carriage a fraction of a millimetre off gives h0149
                 pass_id = f"{archive.default_pass_id(scan)}-b{boot:08X}-p{token}"
-                if len(self._unwritten) >= MAX_UNWRITTEN_PASSES:
-                    self.report.passes_failed.append(f"{name}: cannot write the archive, and "
-                                                     f"{MAX_UNWRITTEN_PASSES} passes already wait")
-                    log.error("pass %s lost: %d unwritten passes already wait", name, len(self._unwritten))
-                    break
                 # one way to the archive: queued behind any pass still waiting (order kept), written now
                 self._unwritten.append((name, scan, pass_id, f"b{boot:08X}_p{token}", not self._rescan))
                 self._write_unwritten(force=True)
+                self._bound_unwritten()
                 if name in self._refused:  # named as lost by _write_unwritten
                     break
                 if name in self._late:
@@ -820,7 +925,10 @@ class AcquisitionSession:
                 else:
                     log.info("pass %s: %d pulses x %d samples, attempt %d, written to %s", name,
                              scan.n_pulses, scan.samples_per_pulse, attempt, self.report.passes_written[-1])
-                passes.append(archive.as_stored(scan))  # processed live as archived, written or waiting
+                if self.processor is not None:  # processed live as archived, written or waiting
+                    with self._off_the_link():
+                        scan = archive.as_stored(scan)
+                passes.append(scan)  # (without processing only counted: no copy)
                 start_time = start_time or scan.pass_start_time
                 break
             else:
@@ -910,8 +1018,9 @@ class AcquisitionSession:
             raise DescriptionChanged("IDENTITY or RADAR changed during the pass; running it again with the "
                                      "new values")
         try:
-            scan = assembler.scan_pass(radar, rig_id=rig_id, reference_point_m=self.reference_point_m,
-                                       cycle=cycle)
+            with self._off_the_link():
+                scan = assembler.scan_pass(radar, rig_id=rig_id, reference_point_m=self.reference_point_m,
+                                           cycle=cycle)
         except AbsurdValue:
             self.link.counts.absurd_values += 1
             raise
@@ -1018,6 +1127,10 @@ class AcquisitionSession:
         if not window_empty or status["STATUS_WORD"] & R.Status.PASS_ACTIVE:
             return False
         p = self.link.read_block(R.PASS)
+        if p["TOKEN"] == asm.token and p["PASS_STATE"] == R.PassState.RUNNING:
+            # not ended: PASS_ACTIVE may be clear while the carriage approaches the rail end before its first
+            # pulse (map 13.1); the no-progress watchdog bounds a pass that never goes on
+            return False
         if p["TOKEN"] != asm.token or p["PASS_STATE"] != R.PassState.COMPLETE:
             raise PassIncomplete(f"pass ended ({R.enum_name(R.PassState, p['PASS_STATE'])}) before its LAST "
                                  "pulse arrived")
@@ -1096,6 +1209,7 @@ class AcquisitionSession:
         reason than a pass of ours (local control, booting)."""
         deadline = time.monotonic() + self.settings.command_timeout_s
         told = False
+        cleared = 0  # the FAULT_WORD bits CLEAR_FAULTS was sent for in this wait
         while True:
             word = status["STATUS_WORD"]
             if cycle is not None and status["CYCLE_COUNTER"] != cycle:
@@ -1110,14 +1224,19 @@ class AcquisitionSession:
                 told = True
                 log.warning("rig not ready (state %s, STATUS_WORD 0x%04X): waiting up to %g s", _state_name(
                     status["STATE"]), word, self.settings.command_timeout_s)
-            if status["FAULT_WORD"] & ~(R.Fault.BUFFER_OVERFLOW | R.Fault.PASS_ABORTED):
-                log.warning("device fault word 0x%04X: clearing faults", status["FAULT_WORD"])
+            fault = status["FAULT_WORD"] & ~(R.Fault.BUFFER_OVERFLOW | R.Fault.PASS_ABORTED)
+            if fault & ~cleared:  # once per fault (map 9): one that persists (a jammed drive) is waited out
+                cleared |= fault
+                log.warning("device fault word 0x%04X: clearing faults; waiting up to %g s for READY",
+                            status["FAULT_WORD"], self.settings.command_timeout_s)
                 self._command(R.Command.CLEAR_FAULTS)
-            elif word & R.Status.BUSY:
+            elif word & R.Status.BUSY and not fault:
                 log.info("device busy (state %s): aborting", _state_name(status["STATE"]))
                 self._command(R.Command.ABORT)
             if time.monotonic() > deadline:
-                raise PassIncomplete("device did not become ready")
+                raise PassIncomplete(f"device fault word 0x{status['FAULT_WORD']:04X} not cleared by "
+                                     f"CLEAR_FAULTS within {self.settings.command_timeout_s:g} s" if fault
+                                     else "device did not become ready")
             self.link.sleep(self.settings.poll_s)
             status = self._status()
 

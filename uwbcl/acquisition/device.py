@@ -68,8 +68,8 @@ class DeviceConfig:
     state_file: str | None = None  # CYCLE_COUNTER and the last BOOT_ID, kept across restarts; None: not kept
 
     def __post_init__(self):
-        if self.time_scale <= 0:
-            raise ValueError("time_scale must be > 0")
+        if not (math.isfinite(self.time_scale) and self.time_scale > 0):  # NaN too: a clock that never runs
+            raise ValueError(f"time_scale must be finite and > 0, got {self.time_scale}")
         if not 1 <= self.buffer_capacity <= 65535:
             raise ValueError("buffer_capacity must be in 1..65535")
         if not R.WINDOW_HEADER.length + R.record_regs(1) <= self.window_regs <= 65535 - R.WINDOW_ADDRESS:
@@ -381,8 +381,9 @@ class RigController:
             cmd = R.Command(code)
         except ValueError:
             return R.CommandResult.REJECTED_UNKNOWN
-        if self.booting(now) or self.fault_word & ~(R.Fault.BUFFER_OVERFLOW | R.Fault.PASS_ABORTED):
+        if self.booting(now):
             return R.CommandResult.REJECTED_NOT_READY
+        # ABORT and CLEAR_FAULTS are the way out of FAULTED (map 4.2, 5.1): accepted while a fault is set
         if cmd is R.Command.ABORT:
             if self.motion is not None:
                 self._finish_motion(now, interrupted=True)
@@ -397,6 +398,8 @@ class RigController:
             return R.CommandResult.DONE
         if cmd is R.Command.NONE:
             return R.CommandResult.REJECTED_UNKNOWN
+        if self.faulted():
+            return R.CommandResult.REJECTED_NOT_READY
         if self._busy():
             return R.CommandResult.REJECTED_BUSY
         if cmd is R.Command.MOVE_HEIGHT:
@@ -486,8 +489,7 @@ class RigController:
     def status_word(self, now: float) -> R.Status:
         s = R.Status.CYCLE_LINK_OK
         p = self.pass_
-        if not self.booting(now) \
-                and not (self.fault_word & ~(R.Fault.BUFFER_OVERFLOW | R.Fault.PASS_ABORTED)):
+        if not self.booting(now) and not self.faulted():
             s |= R.Status.READY
         if self._busy():
             s |= R.Status.BUSY
@@ -501,9 +503,15 @@ class RigController:
             s |= R.Status.OVERFLOW
         return s
 
+    def faulted(self) -> bool:
+        """A fault other than BUFFER_OVERFLOW / PASS_ABORTED is set: not READY, STATE FAULTED (map 4.2)."""
+        return bool(self.fault_word & ~(R.Fault.BUFFER_OVERFLOW | R.Fault.PASS_ABORTED))
+
     def state(self, now: float) -> R.State:
         if self.booting(now):
             return R.State.BOOTING
+        if self.faulted():
+            return R.State.FAULTED
         if self.motion is not None:
             return R.State.MOVING if self.motion.code is R.Command.MOVE_HEIGHT else R.State.ROTATING
         if self.pass_ is not None and self.pass_.state is R.PassState.RUNNING:

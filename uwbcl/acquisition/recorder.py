@@ -32,11 +32,17 @@ class DeviceRefused(Exception):
     configuration does not fit it (CONFIGURATION): acquisition stops."""
 
 
+# What one pass holds while it is finished, per sample: its int16 I/Q as drained (4 B) and its echo as
+# archived and kept until written, complex64 (8 B), the type `archive.write_pass` stores by default.
+PASS_BYTES_PER_SAMPLE = 4 + 8
+ECHO_DTYPE = np.complex64
+
+
 @dataclasses.dataclass(frozen=True)
 class Limits:
     max_samples_per_pulse: int = 8192
     max_pulses_per_pass: int = 100_000
-    max_pass_bytes: int = 512 * 2**20  # int16 I/Q held in memory for one pass
+    max_pass_bytes: int = 512 * 2**20  # memory one pass holds (PASS_BYTES_PER_SAMPLE a sample)
     # pulses x samples: no more than every archive reader accepts by default, so no pass is acquired only to
     # be refused by the nightly run (docs/configuration.md [limits])
     max_echo_samples: int = ReadLimits.max_echo_samples
@@ -83,9 +89,10 @@ class PassAssembler:
         if n * m > limits.max_echo_samples:
             raise AbsurdValue(f"PASS: {n} pulses x {m} samples, more than the {limits.max_echo_samples} an "
                               "archive may hold (limits.max_echo_samples)")
-        if n * m * 4 > limits.max_pass_bytes:
-            raise AbsurdValue(f"PASS: {n} pulses x {m} samples need {n * m * 4 / 2**20:.0f} MiB, more than "
-                              f"the {limits.max_pass_bytes / 2**20:.0f} MiB limit")
+        if n * m * PASS_BYTES_PER_SAMPLE > limits.max_pass_bytes:
+            need_mib = n * m * PASS_BYTES_PER_SAMPLE / 2**20
+            raise AbsurdValue(f"PASS: {n} pulses x {m} samples need {need_mib:.0f} MiB, more than the "
+                              f"{limits.max_pass_bytes / 2**20:.0f} MiB limit")
         scale = descriptor["AMPLITUDE_SCALE"]
         if not (math.isfinite(scale) and scale > 0):
             raise AbsurdValue(f"PASS.AMPLITUDE_SCALE = {scale}: must be a finite number > 0")
@@ -162,9 +169,16 @@ class PassAssembler:
         d, n = self.descriptor, self.count
         x_c = 0.5 * float(self.position_m[0] + self.position_m[n - 1])
         reference_point_m = (x_c + float(reference_point_m[0]), *reference_point_m[1:])
-        echo = np.empty((n, self.samples_per_pulse), dtype=np.complex128)  # in place: no float temporaries
-        echo.real, echo.imag = self.iq[:n, :, 0], self.iq[:n, :, 1]
-        echo *= float(d["AMPLITUDE_SCALE"])
+        # As archived (ECHO_DTYPE): a pass kept in memory while the disk refuses it holds half a complex128's
+        # bytes. Scaled in float64 a block of pulses at a time, then rounded once: the values write_pass
+        # stores from a complex128 echo, to the bit, without a whole-pass float64 temporary.
+        echo = np.empty((n, self.samples_per_pulse), dtype=ECHO_DTYPE)
+        scale = float(d["AMPLITUDE_SCALE"])
+        step = max(1, 2**20 // self.samples_per_pulse)
+        with np.errstate(over="ignore"):  # an echo beyond complex64 is inf: refused by check_scan below
+            for k in range(0, n, step):
+                echo.real[k:k + step] = self.iq[k:min(k + step, n), :, 0] * scale
+                echo.imag[k:k + step] = self.iq[k:min(k + step, n), :, 1] * scale
         try:
             start_time = format_utc(d["START_TIME"])
         except (OverflowError, OSError, ValueError) as exc:

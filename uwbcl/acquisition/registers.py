@@ -408,7 +408,8 @@ FAULT_TAXONOMY = (
               "write it as <name>_b<BOOT_ID hex>_p<TOKEN>.h5 (then _2, _3, ...): never dropped"),
     FaultRule("ARCHIVE_UNWRITABLE", FaultClass.NOTICE,
               "a whole pass's archive cannot be written (disk full, a share gone read-only)",
-              "keep the pass in memory (up to 64) and process it live; write the kept passes again, oldest "
+              "keep the pass in memory as archived (complex64; up to 64 passes and 2 GiB: beyond, the "
+              "oldest kept pass is named as lost) and process it live; write the kept passes again, oldest "
               "first, every 10 s and before each new pass; name those still unwritten when the session "
               "ends as lost"),
     FaultRule("INCOMPATIBLE", FaultClass.SERVICE,

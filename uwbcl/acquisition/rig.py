@@ -15,6 +15,7 @@ sees.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
@@ -61,6 +62,8 @@ class Campaign:
         self.base: Scenario = SCENARIOS[config.scenario]
         radar = self.base.radar
         if config.prf_hz is not None:
+            if not (math.isfinite(config.prf_hz) and config.prf_hz > 0):
+                raise ValueError(f"prf_hz must be finite and > 0, got {config.prf_hz}")
             radar = dataclasses.replace(radar, pulse_repetition_frequency_hz=float(config.prf_hz))
         self.radar: RadarParameters = radar
         self.speed_m_s = float(config.speed_m_s or self.base.speed_m_s)
