@@ -28,6 +28,7 @@ from test_acquisition import (  # noqa: F401
 
 from uwbcl import archive
 from uwbcl.acquisition import registers as R
+from uwbcl.acquisition.client import RigLink
 from uwbcl.acquisition.device import ModbusFault, RigController, RigServer
 from uwbcl.acquisition.faults import parse_faults
 
@@ -188,6 +189,57 @@ def test_an_absurd_pass_value_fails_the_pass_which_is_aborted_and_re_run(values,
     assert device.sent and int(R.Command.ABORT) in device.commands
     assert report.ok and len(report.passes_written) == 2 and len(report.passes_incomplete) == 1, report
     assert_archives_match_device(report, server)
+
+
+class _ForeignIdentityOnce(RigController):
+    """Answers the first IDENTITY read as another rig would (MAGIC 0x5556, a valid CRC)."""
+
+    sent = False
+
+    def read(self, now, table, address, count):
+        regs = super().read(now, table, address, count)
+        if table is R.Table.INPUT and address == R.IDENTITY.address and not self.sent:
+            self.sent = True
+            patched = _patch_block([0] * R.IDENTITY.address + regs, R.IDENTITY, MAGIC=0x5556)
+            regs = patched[R.IDENTITY.address:]
+        return regs
+
+
+def test_one_identity_reply_of_another_rig_is_read_again_and_logged_as_a_fault(tmp_path, caplog):
+    # an independent controller's one foreign IDENTITY reply was read again, as the map says, but never said
+    caplog.set_level(logging.WARNING, logger="uwbcl.acquire")
+    device = _ForeignIdentityOnce(FAST_DEVICE)
+    with RigServer(device, LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, cycles=1))
+    assert device.sent and report.ok and len(report.passes_written) == 2, report
+    assert report.faults.incompatible_replies == 1
+    assert sum("IDENTITY reply is not this client's rig" in r.getMessage() for r in caplog.records) == 1
+
+
+class _BusyWhileConnecting(RigController):
+    """Answers the first `n` IDENTITY reads with exception 06 (device busy) (a controller still starting)."""
+
+    def __init__(self, config, n: int):
+        super().__init__(config)
+        self.n, self.busy = n, 0
+
+    def read(self, now, table, address, count):
+        if table is R.Table.INPUT and address == R.IDENTITY.address and self.busy < self.n:
+            self.busy += 1
+            raise ModbusFault(6, "busy")
+        return super().read(now, table, address, count)
+
+
+def test_busy_replies_while_connecting_are_waited_out_as_busy_not_counted_as_damaged_replies(
+        tmp_path, caplog):
+    # an independent controller's 06 replies while uwbcl connected were given up after 10 as "damaged (CRC)
+    # or refused"; the map allows 25 busy replies in a row
+    caplog.set_level(logging.WARNING, logger="uwbcl.acquire")
+    device = _BusyWhileConnecting(FAST_DEVICE, 15)
+    with RigServer(device, LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, cycles=1))
+    assert device.busy == 15 and report.ok and len(report.passes_written) == 2, report
+    assert not any("damaged" in r.getMessage() for r in caplog.records)
 
 
 class _UnarchivablePassOnce(RigController):
@@ -530,12 +582,13 @@ class _BusyAtSetUp(RigController):
 
 
 def test_a_connection_made_again_after_failed_set_up_reads_is_counted_as_a_reconnect(tmp_path):
-    device = _BusyAtSetUp(FAST_DEVICE, n_busy=12)  # more than one connection's set-up tries (10)
+    n_busy = RigLink.MAX_EXCEPTION_RETRIES + 2  # more than one connection's set-up tries (BUSY, map 9)
+    device = _BusyAtSetUp(FAST_DEVICE, n_busy=n_busy)
     with RigServer(device, LOOPBACK, 0) as server:
         report = run_session(settings_for(server, tmp_path, cycles=1))
     assert device.n_busy == 0
     assert report.ok and len(report.passes_written) == 2, report
-    assert report.faults.reconnects >= 1 and report.faults.exceptions >= 12
+    assert report.faults.reconnects >= 1 and report.faults.exceptions >= n_busy
 
 
 class _WrongLengthWindowOnce(RigServer):

@@ -251,7 +251,8 @@ def _print_summary(report, out) -> None:
           f"exception replies, {f.corrupt} corrupted replies, {f.reboots} controller reboots ({f.reconnects} "
           f"reconnects)")
     print(f"  {f.refused} refused requests (01/02/03), {f.requests_failed} requests given up, "
-          f"{f.absurd_values} absurd values, {f.description_changes} IDENTITY/RADAR changes under a pass, "
+          f"{f.absurd_values} absurd values, {f.incompatible_replies} IDENTITY replies of another rig, "
+          f"{f.description_changes} IDENTITY/RADAR changes under a pass, "
           f"{f.rig_id_changes} RIG_ID changes, {f.no_progress} watchdog aborts, {f.counter_decreases} "
           f"cycle-counter decreases, {f.names_taken} archives under a unique name, {f.rate_limited} requests "
           f"delayed by the rate bound")

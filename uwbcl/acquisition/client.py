@@ -216,6 +216,7 @@ class FaultCounts:
     counter_decreases: int = 0
     names_taken: int = 0  # whole passes written under the unique name because the usual one was taken
     rate_limited: int = 0  # requests delayed by the request-rate bound
+    incompatible_replies: int = 0  # IDENTITY replies of another MAGIC or MAP_MAJOR (read again, map 4.1)
 
     def total(self) -> int:
         return self.no_reply + self.disconnects + self.exceptions + self.corrupt + self.reboots + self.stalls
@@ -322,23 +323,28 @@ class RigLink:
             self.sleep(delay * (0.8 + 0.4 * self._jitter.random()))
             delay = min(2.0 * delay, self.reconnect_max_s)
 
-    def _describe_once(self) -> tuple[dict, dict]:
-        identity = self._read_block_once(R.IDENTITY)
-        if _incompatible(identity):  # read twice before stopping: one reply never stops acquisition
+    def _compatible_identity(self, read) -> dict:
+        """IDENTITY by `read`, read twice before stopping (map 4.1: one reply never stops acquisition); a
+        reply that is not this client's rig is a fault (INCOMPATIBLE), logged and counted even when the
+        second read is right: a gateway that now and then answers for another unit is seen before it stops."""
+        identity = read(R.IDENTITY)
+        if _incompatible(identity):
+            self.counts.incompatible_replies += 1
+            log.warning("fault: an IDENTITY reply is not this client's rig (%s); reading it again",
+                        _incompatible(identity))
             self.sleep(0.2)
-            identity = self._read_block_once(R.IDENTITY)
+            identity = read(R.IDENTITY)
             if _incompatible(identity):
                 raise DeviceRefused(_incompatible(identity))
+        return identity
+
+    def _describe_once(self) -> tuple[dict, dict]:
+        identity = self._compatible_identity(self._read_block_once)
         return identity, self._read_block_once(R.RADAR)
 
     def describe(self) -> None:
         """Re-read IDENTITY and RADAR on the open connection (after a reboot seen in STATUS)."""
-        identity = self.read_block(R.IDENTITY)
-        if _incompatible(identity):
-            self.sleep(0.2)
-            identity = self.read_block(R.IDENTITY)
-            if _incompatible(identity):
-                raise DeviceRefused(_incompatible(identity))
+        identity = self._compatible_identity(self.read_block)
         self.identity, self.radar = identity, self.read_block(R.RADAR)
 
     # ------------------------------------------------------------------------------------------ requests
@@ -415,7 +421,8 @@ class RigLink:
         """Used while (re)connecting: no reconnect loop of its own."""
         from pymodbus.exceptions import ModbusException
 
-        for attempt in range(self.MAX_CRC_RETRIES):
+        refused = damaged = 0  # each kind has its own limit, as in `_request` and `read_block`
+        while refused < self.MAX_EXCEPTION_RETRIES and damaged < self.MAX_CRC_RETRIES:
             self._rate_bound()
             self.requests += 1
             try:
@@ -426,15 +433,20 @@ class RigLink:
                 raise _NoReply() from None
             if reply.isError():
                 self.counts.exceptions += 1
-                self.sleep(0.05 * (attempt + 1))
+                refused += 1
+                log.warning("fault: %s: exception reply %s while connecting; reading it again", block.name,
+                            getattr(reply, "exception_code", "?"))
+                self.sleep(min(0.02 * 2 ** (refused - 1), 1.0))  # BUSY: 20 ms doubling to 1 s (map 9)
                 continue
             try:
                 return block.decode(reply.registers)
             except R.RegisterError as exc:
                 self.counts.corrupt += 1
+                damaged += 1
                 log.warning("fault: %s", exc)
-        raise LinkDown(f"{block.name}: {self.MAX_CRC_RETRIES} replies in a row damaged (CRC) or refused "
-                       "while connecting")
+        what = (f"{refused} exception replies in a row (busy, device failure or refused)" if refused
+                >= self.MAX_EXCEPTION_RETRIES else f"{damaged} replies in a row damaged (CRC)")
+        raise LinkDown(f"{block.name}: {what} while connecting")
 
     def read_block(self, block: R.Block) -> dict:
         for _ in range(self.MAX_CRC_RETRIES):

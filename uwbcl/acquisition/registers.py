@@ -527,7 +527,7 @@ CLIENT = Block("CLIENT", Table.HOLDING, 12, 2, (
 
 RESULT = Block("RESULT", Table.HOLDING, 16, 21, (
     Field("RESULT_SEQ", 0, "u32",
-          doc="+1 for every result published; readers take a changed value as new data"),
+          doc="+1 for every result published; readers take a non-zero value not seen before as new data"),
     Field("CYCLE", 2, "u32", doc="cycle counter value of the cycle measured"),
     Field("PREVIOUS_CYCLE", 4, "u32", doc="the cycle it is measured from (normally CYCLE - 1)"),
     Field("RETREAT", 6, "s32", 1e-6, "m",
