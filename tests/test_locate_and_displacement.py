@@ -114,6 +114,29 @@ def test_the_rib_gate_rejects_a_cross_height_pair_that_would_put_a_plate_off_the
     assert min(abs(p.position_m[2] - 1.7) for p in on_rib) < 1e-6
 
 
+def test_the_rib_is_the_nearest_cluster_of_plates_not_the_median_of_their_floor_multipath_copies():
+    """Four plates on a 2.4 m rib and, for each, the echoes that bounced off the floor 0.3 m below the rail's
+    datum: once (half way between the plate and its mirror image, 0.3 m behind the rib) and twice (the image,
+    0.85 m behind). An independent tester's scene: the median wall distance lay on the copies, the rib gate
+    kept them and set every plate aside."""
+    heights, wall, floor = (0.2, 0.6), 2.4, -0.3
+    plates = [(0.5, 0.9), (1.6, 1.9), (2.7, 0.9), (3.8, 1.9)]
+    by_height = {}
+    for h in heights:
+        dets = []
+        for x, z in plates:
+            direct, image = float(_rc(wall, z, h)), float(_rc(wall, 2 * floor - z, h))
+            dets += [_detection(x, direct, 1.0), _detection(x, 0.5 * (direct + image), 0.5),
+                     _detection(x, image, 0.3)]
+        by_height[h] = dets
+    located = locate_plates(by_height)
+    # every plate on the rib; the twice-bounced image is a point of the rib's plane below the floor
+    # (z = 2 floor - z), which moves with the rib as the plates do; the once-bounced copies are gone
+    assert all(abs(abs(p.position_m[1]) - wall) < 0.01 for p in located), [p.position_m for p in located]
+    for x, z in plates:
+        assert any(np.allclose(p.position_m, [x, -wall, z], atol=1e-6) for p in located), (x, z)
+
+
 def test_the_rib_gate_needs_three_plates_and_keeps_every_plate_of_a_clean_column():
     heights, wall = (0.05, 0.25, 0.6), 2.5
     by_height = _ring(heights, wall, (0.4, 1.0, 1.6))

@@ -87,7 +87,7 @@ class DetectionSettings:
     cross_height_x_tol_m: float = 0.08
     cross_height_rc_tol_m: float = 0.05
     # and its rib gate (eq. L2): two looks grouped as one plate put it on the rib, within this of the cycle's
-    # median wall distance (the rib's roughness, a rail a little off parallel to it) or three of their own
+    # wall distance (the rib's roughness, a rail a little off parallel to it) or three of their own
     # wall's standard deviations, whichever is larger. 0: off.
     cross_height_wall_tol_m: float = 0.15
     # Region of interest in closest-approach range R_c (m), for real recordings: a peak nearer than
