@@ -316,6 +316,55 @@ def test_a_full_queue_of_kept_passes_never_declares_lost_a_new_pass_the_disk_tak
 # ============================================================================================== F6
 
 
+class _GatewayToAGoneController(RigServer):
+    """A Modbus gateway whose controller behind it went away: every request answered with exception 0B."""
+
+    gone = False
+
+    async def _action(self, *args, **kwargs):
+        from pymodbus.constants import ExcCodes
+
+        if self.gone:
+            return ExcCodes.GATEWAY_NO_RESPONSE
+        return await super()._action(*args, **kwargs)
+
+
+def test_the_last_publish_gives_up_at_its_deadline_also_when_every_request_gets_an_exception_reply(
+        tmp_path, monkeypatch):
+    # a review: the deadline bounded reconnecting only: 25 exception replies a request, 40 s for a result
+    monkeypatch.setattr(client_module, "FINAL_PUBLISH_S", 1.0, raising=False)
+    server = _GatewayToAGoneController(RigController(FAST_DEVICE), LOOPBACK, 0)
+    server.start()
+    results: queue.Queue = queue.Queue()
+
+    def close(timeout_s):
+        server.gone = True
+        results.put(_result(1001))
+
+    processor = SimpleNamespace(rig_id="", results=results, submit=lambda *a, **k: True, close=close,
+                                write_csv=lambda out, rows: None)
+    session = AcquisitionSession(settings_for(server, tmp_path, cycles=1), processor=processor)
+    publish, spent = session._publish_results, []
+
+    def timed(final=False):
+        start = time.monotonic()
+        try:
+            return publish(final)
+        finally:
+            spent.append(time.monotonic() - start) if final else None
+
+    session._publish_results = timed
+    box: dict = {}
+    thread = threading.Thread(target=lambda: box.setdefault("report", session.run()), daemon=True)
+    thread.start()
+    thread.join(60.0)
+    server.stop()
+    assert not thread.is_alive(), "the session did not end"
+    report = box["report"]
+    assert report.ok and len(report.passes_written) == 2, report
+    assert spent and spent[-1] < 1.0 + 3.0, spent  # the deadline, plus at most one request's pause
+
+
 class _HeartbeatClock(RigController):
     """Records when (real time) each CLIENT_HEARTBEAT arrives."""
 
@@ -343,3 +392,22 @@ def test_the_client_heartbeat_goes_on_while_a_pass_is_built_and_written_for_seco
     assert report.ok and len(report.passes_written) == 2, report
     gaps = [b - a for a, b in zip(device.heartbeats, device.heartbeats[1:])]
     assert max(gaps) < 2.0, gaps  # map 5.3: it changes at least every 2 s while uwbcl is connected
+
+
+def test_the_client_heartbeat_goes_on_while_the_last_cycle_is_processed_at_the_end_of_the_session(tmp_path):
+    # a review: the session waited in the processor's close (up to a minute) connected and silent, then
+    # published a result: a reader that sees the heartbeat still for 2 s knows no result will come (map 5.3)
+    device = _HeartbeatClock(dataclasses.replace(FAST_DEVICE, cycle_interval_s=1e6))
+    results: queue.Queue = queue.Queue()
+
+    def close(timeout_s):
+        time.sleep(4.0)
+        results.put(_result(1001))
+
+    processor = SimpleNamespace(rig_id="", results=results, submit=lambda *a, **k: True, close=close,
+                                write_csv=lambda out, rows: None)
+    with RigServer(device, LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, cycles=1), processor=processor)
+    assert report.ok and len(report.passes_written) == 2, report
+    gaps = [b - a for a, b in zip(device.heartbeats, device.heartbeats[1:])]
+    assert max(gaps) < 2.0, gaps

@@ -356,6 +356,9 @@ class RigLink:
 
         exceptions = refused = lost = 0
         while True:
+            if self.deadline is not None and time.monotonic() > self.deadline:  # exception replies too
+                self.counts.requests_failed += 1
+                raise LinkDown(f"{desc}: not answered before the deadline")
             self.ensure_connected()
             self._rate_bound()
             self.requests += 1
@@ -634,7 +637,8 @@ class AcquisitionSession:
                 log.exception("error while writing the kept passes at the end of the session")
             try:
                 if self.processor is not None:
-                    self.processor.close(5.0 if self.report.interrupted else 60.0)
+                    with self._off_the_link():  # up to a minute: the controller still sees a live client
+                        self.processor.close(5.0 if self.report.interrupted else 60.0)
                     # a controller gone at the end must not keep the session from ending (every pass is
                     # archived, every result in acquire-results.csv): reconnecting gives up at the deadline
                     self.link.deadline = time.monotonic() + FINAL_PUBLISH_S
