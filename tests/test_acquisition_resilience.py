@@ -215,6 +215,16 @@ def test_a_configured_rig_id_names_the_archives_whatever_the_controllers_rig_id(
     assert report.ok and len(report.passes_written) == 2 and all("face-7" in p for p in report.passes_written)
 
 
+def test_an_unnamed_rig_is_archived_as_rig_with_a_warning_at_the_start(tmp_path, caplog):
+    # an independent tester: an all-NUL RIG_ID was archived as "rig" without a word; two such rigs would merge
+    caplog.set_level(logging.WARNING, logger="uwbcl.acquire")
+    device = RigController(dataclasses.replace(FAST_DEVICE, rig_id=""))
+    with RigServer(device, LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path))
+    assert report.ok and all("/rig/" in p.replace("\\", "/") for p in report.passes_written), report
+    assert sum("IDENTITY.RIG_ID is empty" in r.getMessage() for r in caplog.records) == 1
+
+
 # ============================================================================================== F8
 
 

@@ -84,6 +84,7 @@ MAX_UNWRITTEN_BYTES = 2 * 2**30
 # The end of a session (--process) publishes the last results for at most this long: a controller that
 # cannot be reached by then does not get them (they are in acquire-results.csv).
 FINAL_PUBLISH_S = 15.0
+UNNAMED_RIG_ID = "rig"  # the archives' rig id when neither the settings nor IDENTITY.RIG_ID name one (warned)
 HEARTBEAT_POLL_S = 0.2  # how often the side thread of _off_the_link looks whether CLIENT_HEARTBEAT is due
 TABLE_ANGLE_WARN_DEG = 0.1  # a table this far from the commanded angle is said (a fifth of process's 0.5 deg)
 UNWRITTEN_RETRY_S = 10.0
@@ -672,7 +673,11 @@ class AcquisitionSession:
                                 f"{rig_id_refused(identity['RIG_ID'])}); set rig_id in [acquire] "
                                 "(or --rig-id)")
         if not self.rig_id:  # named in the log from the first contact, even while RADAR is refused
-            self.rig_id = self.settings.rig_id or identity["RIG_ID"] or "rig"
+            self.rig_id = self.settings.rig_id or identity["RIG_ID"] or UNNAMED_RIG_ID
+            if self.rig_id == UNNAMED_RIG_ID and not self.settings.rig_id:
+                log.warning("IDENTITY.RIG_ID is empty: the passes are archived as rig %r, as every other "
+                            "unnamed rig's would be; name it on the controller or set rig_id in [acquire] "
+                            "(or --rig-id)", UNNAMED_RIG_ID)
         try:
             check_radar(radar, self.settings.limits)
         except AbsurdValue:
