@@ -230,7 +230,10 @@ def test_an_unnamed_rig_is_archived_as_rig_with_a_warning_at_the_start(tmp_path,
 
 @pytest.mark.parametrize("flag, value", [("--port", "99999"), ("--port", "-1"), ("--prf", "0"),
                                          ("--prf", "-5"), ("--prf", "nan"), ("--time-scale", "nan"),
-                                         ("--time-scale", "0")])
+                                         ("--time-scale", "0"), ("--cycle-interval", "0"),
+                                         ("--cycle-interval", "-1"), ("--first-cycle-after", "-1"),
+                                         ("--max-cycles", "-1"), ("--speed-jitter", "2"), ("--snr-db", "nan"),
+                                         ("--range-samples", "0")])
 def test_simulate_device_refuses_a_port_prf_or_time_scale_out_of_range_as_a_usage_error_naming_the_flag(
         flag, value, tmp_path):
     import subprocess

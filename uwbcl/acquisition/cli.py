@@ -139,6 +139,18 @@ def _simulate_device_argument_error(args: argparse.Namespace) -> str:
         return f"--prf {args.prf:g}: must be a finite number of Hz > 0"
     if not (math.isfinite(args.time_scale) and args.time_scale > 0):
         return f"--time-scale {args.time_scale:g}: must be a finite number > 0"
+    if not (math.isfinite(args.cycle_interval) and args.cycle_interval > 0):
+        return f"--cycle-interval {args.cycle_interval:g}: must be a finite number of seconds > 0"
+    if not (math.isfinite(args.first_cycle_after) and args.first_cycle_after >= 0):
+        return f"--first-cycle-after {args.first_cycle_after:g}: must be a finite number of seconds >= 0"
+    if args.max_cycles is not None and args.max_cycles < 1:
+        return f"--max-cycles {args.max_cycles}: must be >= 1"
+    if not (math.isfinite(args.speed_jitter) and 0 <= args.speed_jitter < 1):
+        return f"--speed-jitter {args.speed_jitter:g}: must be in [0, 1) (0.1 for +-10 %)"
+    if args.snr_db is not None and not math.isfinite(args.snr_db):
+        return f"--snr-db {args.snr_db:g}: must be a finite number of dB"
+    if args.range_samples is not None and args.range_samples < 1:
+        return f"--range-samples {args.range_samples}: must be >= 1"
     return ""
 
 
