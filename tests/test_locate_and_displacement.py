@@ -114,27 +114,41 @@ def test_the_rib_gate_rejects_a_cross_height_pair_that_would_put_a_plate_off_the
     assert min(abs(p.position_m[2] - 1.7) for p in on_rib) < 1e-6
 
 
-def test_the_rib_is_the_nearest_cluster_of_plates_not_the_median_of_their_floor_multipath_copies():
-    """Four plates on a 2.4 m rib and, for each, the echoes that bounced off the floor 0.3 m below the rail's
-    datum: once (half way between the plate and its mirror image, 0.3 m behind the rib) and twice (the image,
-    0.85 m behind). An independent tester's scene: the median wall distance lay on the copies, the rib gate
-    kept them and set every plate aside."""
-    heights, wall, floor = (0.2, 0.6), 2.4, -0.3
+def test_the_rib_is_the_median_of_the_plates_not_of_the_multipath_copies_behind_them():
+    """Four plates on a 2.4 m rib and, at each plate's x, what an independent tester's floor multipath located
+    there: the once-bounced echo's point 0.3 m behind the rib and a second copy 0.85 m behind (its cycles held
+    as many copies as plates). The median of all of them lay among the copies; the rib gate then kept the
+    copies and set every plate aside."""
+    heights, wall = (0.2, 0.6), 2.4
     plates = [(0.5, 0.9), (1.6, 1.9), (2.7, 0.9), (3.8, 1.9)]
-    by_height = {}
-    for h in heights:
-        dets = []
-        for x, z in plates:
-            direct, image = float(_rc(wall, z, h)), float(_rc(wall, 2 * floor - z, h))
-            dets += [_detection(x, direct, 1.0), _detection(x, 0.5 * (direct + image), 0.5),
-                     _detection(x, image, 0.3)]
-        by_height[h] = dets
+    points = [(x, wall, z, 1.0) for x, z in plates] + [(x, wall + 0.3, z - 1.0, 0.6) for x, z in plates] \
+        + [(x, wall + 0.85, z - 1.5, 0.4) for x, z in plates]
+    by_height = {h: [_detection(x, float(_rc(w, z, h)), a) for x, w, z, a in points] for h in heights}
     located = locate_plates(by_height)
-    # every plate on the rib; the twice-bounced image is a point of the rib's plane below the floor
-    # (z = 2 floor - z), which moves with the rib as the plates do; the once-bounced copies are gone
-    assert all(abs(abs(p.position_m[1]) - wall) < 0.01 for p in located), [p.position_m for p in located]
     for x, z in plates:
         assert any(np.allclose(p.position_m, [x, -wall, z], atol=1e-6) for p in located), (x, z)
+    assert all(abs(abs(p.position_m[1]) - wall) < 0.16 for p in located)  # the copies set aside
+
+
+_XS = np.arange(8) * 1.3
+
+
+@pytest.mark.parametrize("points", [
+    [(x, 2.30 + 0.25 * k / 7, 0.9 if k % 2 else 1.6, 1.0) for k, x in enumerate(_XS)],  # rail off parallel
+    [(x, 2.4 if k < 4 else 2.6, 0.9 if k % 2 else 1.6, 1.0) for k, x in enumerate(_XS)],  # a stepped rib
+    [(x, 2.4, 0.9 if k % 2 else 1.6, 1.0) for k, x in enumerate(_XS[:3])]
+    + [(5.0, 1.9, 1.0, 0.55), (6.1, 2.0, 1.3, 0.55)],  # weak noise met across heights in front of the rib
+    [(x, 2.4, 0.9 if k % 2 else 1.6, 1.0) for k, x in enumerate(_XS[:6])]
+    + [(0.6, 1.6, 1.2, 2.0), (3.2, 1.6, 1.2, 2.0)],  # two strong reflectors in front of it
+], ids=["rail off parallel", "stepped rib", "noise in front", "reflectors in front"])
+def test_what_casts_no_shadow_leaves_the_rib_gate_keeping_every_plate(points):
+    # a review of the first multipath rule (the nearest strong cluster): each of these lost plates to it
+    heights = (0.2, 0.6)
+    by_height = {h: [_detection(x, float(_rc(w, z, h)), a) for x, w, z, a in points] for h in heights}
+    located = locate_plates(by_height)
+    plates = [(x, w, z) for x, w, z, a in points if a == 1.0]
+    for x, w, z in plates:
+        assert any(np.allclose(p.position_m, [x, -w, z], atol=1e-6) for p in located), (x, w, z)
 
 
 def test_the_rib_gate_needs_three_plates_and_keeps_every_plate_of_a_clean_column():

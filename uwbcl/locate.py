@@ -29,9 +29,6 @@ CROSS_HEIGHT_WALL_TOL_M = DetectionSettings.cross_height_wall_tol_m
 # Eq. L2 needs the cycle's wall distance: from at least this many plates grouped without it (fewer, and one
 # wrong grouping could set it),
 WALL_MIN_PLATES = 3
-# and the rib is the nearest cluster of them holding at least this fraction of the strongest cluster's
-# amplitude (`_wall_m`)
-WALL_CLUSTER_MIN_STRENGTH = 1.0 / 3.0
 _GATED = 1e6  # the assignment cost of a pair outside either gate: never chosen over a gated-in pair
 # Eq. L1 (`shared_look`): a neighbour predicted within this many of the detector's non-maximum-suppression
 # ellipses of a detection, and not detected on its own in that pass, shares the detection's peak. At 1.0 the
@@ -173,25 +170,19 @@ def associate_across_heights(detections_by_height: dict[float, list[Detection]],
     return [g for g in groups if len(g) >= 2]
 
 
-def _wall_m(located: list[tuple[dict[float, Detection], Located]], tol_m: float = CROSS_HEIGHT_WALL_TOL_M
-            ) -> float:
-    """The cycle's wall distance (m): the median |y| of the nearest cluster of its located plates (those
-    within tol_m of one of them, at least two) whose amplitude is at least WALL_CLUSTER_MIN_STRENGTH of the
-    strongest cluster's. The rib is the nearest surface: an echo that bounced off the floor or the roof on
-    its way is longer and locates behind it (an independent tester's floor multipath put as many copies
-    0.3 m behind the rib as there were plates, the median of all of them among the copies, and the rib gate
-    then kept the copies and set the plates aside); what meets across heights in front of it is noise at
-    low SNR (section 4), weaker than the plates."""
+def _wall_m(located: list[tuple[dict[float, Detection], Located]], tol_m: float = CROSS_HEIGHT_WALL_TOL_M,
+            x_tol_m: float = CROSS_HEIGHT_X_TOL_M) -> float:
+    """The cycle's wall distance (m): the median |y| of its located plates but their shadows. A shadow lies
+    more than tol_m behind another located plate at the same x (within x_tol_m): an echo that bounced off
+    the floor or the roof on its way is longer than the plate's own and locates behind it, where no plate is
+    (the plates of a bolting ring share x but not |y|). An independent tester's floor multipath put as many
+    such copies 0.3 m behind the rib as there were plates, the median of all of them among the copies, and
+    the rib gate then kept the copies and set the plates aside; noise or a reflector in front of the rib, a
+    stepped rib and a rail a little off parallel to it cast no shadows, and their median is what it was."""
     w = np.array([abs(p.position_m[1]) for _, p in located])
-    amp = np.array([p.amplitude for _, p in located])
-    order = np.argsort(w, kind="stable")
-    w, amp = w[order], amp[order]
-    members = np.abs(w[:, None] - w[None, :]) <= tol_m
-    count, strength = members.sum(axis=1), members @ amp
-    clusters = (count >= 2) & (strength >= WALL_CLUSTER_MIN_STRENGTH * strength.max())
-    if tol_m <= 0 or not np.all(np.isfinite(amp)) or not clusters.any():
-        return float(np.median(w))  # no two plates together: nothing says which is the rib
-    return float(np.median(w[members[int(np.argmax(clusters))]]))
+    x = np.array([p.position_m[0] for _, p in located])
+    shadow = np.any((np.abs(x[:, None] - x[None, :]) <= x_tol_m) & (w[None, :] < w[:, None] - tol_m), axis=1)
+    return float(np.median(w[~shadow] if tol_m > 0 and not shadow.all() else w))
 
 
 def _located_group(group: dict[float, Detection], boresight_y_sign: int) -> Located | None:
