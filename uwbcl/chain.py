@@ -503,7 +503,7 @@ class RigChain:
 
     def _reissue(self, i: int, row: SeriesRow, by: str) -> None:
         """rows[i] replaced by its re-issue `row` (revision 1), which `revised` lists in cycle order."""
-        log.info("rig %s: cycle %d (%s) resolved by %s; re-issued as revision 1", row.cycle.rig_id,
+        log.info("rig %s: cycle %d (%s) resolved by %s; re-issued (its revision raised)", row.cycle.rig_id,
                  row.cycle.cycle, self.rows[i].displacement.status, by)
         self.rows[i] = row
         self.revised.append(row)
@@ -633,7 +633,7 @@ class RigChain:
                 return
         # a warning, as the restart it undoes was: the log then ends with what the outputs say
         log.warning("rig %s: %s %s joined to cycle %d by the later cycles' step; chain %d continues "
-                    "chain %d, the restart above undone (re-issued as revision 1)", b.rig_id,
+                    "chain %d, the restart above undone (re-issued: their revisions raised)", b.rig_id,
                     "cycle" if len(links) == 1 else "cycles", ", ".join(str(y.cycle) for _, y, _ in links),
                     a.cycle, self._chain, chain_a)
         cum, var = cum_a, var_a
