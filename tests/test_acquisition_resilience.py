@@ -38,6 +38,12 @@ def _result(cycle: int) -> dict:
             "revision": 0}
 
 
+def _processor(results: queue.Queue, close) -> SimpleNamespace:
+    """A stand-in live processor: its results come through `results`, `close(timeout_s)` ends it."""
+    return SimpleNamespace(rig_id="", results=results, submit=lambda *a, **k: True, close=close,
+                           write_csv=lambda out, rows: None)
+
+
 def _processor_that_stops_the_rig(server: RigServer) -> SimpleNamespace:
     """A live processor whose result comes when the session ends, after the controller went away."""
     results: queue.Queue = queue.Queue()
@@ -46,8 +52,7 @@ def _processor_that_stops_the_rig(server: RigServer) -> SimpleNamespace:
         server.stop()
         results.put(_result(1001))
 
-    return SimpleNamespace(rig_id="", results=results, submit=lambda *a, **k: True, close=close,
-                           write_csv=lambda out, rows: None)
+    return _processor(results, close)
 
 
 # ============================================================================================== F1
@@ -354,9 +359,8 @@ def test_the_last_publish_gives_up_at_its_deadline_also_when_every_request_gets_
         server.gone = True
         results.put(_result(1001))
 
-    processor = SimpleNamespace(rig_id="", results=results, submit=lambda *a, **k: True, close=close,
-                                write_csv=lambda out, rows: None)
-    session = AcquisitionSession(settings_for(server, tmp_path, cycles=1), processor=processor)
+    session = AcquisitionSession(settings_for(server, tmp_path, cycles=1),
+                                 processor=_processor(results, close))
     publish, spent = session._publish_results, []
 
     def timed(final=False):
@@ -417,10 +421,8 @@ def test_the_client_heartbeat_goes_on_while_the_last_cycle_is_processed_at_the_e
         time.sleep(4.0)
         results.put(_result(1001))
 
-    processor = SimpleNamespace(rig_id="", results=results, submit=lambda *a, **k: True, close=close,
-                                write_csv=lambda out, rows: None)
     with RigServer(device, LOOPBACK, 0) as server:
-        report = run_session(settings_for(server, tmp_path, cycles=1), processor=processor)
+        report = run_session(settings_for(server, tmp_path, cycles=1), processor=_processor(results, close))
     assert report.ok and len(report.passes_written) == 2, report
     gaps = [b - a for a, b in zip(device.heartbeats, device.heartbeats[1:])]
     assert max(gaps) < 2.0, gaps
