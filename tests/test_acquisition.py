@@ -677,10 +677,9 @@ def test_a_frozen_heartbeat_is_logged_as_a_fault_and_the_link_renewed(tmp_path):
     assert report.ok and len(report.passes_written) == 2
 
 
-@pytest.mark.parametrize("failing_writes", [2, 10**6])
-def test_a_pass_whose_archive_cannot_be_written_is_kept_and_written_when_the_disk_takes_it(
-        failing_writes, tmp_path, monkeypatch):
-    # A full disk must not cost a pass: the face has moved on, it can never be scanned again.
+def disk_refusing(monkeypatch, failing: int) -> list:
+    """The archive's writes refused (ENOSPC) `failing` times, then done; returns the pass ids tried, in
+    order."""
     import errno
 
     from uwbcl.acquisition import client as client_module
@@ -689,11 +688,19 @@ def test_a_pass_whose_archive_cannot_be_written_is_kept_and_written_when_the_dis
 
     def full_disk_for_a_while(*args, **kwargs):
         calls.append(args[2])
-        if len(calls) <= failing_writes:
+        if len(calls) <= failing:
             raise OSError(errno.ENOSPC, "No space left on device")
         return real(*args, **kwargs)
 
     monkeypatch.setattr(client_module, "write_scan", full_disk_for_a_while)
+    return calls
+
+
+@pytest.mark.parametrize("failing_writes", [2, 10**6])
+def test_a_pass_whose_archive_cannot_be_written_is_kept_and_written_when_the_disk_takes_it(
+        failing_writes, tmp_path, monkeypatch):
+    # A full disk must not cost a pass: the face has moved on, it can never be scanned again.
+    calls = disk_refusing(monkeypatch, failing_writes)
     with RigServer(RigController(FAST_DEVICE), LOOPBACK, 0) as server:
         report = run_session(settings_for(server, tmp_path, cycles=1))
     if failing_writes == 2:  # the first pass waits in memory, and is written before the second

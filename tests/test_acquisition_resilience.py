@@ -21,6 +21,7 @@ from test_acquisition import (  # noqa: F401
     FAST_DEVICE,
     LOOPBACK,
     assert_archives_match_device,
+    disk_refusing,
     loopback_only,
     run_session,
     settings_for,
@@ -299,21 +300,8 @@ def test_the_memory_check_counts_the_int16_iq_and_the_archived_echo_a_finished_p
         PassAssembler(desc, radar, Limits(max_pass_bytes=8 * 2**20))
 
 
-def _disk_refusing(monkeypatch, failing: int) -> list:
-    real, calls = client_module.write_scan, []
-
-    def full_disk(*args, **kwargs):
-        calls.append(args[2])
-        if len(calls) <= failing:
-            raise OSError(errno.ENOSPC, "No space left on device")
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(client_module, "write_scan", full_disk)
-    return calls
-
-
 def test_passes_kept_beyond_the_memory_bound_drop_the_oldest_named_as_lost(tmp_path, monkeypatch):
-    _disk_refusing(monkeypatch, failing=10**6)
+    disk_refusing(monkeypatch, failing=10**6)
     monkeypatch.setattr(client_module, "MAX_UNWRITTEN_BYTES", 1, raising=False)  # room for the newest only
     with RigServer(RigController(FAST_DEVICE), LOOPBACK, 0) as server:
         report = run_session(settings_for(server, tmp_path, cycles=1))
@@ -323,7 +311,7 @@ def test_passes_kept_beyond_the_memory_bound_drop_the_oldest_named_as_lost(tmp_p
 
 
 def test_a_full_queue_of_kept_passes_never_declares_lost_a_new_pass_the_disk_takes(tmp_path, monkeypatch):
-    _disk_refusing(monkeypatch, failing=1)  # the first pass waits; then the disk takes passes again
+    disk_refusing(monkeypatch, failing=1)  # the first pass waits; then the disk takes passes again
     monkeypatch.setattr(client_module, "MAX_UNWRITTEN_PASSES", 1)
     with RigServer(RigController(FAST_DEVICE), LOOPBACK, 0) as server:
         report = run_session(settings_for(server, tmp_path, cycles=1))
