@@ -115,12 +115,15 @@ class Scenario:
     reference_z: str = "rows"  # the reference point's Z_r: "rows" (their mean), "zero", "rail" (mean height)
     rail_offset_m: float = 0.0  # X_r of the rail's centre: the format puts it at 0; a writer may not
     echo_scale: float = 1.0  # the echo's arbitrary linear amplitude unit (archive-format section 3)
+    # A plate's size: 0 is a point; else a flat square of this side in the rib's plane, 5 x 5 in-phase points,
+    # with its bolt's end BOLT_PROUD_M proud of it (docs/method.md section 6.1, "extended plates")
+    plate_m: float = 0.0
 
     def key(self, cycles: int) -> dict:
         key = {**dataclasses.asdict(self), "cycles": cycles, "generator": 1}
         defaults = Scenario(self.name)
         # the scenarios from before these fields keep their archives
-        for name in ("aligned", "ring_scatter_m", "grid_jitter", *ACQUISITION):
+        for name in ("aligned", "ring_scatter_m", "grid_jitter", "plate_m", *ACQUISITION):
             if getattr(self, name) == getattr(defaults, name):
                 del key[name]
         return key
@@ -151,6 +154,10 @@ SCENARIOS = [
              int16=True, seed=7, missed=(10,), aligned=True, ring_scatter_m=0.0, grid_jitter=0.0),
     Scenario("four-heights-snr10", squint_deg=20.0, rib_m=3.5, heights_m=(0.15, 0.35, 0.55, 0.75),
              snr_db=10.0, wobble=0.15, grid_m=1.5, seed=5, missed=(7, 8)),
+    # Plates as they are: 150 mm flat squares with a bolt's end, whose apparent point moves with the aspect
+    # (docs/method.md section 6.1); and the same world, motion and noise with point plates, its control.
+    Scenario("extended-plates", rib_m=2.4, snr_db=10.0, web_m=0.8, seed=8, plate_m=0.15),
+    Scenario("extended-plates-point", rib_m=2.4, snr_db=10.0, web_m=0.8, seed=8),
 ]
 VARIANTS = {  # name: (parent, heights to keep or None, web-depth prior?)
     "dense-2h": ("dense-3h", (0.2, 0.7), True),
@@ -167,6 +174,8 @@ REPLICA_SEED_STEP = 1000  # `--replicas`: realisation k of a scenario has seed +
 DRIFT_LIMIT_MM = 10.0  # issue 14: cumulative drift over 40 cycles
 ACQUISITION = ("prf_hz", "speed_m_s", "rail_m", "sample_rate_hz", "window_margin_m", "aperture_m",
                "reference_z", "rail_offset_m", "echo_scale")
+PLATE_POINTS = 5  # an extended plate's points along each side
+BOLT_PROUD_M, BOLT_AMPLITUDE = 0.03, 0.3  # its bolt's end: how far proud of the plate, amplitude re the plate
 RADARS = ((4.3e9, 1.7e9), (4.0e9, 1.4e9), (3.95e9, 1.2e9))  # (carrier, -10 dB bandwidth) of random scenarios
 
 
@@ -257,6 +266,21 @@ def scene(s: Scenario, cycles: int):
     return np.array(plates), np.array(amps), clutter, clutter_amp, Truth(rig)
 
 
+def plate_scatterers(s: Scenario, plates_m: np.ndarray, amps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The plates as scatterers (n, 3), (n,): their centres when `s.plate_m` is 0, else each a flat square of
+    PLATE_POINTS x PLATE_POINTS in-phase points over the plate in the rib's plane (x, z), together the plate's
+    amplitude, and its bolt's end BOLT_PROUD_M towards the roadway at BOLT_AMPLITUDE of it."""
+    if s.plate_m <= 0 or not len(plates_m):
+        return plates_m, amps
+    u = np.linspace(-s.plate_m / 2, s.plate_m / 2, PLATE_POINTS)
+    grid = np.array([(dx, 0.0, dz) for dx in u for dz in u])
+    bolt = np.array([[0.0, -s.side * BOLT_PROUD_M, 0.0]])
+    offsets = np.vstack([grid, bolt])
+    weights = np.concatenate([np.full(len(grid), 1.0 / len(grid)), [BOLT_AMPLITUDE]])
+    points = (plates_m[:, None, :] + offsets[None, :, :]).reshape(-1, 3)
+    return points, (amps[:, None] * weights[None, :]).ravel()
+
+
 def pass_echo(s: Scenario, rng, scat_m: np.ndarray, amp: np.ndarray, height_m: float, decreasing: bool):
     """Complex baseband echo of one pass (archive-format section 2), positions and times per pulse."""
     prf, v0, rail = s.prf_hz, s.speed_m_s, s.rail_m
@@ -294,7 +318,7 @@ def pass_echo(s: Scenario, rng, scat_m: np.ndarray, amp: np.ndarray, height_m: f
         delay = 2 * rng_m[:, i] / C_M_S
         echo += (a[:, i] * np.exp(-4j * np.pi * s.carrier_hz * rng_m[:, i] / C_M_S))[:, None] * \
             np.exp(-((tn[None, :] - delay[:, None]) ** 2) / (2 * sigma**2))
-    peak = a.max()  # the strongest plate (clutter is 20x weaker)
+    peak = a.max()  # the strongest scatterer: a point plate (clutter is 20x weaker), an extended one's bolt end
     noise = peak * 10 ** (-s.snr_db / 20)
     echo += noise / math.sqrt(2) * (rng.standard_normal(echo.shape) + 1j * rng.standard_normal(echo.shape))
     return t, pos, s.echo_scale * echo, t0, fs, bore
@@ -342,6 +366,7 @@ def generate(s: Scenario, cycles: int, root: Path) -> Path:
         return arch
     shutil.rmtree(arch, ignore_errors=True)
     plates, amps, clutter, clutter_amp, truth = scene(s, cycles)
+    plates, amps = plate_scatterers(s, plates, amps)
     scat = np.vstack([plates, clutter])
     amp = np.concatenate([amps, clutter_amp])
     start = dt.datetime(2026, 11, 2, 6, 0, tzinfo=dt.timezone.utc)

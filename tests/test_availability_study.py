@@ -127,6 +127,28 @@ def test_the_columned_and_regular_dense_scenarios_are_dense_3h_in_rings_and_ever
         assert heights is None or set(heights) < set(by_name[parent].heights_m)
 
 
+def test_an_extended_plate_is_a_square_of_in_phase_points_on_the_rib_with_its_bolt_end_towards_the_rig():
+    study = load()
+    by_name = {s.name: s for s in study.SCENARIOS}
+    ext, point = by_name["extended-plates"], by_name["extended-plates-point"]
+    assert {**vars(ext), "name": None, "plate_m": None} == {**vars(point), "name": None, "plate_m": None}
+    plates, amps, *_ = study.scene(ext, 6)
+    same = study.plate_scatterers(point, plates, amps)
+    assert same[0] is plates and same[1] is amps  # a point plate is its centre
+    pts, a = study.plate_scatterers(ext, plates, amps)
+    n = study.PLATE_POINTS**2 + 1
+    assert pts.shape == (len(plates) * n, 3) and a.shape == (len(plates) * n,)
+    pts, a = pts.reshape(len(plates), n, 3), a.reshape(len(plates), n)
+    grid = pts[:, :-1] - plates[:, None, :]
+    np.testing.assert_allclose(np.abs(grid[..., [0, 2]]).max(axis=1), ext.plate_m / 2, rtol=1e-12)
+    np.testing.assert_allclose(grid[..., 1], 0.0, atol=1e-15)  # flat, in the rib's plane
+    np.testing.assert_allclose(a[:, :-1].sum(axis=1), amps, rtol=1e-12)  # in phase: the plate's amplitude
+    # the rig stands at y = -side x rib: the bolt's end is that way
+    bolt = pts[:, -1] - plates
+    np.testing.assert_allclose(bolt, np.tile([0.0, -ext.side * study.BOLT_PROUD_M, 0.0], (len(plates), 1)))
+    np.testing.assert_allclose(a[:, -1], study.BOLT_AMPLITUDE * amps)
+
+
 def test_a_replica_is_the_same_scenario_with_another_seed_and_its_drift_spread_counts_every_realisation():
     study = load()
     s = {x.name: x for x in study.SCENARIOS}["dense-3h-regular"]
