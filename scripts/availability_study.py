@@ -318,7 +318,7 @@ def pass_echo(s: Scenario, rng, scat_m: np.ndarray, amp: np.ndarray, height_m: f
         delay = 2 * rng_m[:, i] / C_M_S
         echo += (a[:, i] * np.exp(-4j * np.pi * s.carrier_hz * rng_m[:, i] / C_M_S))[:, None] * \
             np.exp(-((tn[None, :] - delay[:, None]) ** 2) / (2 * sigma**2))
-    peak = a.max()  # the strongest scatterer: a point plate (clutter is 20x weaker), an extended one's bolt end
+    peak = a.max()  # the strongest scatterer: a point plate (clutter is 20x weaker), an extended plate's bolt
     noise = peak * 10 ** (-s.snr_db / 20)
     echo += noise / math.sqrt(2) * (rng.standard_normal(echo.shape) + 1j * rng.standard_normal(echo.shape))
     return t, pos, s.echo_scale * echo, t0, fs, bore

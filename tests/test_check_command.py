@@ -93,6 +93,41 @@ def test_check_finds_passes_too_small_to_focus_or_beyond_the_limits_as_process_d
     assert names[files[2].relative_to(src).as_posix()][0] == "exceeds_limits"
 
 
+def test_check_warns_about_a_pass_whose_rail_is_longer_than_any_face_end_rail_as_positions_in_millimetres(
+        archive_dir, tmp_path, capsys):
+    # an imported recording paired with a log in mm: the import warned, but nothing later said so (indepZs F2)
+    src = tmp_path / "in"
+    shutil.copytree(archive_dir, src)
+    files = pass_files(src)
+    scan = archive.read_pass(files[1])
+    _rewrite(files[1], pulse_position_m=scan.pulse_position_m * 1e3)
+    report = check.check_directory(src, SETTINGS, options())
+    (long,) = [w for w in report.warnings if w.kind == "long_rail"]
+    assert long.file == files[1].relative_to(src).as_posix()
+    assert "more than any face-end rail (20 m): are its positions in metres?" in long.reason
+    main(["check", str(src)])
+    assert f"long_rail: {long.file}: the pass travels" in capsys.readouterr().out
+
+
+def test_passes_of_one_cycle_that_differ_in_the_radar_values_an_import_measures_are_told_how_to_import_them(
+        archive_dir, tmp_path):
+    # recordings imported with their measured carrier and bandwidth differ by a few per cent (indepZs F8)
+    src = tmp_path / "in"
+    shutil.copytree(archive_dir, src)
+    files = [f for f in pass_files(src) if "_c000001_" in f.name]
+    with h5py.File(files[0], "r+") as f:
+        f["radar"].attrs["bandwidth_hz"] = 1.05 * f["radar"].attrs["bandwidth_hz"]
+    report = check.check_directory(src, SETTINGS, options())
+    reasons = [p.reason for p in report.problems if p.kind == "mismatched_parameters"]
+    assert reasons and all("bandwidth_hz" in r and "--carrier-hz and --bandwidth-hz" in r for r in reasons)
+    with h5py.File(files[0], "r+") as f:  # a table angle is not what an import measures: no such advice
+        f["radar"].attrs["bandwidth_hz"] = f["radar"].attrs["bandwidth_hz"] / 1.05
+        f["geometry"].attrs["rotation_table_angle_deg"] = 40.0
+    report = check.check_directory(src, SETTINGS, options())
+    reasons = [p.reason for p in report.problems if p.kind == "mismatched_parameters"]
+    assert reasons and not any("--carrier-hz" in r for r in reasons)
+
+
 def test_check_warns_about_every_conjugated_pass(archive_dir, tmp_path, capsys):
     src = tmp_path / "in"
     shutil.copytree(archive_dir, src)

@@ -404,6 +404,11 @@ def _one_per_height(recs: list[PassRecord], where: str, problems: list[Problem],
     return kept
 
 
+# What `uwbcl import` measures per recording unless told (docs/importing.md): passes imported with their
+# measured values can disagree by more than the 1 % a cycle allows.
+IMPORT_FIXED_KEYS = ("carrier_frequency_hz", "bandwidth_hz", "sample_rate_hz")
+
+
 def _agreeing_majority(kept: dict[int, PassRecord], where: str, problems: list[Problem]
                        ) -> dict[int, PassRecord] | None:
     """The passes sharing the rig set-up (`_params_differ`) when a strict majority does, reporting the others;
@@ -426,10 +431,14 @@ def _agreeing_majority(kept: dict[int, PassRecord], where: str, problems: list[P
         ref = (groups[1] if g is groups[0] else groups[0])[0]
         fields = ", ".join(f"{k} ({_number_text(g[0].parameters[k])} vs {_number_text(ref.parameters[k])})"
                            for k in _params_differ(ref.parameters, g[0].parameters))
+        radar = set(_params_differ(ref.parameters, g[0].parameters)) & set(IMPORT_FIXED_KEYS)
+        hint = (" (passes imported from a radar's recordings take these from each recording: give the "
+                "radar's nominal --carrier-hz and --bandwidth-hz, and one scan step or --decimation, to "
+                "every import: docs/importing.md sections 3 and 4)" if radar else "")
         for r in g:
             problems.append(Problem(r.file, "mismatched_parameters",
                                     f"{where}: differs from {ref.file} in {fields}"
-                                    + ("" if majority else " (no majority; cycle not used)")))
+                                    + ("" if majority else " (no majority; cycle not used)") + hint))
     if majority is None:
         return None
     return {k: r for k, r in kept.items() if any(r is m for m in majority)}

@@ -107,6 +107,11 @@ def check_directory(in_dir: Path, settings: ProcessingSettings | None = None,
     for p in passes:
         if p.doppler_ratio is not None and p.doppler_ratio < geo.DOPPLER_WRONG_SIDE_RATIO:
             warnings.append(Problem(p.record.file, "q_sign", geo.doppler_wrong_side_reason(p.doppler_ratio)))
+        travel_m = abs(p.rail_m[1] - p.rail_m[0])
+        if travel_m > geo.LONG_RAIL_M:
+            warnings.append(Problem(p.record.file, "long_rail",
+                                    f"the pass travels {travel_m:.1f} m along the rail, more than any "
+                                    f"face-end rail ({geo.LONG_RAIL_M:g} m): are its positions in metres?"))
         lo, hi = p.window_m
         if not lo <= p.reference_range_m <= hi:
             warnings.append(Problem(p.record.file, "reference_outside_window",

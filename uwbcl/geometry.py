@@ -243,6 +243,9 @@ DOPPLER_CHECK_NOISE_SIGMAS = 5.0
 DOPPLER_CHECK_BLOCK_SAMPLES = 1 << 20  # pulses x samples per block of the estimate (16 MiB as complex128)
 # A ratio below this says the centroid is on the wrong side (+1 expected, -1 for conjugated data).
 DOPPLER_WRONG_SIDE_RATIO = -0.5
+# No face-end rail is longer: a pass that travels further along it has its positions in other units (mm for m)
+# or a wrong speed (`uwbcl import` and `uwbcl check` warn).
+LONG_RAIL_M = 20.0
 
 
 def doppler_step_ratio(echo: np.ndarray, positions_m: np.ndarray, rotation_table_angle_deg: float,
@@ -287,4 +290,6 @@ def doppler_wrong_side_reason(ratio: float) -> str:
     `doppler_wrong_side` returned."""
     return (f"the echo's Doppler centroid is on the wrong side ({ratio:+.2f} x the pulse-to-pulse phase step "
             "the rotation-table angle and the direction of travel give): the data are probably conjugated "
-            "(Q channel negated) or the angle's sign is wrong (docs/archive-format.md sections 2 and 3)")
+            "(Q channel negated), the angle's sign is wrong, or the rail positions run the other way (an "
+            "imported recording paired with another pass's positions log, an encoder that counts the other "
+            "way) (docs/archive-format.md sections 2 and 3)")

@@ -27,6 +27,7 @@ import numpy as np
 
 from ..archive import MAX_RAIL_DEVIATION_M
 from ..config import MAX_LENGTH_M, MAX_RANGE_DELAY_S, beyond_max_length
+from ..geometry import LONG_RAIL_M
 from ..model import MIN_WINDOW_RANGE_M, SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters, RawRF, ScanPass
 from ..records import ConfigError
 from ..utc import parse_utc
@@ -36,7 +37,6 @@ log = logging.getLogger("uwbcl")
 
 DEFAULT_REFERENCE_RANGE_M = 3.0  # the scene centre's range when the recording's window holds it
 MOTION_THRESHOLD_M = 0.002  # a position this far from the first one has moved (about where the echo shows it)
-LONG_RAIL_M = 20.0  # a pass longer than this is warned about (positions in mm for m?)
 BANDWIDTH_WARN_FRACTION = 0.2  # a given bandwidth this far off the measured one is warned about
 # a given carrier this far (of the measured -10 dB width) from the measured centre is warned about: 0.2 of the
 # width (3.7 GHz for a 4.01 GHz centre) split one plate into two 14 mm apart on an independent tester's pass
