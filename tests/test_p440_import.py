@@ -426,6 +426,16 @@ def test_the_clocks_align_on_the_first_motion_within_one_scan(synthetic_recordin
     assert track.time_offset_s == pytest.approx(LOGGER_OFFSET_S, abs=0.0206)
 
 
+def test_an_import_aligned_on_the_motion_says_its_error_is_not_in_the_bounds_and_one_given_the_offset_not(
+        tmp_path, synthetic_recording, capsys):
+    # indepZs F1: 43-85 ms late in steps of a scan on its passes, 'ok' rows 9 mm off against 1.8 mm bounds
+    _import(tmp_path / "aligned", synthetic_recording, "--range-delay-s", "2.3e-9")
+    assert "the bounds do not include it: give --time-offset-s" in capsys.readouterr().err
+    _import(tmp_path / "given", synthetic_recording, "--range-delay-s", "2.3e-9", "--time-offset-s",
+            str(LOGGER_OFFSET_S))
+    assert "--time-offset-s" not in capsys.readouterr().err
+
+
 def test_a_positions_log_started_after_the_rail_moved_cannot_align_the_clocks_on_its_first_motion(
         synthetic_recording, tmp_path):
     scan_file, positions, _ = synthetic_recording
