@@ -99,6 +99,58 @@ def test_the_real_gains_are_unbiased_under_noise_where_magnitudes_are_not():
     assert np.min(abs_bias[edge]) > 0.02
 
 
+def _near_rib_plate_image():
+    """An independent tester's short-rib geometry (1.5 m rib, 20 deg squint, rail at 0.2 m, a plate at 1.3 m
+    crossing the beam 1.4 m before the aperture centre, near the rail's start), noise-free and focused: its
+    spectrum rows and its image peak (fractional row, column)."""
+    from uwbcl.detect import refine
+    from uwbcl.focus.reference import NUMPY_FOCUSER
+
+    rib, squint = 1.5, 20.0
+    reference = np.array([rib * math.tan(math.radians(squint)), -rib, 0.9])
+    rc = math.hypot(rib, 1.3 - HEIGHT_M)
+    plate = (-1.4 + rc * math.tan(geo.slant_squint_rad(reference, 0.0, HEIGHT_M)), -rib, 1.3)
+    geometry = PassGeometry(height_m=HEIGHT_M, rotation_table_angle_deg=squint,
+                            reference_point_m=tuple(reference), boresight_y_sign=-1)
+    scan = simulate.simulate_pass(RadarParameters(), geometry, [plate], aperture_length_m=3.0, speed_m_s=0.25,
+                                  rng=np.random.default_rng(0), spreading_loss=True)
+    products = NUMPY_FOCUSER.nlcs_focus(scan)
+    rows, spectrum, interpolant = refine.nlcs_interpolant(products)
+    image = np.abs(interpolant.lattice(np.arange(products.grid.n_azimuth, dtype=float),
+                                       np.arange(spectrum.shape[1], dtype=float)))
+    i, j = np.unravel_index(np.argmax(image), image.shape)
+    a, b, _ = interpolant.maximise(float(i), float(j))
+    return products.grid, rows, spectrum, np.array([a, b])
+
+
+def test_the_matched_peak_finds_a_noisy_plate_where_its_model_is_four_times_tighter_than_the_image_maximum():
+    """S1c (indepZq F1: on a 1.5 m rib at 10 dB the image maxima drifted a chain +38 mm in 40 cycles; with the
+    matched peak +9 mm). The model is the noise-free image itself, the data the model plus white noise 15 dB
+    under its peak: the shift that matches them is zero, and the matched peak stays there, while the noisy
+    image's maximum scatters (measured sd 0.64 against 0.16 cells along track, 0.31 against 0.08 in range)."""
+    from uwbcl.detect import refine
+
+    grid, rows, spectrum, peak = _near_rib_plate_image()
+    n, m = grid.n_azimuth, spectrum.shape[1]
+    cell_m = (grid.track_spacing_m, grid.range_bins_m[1] - grid.range_bins_m[0])
+    model = type("Model", (), {"rows": rows, "grid": grid, "cell_m": cell_m})()  # what matched_peak reads
+    model.spectrum = spectrum
+    np.testing.assert_allclose(synthesis.matched_peak(model, spectrum[None], 0, peak, peak + 0.3), peak,
+                               atol=1e-6)  # noise-free: the model's own peak
+    rng = np.random.default_rng(1)
+    level = abs(refine.TrigInterpolant.from_rows(rows, spectrum, n).value(*peak)) * 10 ** (-15 / 20)
+    image_max, matched = [], []
+    for _ in range(200):
+        noise = level * (rng.standard_normal((n, m)) + 1j * rng.standard_normal((n, m))) / math.sqrt(2)
+        model.spectrum = spectrum + np.fft.fft2(noise)[rows] / (n * m)
+        a, b, _ = refine.TrigInterpolant.from_rows(rows, model.spectrum, n).maximise(*peak)
+        image_max.append((a, b))
+        matched.append(synthesis.matched_peak(model, spectrum[None], 0, peak, np.array([a, b])))
+    image_max, matched = np.array(image_max) - peak, np.array(matched) - peak
+    assert np.all(matched.std(axis=0) < 0.35 * image_max.std(axis=0))
+    assert np.all(np.abs(matched.mean(axis=0)) < 3 * matched.std(axis=0) / math.sqrt(len(matched)))
+
+
 # ------------------------------------------------------------------------------------------------ OpenCL
 @pytest.mark.opencl
 @pytest.mark.parametrize("squint_deg", [15.0, 30.0, 45.0])

@@ -84,7 +84,8 @@ def detect_nlcs(products: nlcs.NlcsProducts, settings: DetectionSettings = Detec
     t_f, r, t_n = calibration.peak_track_times(products, a, b, focuser)
     if settings.synthesis_passes > 0 and model is not None:  # the modelled plates, by synthesis (S1)
         t_f[:n], r[:n], t_n[:n] = synthesis.locate(cells[:n], model, settings.synthesis_passes,
-                                                   settings.synthesis_tol_m, settings.neighbour_gain_degree)
+                                                   settings.synthesis_tol_m, settings.neighbour_gain_degree,
+                                                   {k for pair in pairs for k in pair})
     r0 = r - grid.speed_m_s * grid.sin_squint * t_n  # eq. (19), C12: r_LC = r_LRCM - v sin(theta_q) t_nc
     if footprint is not None and scan is not None:  # a split pair keeps its joint fit (S2)
         t_n, r0 = _beyond_rail_by_backprojection(scan, grid, t_n, r0, {k for pair in pairs for k in pair})
