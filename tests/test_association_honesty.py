@@ -4,6 +4,8 @@ the same thing every run (displacement.estimate_advance, chain.RigChain)."""
 from __future__ import annotations
 
 import dataclasses
+import math
+import re
 
 import numpy as np
 import pytest
@@ -396,3 +398,55 @@ def test_a_plate_missed_at_a_height_is_weighted_by_its_own_baseline_not_the_cycl
     own = location_covariance_m2(truth, seen, sigma_m)
     np.testing.assert_allclose(np.diag(given)[1:], chain.MISSED_HEIGHT_SIGMA_FACTOR**2 * np.diag(own)[1:],
                                rtol=1e-9)
+
+
+def _rotated_views(omega_rad, seed: int, advance_m=(0.9, 0.003, 0.0)):
+    """Two cycles' plates (two rows, 0.5 / 1.1 m, over 3 m of rib) located with 2 mm of range noise, the rig
+    moved by `advance_m` and turned by the small rotation `omega_rad` (about X, Y, Z) between them."""
+    rng = np.random.default_rng(seed)
+    before = RIB[(RIB[:, 0] > 0.9) & (RIB[:, 0] < 3.9)] - np.array([0.0, 0.0, 0.0])
+    after = before - np.asarray(advance_m) - np.cross(np.asarray(omega_rad), before)  # d = P - P' = t + w x P
+    return (located(before, rng, 0.002), located(after, rng, 0.002))
+
+
+def test_a_rig_turned_between_two_cycles_is_withheld_where_the_turn_moves_its_retreat_or_creep():
+    """indepZr F1/F3: a yaw of 0.5 deg between cycles moved the retreat by W x yaw (21 mm at a 2.4 m rib)
+    against 1.5-2 mm bounds, every row `ok`; a floor step under one end of the rail pitched it (21 mm). The
+    plates see the turn (their creep follows their x, their retreat their z): eq. M9 withholds such a row
+    (here five plates, a yaw of 0.5 deg and a pitch of 1 deg; a yaw of 0.1 deg, 4 mm here, they cannot show).
+    """
+    for omega in ((0.0, 0.0, math.radians(0.5)), (0.0, math.radians(1.0), 0.0)):
+        p, q = _rotated_views(omega, seed=5)
+        est = estimate_advance([plate(x) for x in p], [plate(x) for x in q], PRIOR,
+                               before_cov_m2=covs(p, 0.002), after_cov_m2=covs(q, 0.002))
+        assert est.status == "inconsistent", (omega, est.status, est.advance_m)
+
+
+def test_a_rig_that_moved_without_turning_is_not_taken_for_a_turned_one():
+    statuses = []
+    for seed in range(20):
+        p, q = _rotated_views((0.0, 0.0, 0.0), seed=seed)
+        statuses.append(estimate_advance([plate(x) for x in p], [plate(x) for x in q], PRIOR,
+                                         before_cov_m2=covs(p, 0.002), after_cov_m2=covs(q, 0.002)).status)
+    assert statuses.count("ok") == 20, statuses
+
+
+def test_a_rail_turned_to_the_rib_is_warned_about_once_per_rig_and_a_parallel_one_is_not():
+    """indepZr F2: a rail 3 deg off parallel to the rib, every row `ok` with 42 mm of false creep a cycle and
+    no warning; the plates' line in the rail's frame shows the angle."""
+    from uwbcl import batch
+
+    def cycles(angle_deg: float, rig: str):
+        rng = np.random.default_rng(2)
+        out = []
+        for c in range(6):
+            x = np.sort(rng.uniform(0.0, 3.0, 5))
+            y = -2.4 + math.tan(math.radians(angle_deg)) * x + rng.normal(0.0, 0.002, 5)
+            plates = [plate((xi, yi, 0.5)) for xi, yi in zip(x, y)]
+            out.append(CycleResult(rig, c, f"2026-11-02T06:{c:02d}:00Z", HEIGHTS, plates))
+        return out
+
+    (warning,) = batch.rib_angle_warnings(cycles(3.0, "turned") + cycles(0.0, "parallel"))
+    assert warning.file == "rig turned" and warning.kind == "rib_angle"
+    angle = float(re.search(r"on a line at ([-+0-9.]+) deg", warning.reason).group(1))
+    assert angle == pytest.approx(3.0, abs=0.2) and "mm of creep in the rail's frame" in warning.reason

@@ -578,6 +578,11 @@ FUTURE_TOLERANCE_S = 86400.0  # a pass dated more than a day ahead of this machi
 # the detector separates.
 SHARED_PEAKS_WARN_FRACTION = 0.25
 SHARED_PEAKS_WARN_MIN = 4
+# rib_angle: a rig whose plates' line turns from the rail by more than this (deg; 0.5 deg: 9 mm of false creep
+# per metre of retreat), fitted on cycles with this many plates over this length of rail (m)
+RIB_ANGLE_WARN_DEG = 0.5
+RIB_ANGLE_MIN_PLATES = 3
+RIB_ANGLE_MIN_SPAN_M = 1.0
 
 
 # A rig with at least this many rows, of which at least this fraction were withheld, gets a `low_availability`
@@ -601,6 +606,31 @@ def low_availability_warnings(rows: list[SeriesRow]) -> list[Problem]:
                    "method (docs/method.md section 6.1: rib distance, rail heights and rows, extended or "
                    "domed plates; docs/outputs.md section 2.1 for each status)")
             out.append(Problem(f"rig {rig}", "low_availability", why))
+    return out
+
+
+def rib_angle_warnings(cycles: list[CycleResult]) -> list[Problem]:
+    """One `rib_angle` warning per rig whose located plates lie on a line turned from the rail by more than
+    RIB_ANGLE_WARN_DEG (the median over its cycles of each cycle's least-squares slope of y on x, from the
+    cycles with RIB_ANGLE_MIN_PLATES plates over RIB_ANGLE_MIN_SPAN_M along the rail): on a straight rib that
+    is the rail's yaw to it, and the frame's X (the rail) is not the roadway's, so the retreat leaks into the
+    creep by sin(angle) of every metre (docs/method.md sections 1 and 6.5b)."""
+    slopes: dict[str, list[float]] = defaultdict(list)
+    for c in cycles:
+        xy = np.array([p.position_m[:2] for p in c.plates], dtype=float).reshape(-1, 2)
+        if len(xy) >= RIB_ANGLE_MIN_PLATES and np.ptp(xy[:, 0]) >= RIB_ANGLE_MIN_SPAN_M:
+            slopes[c.rig_id].append(float(np.polyfit(xy[:, 0], xy[:, 1], 1)[0]))
+    out = []
+    for rig, rig_slopes in sorted(slopes.items()):
+        angle = math.degrees(math.atan(float(np.median(rig_slopes))))
+        if abs(angle) > RIB_ANGLE_WARN_DEG:
+            creep_mm = 1e3 * math.sin(math.radians(angle))
+            out.append(Problem(f"rig {rig}", "rib_angle",
+                               f"the located plates lie on a line at {angle:+.2f} deg to the rail (the "
+                               f"median over {len(rig_slopes)} cycles): if the rib is straight, the rail is "
+                               f"turned to it, and each metre of retreat along the roadway shows "
+                               f"{creep_mm:+.0f} mm of creep in the rail's frame; set the rail parallel to "
+                               "the rib (docs/method.md section 6.5b)"))
     return out
 
 
@@ -975,7 +1005,8 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
             cycles.append(result)
         # a conjugated rig's peaks are those of unfocused data: its shared_peaks warning would mislead
         conjugated = {r.rig_id for r in records if r.file in {w.file for w in q_sign}}
-        for w in shared_peak_warnings([c for c in cycles if c.rig_id not in conjugated]):
+        for w in shared_peak_warnings([c for c in cycles if c.rig_id not in conjugated]) + \
+                rib_angle_warnings([c for c in cycles if c.rig_id not in conjugated]):
             log.warning("%s: %s: %s", w.kind, w.file, w.reason)
             warnings.append(w)
         rows_series = chain.series(cycles, settings.association, options.max_bridge_cycles,

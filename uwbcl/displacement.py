@@ -288,6 +288,38 @@ def _with_phases(advance_m: np.ndarray, cov_m2: np.ndarray, looks, tested_only: 
     return advance_m, cov_m2, 0, check, np.zeros(2)
 
 
+# Eq. M9: a rotation of the rig between the two cycles. The fit is a translation; a rotation omega (small,
+# rad, about the radar origin) adds omega x P_i to each plate's difference, which the translation takes up in
+# part (W omega_z in retreat at a rib W away, z omega_y too; z omega_x in creep) and which the plates' spread
+# in x and z shows. Tested when this many plates are matched, at this chi-square (3 dof, p = 0.001) after the
+# fit's own scale; the prior keeps the directions the plates cannot see (a single row: no z spread) at zero.
+ROTATION_MIN_PLATES = 3
+ROTATION_CHI2 = 16.27
+ROTATION_PRIOR_SIGMA_RAD = 0.1
+
+
+def rotation_fit(p_m: np.ndarray, d: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Eq. M9: the translation and a small rotation fitted together, d_i = t + omega x P_i by GLS.
+
+    Parameters: p_m (n, 3) the plates before (radar frame, m); d (n, 3) their differences P - P' (m); cov
+    (n, 3, 3) their covariances (m^2). Returns t (3,) m, omega (3,) rad, and omega's chi-square against zero
+    (its covariance scaled by the fit's chi-square per degree of freedom when that exceeds 1)."""
+    cross = np.zeros((len(p_m), 3, 3))  # [P]x, so that omega x P = -[P]x omega
+    cross[:, 0, 1], cross[:, 0, 2], cross[:, 1, 2] = -p_m[:, 2], p_m[:, 1], -p_m[:, 0]
+    cross -= np.transpose(cross, (0, 2, 1))
+    design = np.concatenate([np.broadcast_to(np.eye(3), cross.shape), -cross], axis=2)  # (n, 3, 6)
+    w = np.linalg.inv(cov)
+    normal = np.einsum("nji,njk,nkl->il", design, w, design)
+    normal[3:, 3:] += np.eye(3) / ROTATION_PRIOR_SIGMA_RAD**2
+    beta_cov = np.linalg.inv(normal)
+    beta = beta_cov @ np.einsum("nji,njk,nk->i", design, w, d)
+    r = d - np.einsum("nij,j->ni", design, beta)
+    dof = 3 * len(d) - 6
+    scale2 = max(1.0, float(np.einsum("ni,nij,nj->", r, w, r)) / dof) if dof > 0 else 1.0
+    omega = beta[3:]
+    return beta[:3], omega, float(omega @ np.linalg.solve(scale2 * beta_cov[3:, 3:], omega))
+
+
 def consistent_pairs(d: np.ndarray, cov: np.ndarray, chi2_max: float) -> tuple[np.ndarray, bool]:
     """Drop the matched pairs that disagree with the others beyond chi2_max, worst first (leave-one-out).
 
@@ -648,7 +680,8 @@ def estimate_advance(before: list[Located], after: list[Located],
                       DATA_BEATS_PRIOR x min_margin: the prior or the data is wrong (a translation that moves
                       the face backwards is never proposed, M2b);
       inconsistent    the matched plates disagree beyond their location precision and two plates cannot say
-                      which is wrong;
+                      which is wrong, or their disagreement is a rotation of the rig between the cycles that
+                      moves the retreat or the creep by more than its bound (eq. M9, `rotation_fit`);
       too_few_targets fewer plate pairs match than min_targets (n_targets: how many): no estimate (NaN).
     The bound (eq. M3): sqrt(f^2 diag(Sigma_GLS) + exp(-margin) offset^2), f^2 = max(1, chi2 / dof) (with
     covariances) or chi2 / dof (without), 1 for one plate (no redundancy: an outlying single plate is not
@@ -684,6 +717,10 @@ def estimate_advance(before: list[Located], after: list[Located],
     pairs = _box_match(p, q, best.shift, tol) or list(best.pairs)
     idx = tuple(np.array(pairs).T)
     d, c = diff[idx], cov[idx]
+    # eq. M9 on every pair in the box, before the leave-one-out: a turned rig's plates disagree with each
+    # other, and the rejection would drop the plate that shows it most
+    turn = (rotation_fit(p[idx[0]], d, c) if have_cov and settings.weighted and len(d) >= ROTATION_MIN_PLATES
+            else None)
     keep, consistent = consistent_pairs(d, c, settings.outlier_chi2)
     pairs = [pr for pr, k in zip(pairs, keep) if k]
     d, c = d[keep], c[keep]
@@ -715,6 +752,8 @@ def estimate_advance(before: list[Located], after: list[Located],
         unknown_var[1:] += coupling**2 * unknown_var[0]
         rival_var[1:] += coupling**2 * rival_var[0]
     bound = np.sqrt(np.diag(cov_adv) + unknown_var + rival_var)  # eqs. M3, M3a, M8b
+    rotated = turn is not None and turn[2] > ROTATION_CHI2 and bool(np.any(np.abs(turn[0][:2] - gls[:2])
+                                                                          > bound[:2]))  # eq. M9
 
     if not best.inside and margin < DATA_BEATS_PRIOR * settings.min_margin:
         status = "prior_conflict"
@@ -722,7 +761,7 @@ def estimate_advance(before: list[Located], after: list[Located],
         # one plate without a prior: the next plate along, out of view in the other cycle, would match it
         # as well, however precise the plate (its gain reaches 8.4-9.5 with four heights)
         status = "ambiguous"
-    elif not consistent:
+    elif not consistent or rotated:
         status = "inconsistent"
     elif len(pairs) < settings.min_confident_targets or max(bound[0], bound[1]) > settings.max_bound_m:
         status = "low_confidence"
