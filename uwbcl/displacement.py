@@ -292,10 +292,11 @@ def _with_phases(advance_m: np.ndarray, cov_m2: np.ndarray, looks, tested_only: 
 # rad, about the radar origin) adds omega x P_i to each plate's difference, which the translation takes up in
 # part (W omega_z in retreat at a rib W away, z omega_y too; z omega_x in creep) and which the plates' spread
 # in x and z shows. Tested when this many plates are matched, at this chi-square (3 dof, p = 0.001) after the
-# fit's own scale; the prior keeps the directions the plates cannot see (a single row: no z spread) at zero.
+# fit's own scale; the prior (1.1 deg: no rig turns more between cycles) keeps the directions the plates
+# cannot see at zero (a single row's few cm of z scatter fitted a roll of 20 deg to one plate off in creep).
 ROTATION_MIN_PLATES = 3
 ROTATION_CHI2 = 16.27
-ROTATION_PRIOR_SIGMA_RAD = 0.1
+ROTATION_PRIOR_SIGMA_RAD = 0.02
 
 
 def rotation_fit(p_m: np.ndarray, d: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -752,8 +753,10 @@ def estimate_advance(before: list[Located], after: list[Located],
         unknown_var[1:] += coupling**2 * unknown_var[0]
         rival_var[1:] += coupling**2 * rival_var[0]
     bound = np.sqrt(np.diag(cov_adv) + unknown_var + rival_var)  # eqs. M3, M3a, M8b
-    rotated = turn is not None and turn[2] > ROTATION_CHI2 and bool(np.any(np.abs(turn[0][:2] - gls[:2])
-                                                                          > bound[:2]))  # eq. M9
+    rotated = False
+    if turn is not None and turn[2] > ROTATION_CHI2:  # eq. M9: how far the turn moves the kept plates' fit
+        moved, _ = gls_advance(np.cross(turn[1], p[[i for i, _ in pairs]]), c)
+        rotated = bool(np.any(np.abs(moved[:2]) > bound[:2]))
 
     if not best.inside and margin < DATA_BEATS_PRIOR * settings.min_margin:
         status = "prior_conflict"
