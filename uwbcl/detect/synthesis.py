@@ -159,20 +159,23 @@ def isolated(model: cancel.NlcsModel, at: np.ndarray) -> np.ndarray:
     those. Near a neighbour the main lobe holds the neighbour's model error, which the peak alone (S1) does
     not feel as much (measured on the availability study's columns: drift 4.2 -> 7.4 mm with S1c on every
     plate, docs/method.md section 4)."""
-    cell_a, cell_b = model.cell_m
-    reach = 2.0 * PATCH_SIGMAS * np.array([MATCH_WINDOW_M[0] / cell_a, MATCH_WINDOW_M[1] / abs(cell_b)])
+    reach = 2.0 * PATCH_SIGMAS * _window_cells(model)
     apart = np.abs(at[:, None, :] - at[None, :, :]) / reach
     near = np.all(apart < 1.0, axis=2)
     np.fill_diagonal(near, False)
     return ~near.any(axis=1)
 
 
+def _window_cells(model: cancel.NlcsModel) -> np.ndarray:
+    """MATCH_WINDOW_M in the image's cells (along track, in range)."""
+    return np.asarray(MATCH_WINDOW_M) / np.abs(np.asarray(model.cell_m, dtype=float))
+
+
 def _template_spectrum(model: cancel.NlcsModel, spectrum: np.ndarray, peak: np.ndarray) -> np.ndarray:
     """The spectrum (on `model.rows`) of the image `spectrum` under a Gaussian window (`MATCH_WINDOW_M`) about
     `peak`, from the image on the integer cells of a patch PATCH_SIGMAS windows either side."""
     n, m = model.grid.n_azimuth, spectrum.shape[-1]
-    cell_a, cell_b = model.cell_m
-    sa, sb = MATCH_WINDOW_M[0] / cell_a, MATCH_WINDOW_M[1] / abs(cell_b)
+    sa, sb = _window_cells(model)
     a = np.arange(math.floor(peak[0] - PATCH_SIGMAS * sa), math.ceil(peak[0] + PATCH_SIGMAS * sa) + 1)
     b = np.arange(math.floor(peak[1] - PATCH_SIGMAS * sb), math.ceil(peak[1] + PATCH_SIGMAS * sb) + 1)
     interpolant = refine.TrigInterpolant.from_rows(model.rows, spectrum, n)
