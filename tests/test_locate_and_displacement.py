@@ -15,6 +15,7 @@ from uwbcl.locate import (
     locate_target,
     misfit_scale,
     two_look_wall_m,
+    wall_gate_m,
 )
 from uwbcl.records import AssociationSettings, CycleResult, Detection, DetectionSettings, Located
 
@@ -149,6 +150,26 @@ def test_what_casts_no_shadow_leaves_the_rib_gate_keeping_every_plate(points):
     plates = [(x, w, z) for x, w, z, a in points if a == 1.0]
     for x, w, z in plates:
         assert any(np.allclose(p.position_m, [x, -w, z], atol=1e-6) for p in located), (x, w, z)
+
+
+def test_an_undulating_rib_widens_the_rib_gate_and_keeps_its_plates():
+    """An independent tester's rib wandered +-0.3 m over a few metres (a 3 m wave and its 1.35 m partner, two
+    staggered rows): the 0.15 m gate about the median wall set aside every plate more than 0.2 m off it. The
+    gate now widens to the plates' own spread (eq. L2b); the ring of the test above keeps its 0.15 m gate."""
+    heights = (0.2, 0.6)
+    xs = np.arange(10) * 0.55
+    walls = 2.4 + 0.3 * (np.sin(2 * np.pi * xs / 3.0 + 0.4) + 0.4 * np.sin(2 * np.pi * xs / 1.35 + 1.0)) / 1.4
+    points = [(x, w, 0.45 if k % 2 else 1.15) for k, (x, w) in enumerate(zip(xs, walls))]
+    by_height = {h: [_detection(x, float(_rc(w, z, h))) for x, w, z in points] for h in heights}
+    located = locate_plates(by_height)
+    assert max(abs(walls - np.median(walls))) > 0.25
+    for x, w, z in points:
+        assert any(np.allclose(p.position_m, [x, -w, z], atol=1e-6) for p in located), (x, w, z)
+    flat = {h: [_detection(x, float(_rc(2.4 + 0.01 * (k % 3), z, h))) for k, (x, _, z) in enumerate(points)]
+            for h in heights}
+    first = [(g, locate_target(sorted(g), [g[h].x_m for h in sorted(g)], [g[h].rc_m for h in sorted(g)]))
+             for g in associate_across_heights(flat)]
+    assert wall_gate_m(first, 0.15)[1] == 0.15
 
 
 def test_the_rib_gate_needs_three_plates_and_keeps_every_plate_of_a_clean_column():

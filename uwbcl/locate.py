@@ -29,6 +29,10 @@ CROSS_HEIGHT_WALL_TOL_M = DetectionSettings.cross_height_wall_tol_m
 # Eq. L2 needs the cycle's wall distance: from at least this many plates grouped without it (fewer, and one
 # wrong grouping could set it),
 WALL_MIN_PLATES = 3
+# and a rib rougher than the gate: the gate widens to this many robust standard deviations (1.4826 x MAD) of
+# those plates' wall distances about W (an undulating rib, +-0.3 m over a few metres, is ordinary in a gate
+# road: with the 0.15 m gate it lost every plate more than 0.2 m off the median wall)
+WALL_SPREAD_SIGMAS = 3.0
 _GATED = 1e6  # the assignment cost of a pair outside either gate: never chosen over a gated-in pair
 # Eq. L1 (`shared_look`): a neighbour predicted within this many of the detector's non-maximum-suppression
 # ellipses of a detection, and not detected on its own in that pass, shares the detection's peak. At 1.0 the
@@ -179,10 +183,29 @@ def _wall_m(located: list[tuple[dict[float, Detection], Located]], tol_m: float 
     such copies 0.3 m behind the rib as there were plates, the median of all of them among the copies, and
     the rib gate then kept the copies and set the plates aside; noise or a reflector in front of the rib, a
     stepped rib and a rail a little off parallel to it cast no shadows, and their median is what it was."""
+    return _wall_and_spread_m(located, tol_m, x_tol_m)[0]
+
+
+def _wall_and_spread_m(located: list[tuple[dict[float, Detection], Located]],
+                       tol_m: float = CROSS_HEIGHT_WALL_TOL_M, x_tol_m: float = CROSS_HEIGHT_X_TOL_M
+                       ) -> tuple[float, float]:
+    """`_wall_m` and the robust standard deviation (1.4826 x MAD, m) of the plates' wall distances about it
+    (the same plates: shadows left out)."""
     w = np.array([abs(p.position_m[1]) for _, p in located])
     x = np.array([p.position_m[0] for _, p in located])
     shadow = np.any((np.abs(x[:, None] - x[None, :]) <= x_tol_m) & (w[None, :] < w[:, None] - tol_m), axis=1)
-    return float(np.median(w[~shadow] if tol_m > 0 and not shadow.all() else w))
+    kept = w[~shadow] if tol_m > 0 and not shadow.all() else w
+    wall = float(np.median(kept))
+    return wall, 1.4826 * float(np.median(np.abs(kept - wall)))
+
+
+def wall_gate_m(located: list[tuple[dict[float, Detection], Located]], tol_m: float = CROSS_HEIGHT_WALL_TOL_M,
+                x_tol_m: float = CROSS_HEIGHT_X_TOL_M) -> tuple[float, float]:
+    """Eq. L2's wall distance W (m) and gate (m) from a first grouping's plates: the gate is `tol_m`, widened
+    to WALL_SPREAD_SIGMAS robust standard deviations of the plates' wall distances about W where the rib is
+    rougher than `tol_m` covers (eq. L2b)."""
+    wall, spread = _wall_and_spread_m(located, tol_m, x_tol_m)
+    return wall, max(tol_m, WALL_SPREAD_SIGMAS * spread)
 
 
 def _located_group(group: dict[float, Detection], boresight_y_sign: int) -> Located | None:
@@ -240,7 +263,8 @@ def locate_plates(detections_by_height: dict[float, list[Detection]], boresight_
     """Every plate seen at two or more heights, located in 3-D (`x_tol_m`, `rc_tol_m`, `wall_tol_m`: the
     cross-height association's gates, `associate_across_heights`). The detections are grouped twice when
     `wall_tol_m` > 0: the second time on the rib (eq. L2) at the median wall distance of the first grouping's
-    plates, once it has WALL_MIN_PLATES.
+    plates, once it has WALL_MIN_PLATES, with the gate widened where they show a rougher rib (eq. L2b,
+    `wall_gate_m`).
 
     With `separation_m` (the detector's non-maximum-suppression semi-axes along track and in range, m), a
     plate's looks shared with a neighbour (`shared_look`, eq. L1) or split from a peak that held two
@@ -255,8 +279,9 @@ def locate_plates(detections_by_height: dict[float, list[Detection]], boresight_
     groups = associate_across_heights(detections_by_height, x_tol_m, rc_tol_m)
     located = [(g, p) for g in groups if (p := _located_group(g, boresight_y_sign)) is not None]
     if wall_tol_m > 0 and len(located) >= WALL_MIN_PLATES:
-        groups = associate_across_heights(detections_by_height, x_tol_m, rc_tol_m,
-                                          _wall_m(located, wall_tol_m), wall_tol_m, range_sigma_m)
+        wall_m, gate_m = wall_gate_m(located, wall_tol_m)
+        groups = associate_across_heights(detections_by_height, x_tol_m, rc_tol_m, wall_m, gate_m,
+                                          range_sigma_m)
         located = [(g, p) for g in groups if (p := _located_group(g, boresight_y_sign)) is not None]
     if separation_m is not None and located:
         grouped = {id(d) for g in groups for d in g.values()}
