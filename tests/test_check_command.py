@@ -109,6 +109,25 @@ def test_check_warns_about_a_pass_whose_rail_is_longer_than_any_face_end_rail_as
     assert f"long_rail: {long.file}: the pass travels" in capsys.readouterr().out
 
 
+def test_check_warns_about_a_pass_that_travels_less_than_its_rigs_other_passes(archive_dir, tmp_path, capsys):
+    # a recording imported with the positions log of a slower pass: it imported silently and its cycle came
+    # out `prior_conflict` with nothing naming the pass (indepZs F4)
+    src = tmp_path / "in"
+    shutil.copytree(archive_dir, src)
+    files = pass_files(src)
+    scan = archive.read_pass(files[2])
+    start = scan.pulse_position_m[0]
+    _rewrite(files[2], pulse_position_m=start + 0.8 * (scan.pulse_position_m - start))
+    report = check.check_directory(src, SETTINGS, options())
+    (short,) = [w for w in report.warnings if w.kind == "rail_travel"]
+    assert short.file == files[2].relative_to(src).as_posix()
+    assert "a pass cut short, or positions from another pass or at another speed?" in short.reason
+    main(["check", str(src)])
+    assert f"rail_travel: {short.file}: the pass travels" in capsys.readouterr().out
+    assert not [w for w in check.check_directory(archive_dir, SETTINGS, options()).warnings
+                if w.kind == "rail_travel"]
+
+
 def test_passes_of_one_cycle_that_differ_in_the_radar_values_an_import_measures_are_told_how_to_import_them(
         archive_dir, tmp_path):
     # recordings imported with their measured carrier and bandwidth differ by a few per cent (indepZs F8)

@@ -12,6 +12,7 @@ import contextlib
 import dataclasses
 import logging
 import math
+import statistics
 from collections import defaultdict
 from pathlib import Path
 
@@ -117,7 +118,34 @@ def check_directory(in_dir: Path, settings: ProcessingSettings | None = None,
             warnings.append(Problem(p.record.file, "reference_outside_window",
                                     f"the reference point lies {p.reference_range_m:.2f} m from the aperture "
                                     f"centre, outside the recorded window {lo:.2f}-{hi:.2f} m"))
+    warnings += rail_travel_warnings(passes)
     return CheckReport(len(walk.files), passes, problems, warnings)
+
+
+# A pass whose travel along the rail differs from its rig's median pass by more than this fraction gets a
+# `rail_travel` warning: a rig's passes run between the same end stops, so one cut short or one whose
+# positions log came from another (slower or faster) pass shows here (indepZs F4: such a log imported
+# silently and its cycle came out `prior_conflict` with nothing naming the pass).
+RAIL_TRAVEL_WARN_FRACTION = 0.1
+
+
+def rail_travel_warnings(passes: list[PassSummary]) -> list[Problem]:
+    """One `rail_travel` warning per pass whose travel (m) differs from its rig's median pass's by more than
+    RAIL_TRAVEL_WARN_FRACTION of it (rigs of three or more passes)."""
+    by_rig: dict[str, list[PassSummary]] = defaultdict(list)
+    for p in passes:
+        by_rig[p.record.rig_id].append(p)
+    out = []
+    for ps in by_rig.values():
+        travel = [abs(p.rail_m[1] - p.rail_m[0]) for p in ps]
+        median = statistics.median(travel) if len(ps) >= 3 else 0.0
+        for p, t in zip(ps, travel):
+            if median > 0 and abs(t - median) > RAIL_TRAVEL_WARN_FRACTION * median:
+                out.append(Problem(p.record.file, "rail_travel",
+                                   f"the pass travels {t:.2f} m along the rail, its rig's passes "
+                                   f"{median:.2f} m (the median): a pass cut short, or positions from "
+                                   "another pass or at another speed?"))
+    return out
 
 
 @contextlib.contextmanager
