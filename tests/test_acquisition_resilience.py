@@ -30,7 +30,7 @@ from test_acquisition import (  # noqa: F401
 from uwbcl.acquisition import client as client_module
 from uwbcl.acquisition import registers as R
 from uwbcl.acquisition.client import AcquisitionSession
-from uwbcl.acquisition.device import RigController, RigServer
+from uwbcl.acquisition.device import ILLEGAL_ADDRESS, ModbusFault, RigController, RigServer
 
 
 def _result(cycle: int) -> dict:
@@ -397,6 +397,27 @@ def test_the_client_heartbeat_goes_on_while_a_pass_is_built_and_written_for_seco
     assert report.ok and len(report.passes_written) == 2, report
     gaps = [b - a for a, b in zip(device.heartbeats, device.heartbeats[1:])]
     assert max(gaps) < 2.0, gaps  # map 5.3: it changes at least every 2 s while uwbcl is connected
+
+
+class _HeartbeatRefused(RigController):
+    """Answers every CLIENT_HEARTBEAT write with exception 02 (not conforming: HR 12-13 are writable)."""
+
+    def write(self, now, address, values):
+        if address == R.CLIENT.address:
+            raise ModbusFault(ILLEGAL_ADDRESS, "CLIENT refused")
+        super().write(now, address, values)
+
+
+def test_a_controller_that_refuses_every_client_heartbeat_still_gets_every_pass_scanned(tmp_path, caplog):
+    # indepZw F1: the refused heartbeat failed every pass, and between cycles the step that polls STATUS
+    # failed on it before it looked at the cycle counter: nothing was scanned while the cycles went by
+    device = _HeartbeatRefused(dataclasses.replace(FAST_DEVICE, cycle_interval_s=1e6))
+    with caplog.at_level(logging.WARNING), RigServer(device, LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, heights_m=(0.15, 0.3)))
+    assert report.ok and len(report.passes_written) == 2 and not report.passes_failed, report
+    assert report.faults.heartbeats_unwritten >= 1
+    said = [r for r in caplog.records if "CLIENT_HEARTBEAT (HR 12) not written" in r.getMessage()]
+    assert len(said) == 1  # once a minute at most
 
 
 def test_the_client_heartbeat_goes_on_while_the_last_cycle_is_processed_at_the_end_of_the_session(tmp_path):

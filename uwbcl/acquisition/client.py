@@ -86,6 +86,7 @@ MAX_UNWRITTEN_BYTES = 2 * 2**30
 FINAL_PUBLISH_S = 15.0
 UNNAMED_RIG_ID = "rig"  # the archives' rig id when neither the settings nor IDENTITY.RIG_ID name one (warned)
 HEARTBEAT_POLL_S = 0.2  # how often the side thread of _off_the_link looks whether CLIENT_HEARTBEAT is due
+HEARTBEAT_WARN_S = 60.0  # at most one warning this often about CLIENT_HEARTBEAT writes not done
 TABLE_ANGLE_WARN_DEG = 0.1  # a table this far from the commanded angle is said (a fifth of process's 0.5 deg)
 UNWRITTEN_RETRY_S = 10.0
 
@@ -218,6 +219,7 @@ class FaultCounts:
     names_taken: int = 0  # whole passes written under the unique name because the usual one was taken
     rate_limited: int = 0  # requests delayed by the request-rate bound
     incompatible_replies: int = 0  # IDENTITY replies of another MAGIC or MAP_MAJOR (read again, map 4.1)
+    heartbeats_unwritten: int = 0  # CLIENT_HEARTBEAT writes refused or unanswered (best effort, map 5.2)
 
     def total(self) -> int:
         return self.no_reply + self.disconnects + self.exceptions + self.corrupt + self.reboots + self.stalls
@@ -600,6 +602,7 @@ class AcquisitionSession:
         self._last_start_s: float | None = None  # the last pass's START_TIME (s since 1970)
         self._heartbeat = 0
         self._last_heartbeat_t = 0.0
+        self._heartbeat_warned_t = -math.inf
         self._active_token: int | None = None
         self._heartbeat_seen = (None, time.monotonic())  # (value, when it last changed)
         self._last_result: dict | None = None
@@ -751,17 +754,24 @@ class AcquisitionSession:
         self._client_heartbeat()
         return status
 
-    def _client_heartbeat(self, once: bool = False) -> None:
-        """CLIENT_HEARTBEAT + 1, at most once a second (map 5.3: at least every 2 s); `once`: one write,
-        never retried (from the side thread of `_off_the_link`)."""
+    def _client_heartbeat(self) -> None:
+        """CLIENT_HEARTBEAT + 1, at most once a second (map 5.3: at least every 2 s), one write never retried.
+        It tells the face automation system that uwbcl is alive; the data path does not depend on it, so a
+        write refused or unanswered is counted and logged (at most once every HEARTBEAT_WARN_S) and never
+        fails a step: a controller that refused every heartbeat write once stopped all acquisition (indepZw
+        F1). Called from the session's thread and from the side thread of `_off_the_link`."""
         now = time.monotonic()
         if now - self._last_heartbeat_t >= 1.0:
             self._last_heartbeat_t = now
             self._heartbeat = (self._heartbeat + 1) & 0xFFFF
-            if once:
-                self.link.write_once(R.CLIENT, {"CLIENT_HEARTBEAT": self._heartbeat})
-            else:
-                self.link.write_block(R.CLIENT, {"CLIENT_HEARTBEAT": self._heartbeat})
+            if not self.link.write_once(R.CLIENT, {"CLIENT_HEARTBEAT": self._heartbeat}):
+                self.link.counts.heartbeats_unwritten += 1
+                if now - self._heartbeat_warned_t >= HEARTBEAT_WARN_S:
+                    self._heartbeat_warned_t = now
+                    log.warning("fault: CLIENT_HEARTBEAT (HR 12) not written (%d times so far): the "
+                                "controller refused it or did not answer; acquisition goes on, but a face "
+                                "automation system watching HR 12 may take this client for dead",
+                                self.link.counts.heartbeats_unwritten)
 
     @contextlib.contextmanager
     def _off_the_link(self):
@@ -774,7 +784,7 @@ class AcquisitionSession:
         def beat() -> None:
             while not done.wait(HEARTBEAT_POLL_S):
                 try:
-                    self._client_heartbeat(once=True)
+                    self._client_heartbeat()
                 except Exception as exc:  # noqa: BLE001 - never fails the work; the next request reconnects
                     log.debug("client heartbeat not written: %s", exc)
 
