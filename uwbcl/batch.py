@@ -1005,8 +1005,8 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
             cycles.append(result)
         # a conjugated rig's peaks are those of unfocused data: its shared_peaks warning would mislead
         conjugated = {r.rig_id for r in records if r.file in {w.file for w in q_sign}}
-        focused = [c for c in cycles if c.rig_id not in conjugated]
-        for w in shared_peak_warnings(focused) + rib_angle_warnings(focused):
+        sound = [c for c in cycles if c.rig_id not in conjugated]
+        for w in shared_peak_warnings(sound) + rib_angle_warnings(sound):
             log.warning("%s: %s: %s", w.kind, w.file, w.reason)
             warnings.append(w)
         rows_series = chain.series(cycles, settings.association, options.max_bridge_cycles,
