@@ -264,7 +264,8 @@ def test_the_summary_counts_a_fresh_run_as_focused_and_a_second_run_as_from_the_
     # two independent testers: a fresh run printed "6 focused, 6 from the cache, -6 not read or not focused"
     # (a review mend had reused the name of the focused files for a list of cycles)
     n, out = len(pass_files(archive_dir)), tmp_path / "out"
-    args = ["process", str(archive_dir), "--out", str(out), "--backend", "numpy", "--jobs", "1", "--no-progress"]
+    args = ["process", str(archive_dir), "--out", str(out), "--backend", "numpy", "--jobs", "1",
+            "--no-progress"]
     assert main(args) == 0
     assert f"{n} passes ({n} focused, 0 from the cache), " in capsys.readouterr().out
     assert main(args) == 0
