@@ -3,8 +3,11 @@ and never more than the limits admit (issue: hostile and broken input cannot hur
 
 from __future__ import annotations
 
+import math
 import os
 import resource
+import subprocess
+import sys
 import threading
 from pathlib import Path
 
@@ -118,6 +121,45 @@ def test_a_compression_bomb_within_the_limits_is_refused_by_a_lower_limit_and_re
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     refused(bad, "/echo", "exceed the limit")
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 64 << 10  # kB: nothing decompressed
+
+
+def _tiny_chunks(pulses: int):
+    def tiny(f):  # an independent tester's file: the echo declared in one-sample chunks, none written
+        for name in ("echo", "pulses/time_s", "pulses/position_m"):
+            del f[name]
+        ds = f.create_dataset("echo", shape=(pulses, 48), dtype=np.complex64, chunks=(1, 1),
+                              compression="gzip")
+        ds.attrs.update({"units": "arb", "layout": "complex", "scale": 1.0})
+        f["radar"].attrs["samples_per_pulse"] = np.int64(48)
+        for name, values, unit in (("time_s", np.arange(pulses) * 1e-4, "s"),
+                                   ("position_m", np.linspace(-0.5, 0.5, pulses), "m")):
+            ds = f.create_dataset(f"pulses/{name}", shape=(pulses,), dtype="f8", chunks=(pulses,),
+                                  compression="gzip")
+            ds.attrs["units"] = unit
+            ds[...] = values
+    return tiny
+
+
+def _peak_rss_kb(path: Path) -> int:
+    """The peak resident memory (kB) of a fresh Python that reads the pass: VmHWM, which starts again at the
+    exec (ru_maxrss keeps the forking test process's)."""
+    code = ("import sys; from uwbcl.archive import read_pass; read_pass(sys.argv[1]); "
+            "print(next(l.split()[1] for l in open('/proc/self/status') if l.startswith('VmHWM')))")
+    done = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, check=True)
+    return int(done.stdout)
+
+
+def test_an_echo_stored_in_tens_of_thousands_of_one_sample_chunks_is_read_within_bounded_memory(good):
+    # an independent tester: a 455 kB file declaring 50,000 one-sample chunks took 4 GB to read at once
+    bad = copy_with(good, good.with_name("tiny.h5"), _tiny_chunks(10_000))
+    assert bad.stat().st_size < 8 << 20 and math.prod(h5py.File(bad)["echo"].shape) > 40_000
+    assert _peak_rss_kb(bad) - _peak_rss_kb(good) < 100 << 10  # kB; 1.8 GB read at once
+    assert read_pass(bad).echo.shape[0] == 10_000
+
+
+def test_an_echo_stored_in_more_than_a_million_chunks_is_refused_before_any_read(good):
+    refused(copy_with(good, good.with_name("tinier.h5"), _tiny_chunks(60_000)), "/echo",
+            "chunks of [1, 1], more than 1048576: not read")
 
 
 @pytest.mark.parametrize("name", ["echo", "pulses/time_s"])

@@ -609,6 +609,17 @@ def _check_size(path: Any, echo: h5py.Dataset, time_ds: h5py.Dataset, position_d
 
 # The largest chunk a dataset may have beyond its own size (uncompressed bytes): write_pass's are ~1 MiB.
 MAX_CHUNK_BYTES = 64 << 20
+# HDF5 keeps a few kB of bookkeeping per chunk a read touches: a 455 kB file whose echo was declared in
+# 50,000 chunks of one sample, none written, took 4 GB to read at once (an independent tester). A dataset is
+# read CHUNKS_PER_READ chunks at a time, and one stored in more than MAX_CHUNKS (a pass chunked per pulse
+# has as many as pulses) is not read at all: its time to read grows with the count too.
+CHUNKS_PER_READ = 4096
+MAX_CHUNKS = 1 << 20
+
+
+def _chunk_grid(ds: h5py.Dataset) -> tuple[int, ...]:
+    """How many chunks a chunked dataset spans along each axis."""
+    return tuple(-(-n // c) for n, c in zip(ds.shape, ds.chunks))
 
 
 def _check_storage(path: Any, ds: h5py.Dataset) -> None:
@@ -657,8 +668,22 @@ def _check_echo_storage(path: Any, ds: h5py.Dataset, layout: str) -> None:
 def _read_values(f: h5py.File, path: Any, name: str) -> np.ndarray:
     try:
         ds = f[name]
+        n_chunks = math.prod(_chunk_grid(ds)) if ds.chunks is not None else 1
+        if n_chunks > MAX_CHUNKS:
+            raise ArchiveError(path, name, f"stored in {n_chunks} chunks of {list(ds.chunks)}, more than "
+                               f"{MAX_CHUNKS}: not read (reading costs time and memory per chunk)")
         _check_deflate_chunks(path, ds)
-        return ds[()]
+        if n_chunks <= CHUNKS_PER_READ or ds.ndim == 0:
+            return ds[()]
+        out = np.empty(ds.shape, ds.dtype)  # its size is within the limits checked before
+        grid = _chunk_grid(ds)
+        rows = ds.chunks[0] * max(1, CHUNKS_PER_READ // math.prod(grid[1:]))
+        cols = (ds.chunks[1] * max(1, CHUNKS_PER_READ // math.prod(grid[2:])) if ds.ndim > 1 else 1)
+        for r in range(0, ds.shape[0], rows):
+            for c in range(0, ds.shape[1] if ds.ndim > 1 else 1, cols):
+                block = np.s_[r:r + rows, c:c + cols] if ds.ndim > 1 else np.s_[r:r + rows]
+                ds.read_direct(out, block, block)
+        return out
     except ArchiveError:
         raise
     except (OSError, RuntimeError, ValueError, TypeError) as e:  # checksum, filter or I/O failure
