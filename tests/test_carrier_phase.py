@@ -24,6 +24,7 @@ from uwbcl import chain, pipeline, simulate
 from uwbcl.chain import RigChain
 from uwbcl.detect.phase import PointEcho, carrier_phase
 from uwbcl.displacement import carrier_phase_refinement, estimate_advance, phase_looks
+from uwbcl.geometry import closest_approach_range_m
 from uwbcl.model import PassGeometry, RadarParameters
 from uwbcl.records import AssociationSettings, ProcessingSettings
 
@@ -137,6 +138,38 @@ def test_phases_that_disagree_with_the_plates_leave_the_plates_estimate(noisy_pa
     assert d.phase_looks == 0
     np.testing.assert_array_equal(d.advance_m, plain.advance_m)
     np.testing.assert_array_equal(d.bound_m, plain.bound_m)
+
+
+def test_plates_whose_vertical_the_rig_cannot_have_and_whose_phases_disagree_are_withheld(noisy_pairs):
+    """Eq. M5c. An independent tester's dense grid from three heights: five plates, three of them located
+    through looks shared with a neighbour, all pulled along their dilution direction (y and z together): the
+    row's vertical +42 mm against a rig that moves millimetres, its creep 28 mm off against a 4 mm bound,
+    `ok`.
+    A floor step moves every plate alike and its phases hold; plates pulled off do neither."""
+    a, b = noisy_pairs[0]
+
+    def lift(p):  # the plate and its looks 0.1 m lower: the row's vertical +0.1 m
+        q = p.position_m - [0, 0, 0.1]
+        return dataclasses.replace(p, position_m=q, looks=tuple(
+            (h, dataclasses.replace(d, rc_m=float(closest_approach_range_m(q, h)))) for h, d in p.looks))
+
+    lifted = dataclasses.replace(b, plates=[lift(p) for p in b.plates])
+    scrambled = with_random_phases(lifted, np.random.default_rng(5))
+
+    def row(after, vertical_prior_m, phases=True):
+        s = dataclasses.replace(SETTINGS, vertical_prior_m=vertical_prior_m, carrier_phase=phases)
+        # plates placed to ~1 cm in z (the tester's were seen from three heights)
+        return estimate_advance(a.plates, after.plates, s,
+                                before_cov_m2=0.04 * chain.plate_covariances(a, s.range_sigma_m),
+                                after_cov_m2=0.04 * chain.plate_covariances(after, s.range_sigma_m))
+
+    d = row(scrambled, (0.0, 0.005))
+    assert d.phase_check == -1 and d.status == "inconsistent"
+    # the same plates with a vertical prior they agree with, or without the phases: the plates' estimate
+    assert row(scrambled, (0.1, 0.005)).status == "ok"
+    assert row(scrambled, (0.0, 0.005), phases=False).status == "ok"
+    step = row(lifted, (0.0, 0.005))  # a floor step: every plate and look moved alike, the phases hold
+    assert step.phase_check == 1 and step.status == "ok" and step.advance_m[2] > 0.09
 
 
 def test_a_look_whose_fringe_the_plates_cannot_fix_is_not_used(noisy_pairs):

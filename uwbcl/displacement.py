@@ -736,6 +736,7 @@ def estimate_advance(before: list[Located], after: list[Located],
     cov_adv = scale2 * gls_cov
     vertical_data = np.array([advance[2], np.sqrt(cov_adv[2, 2] + unknown_var[2])])
     vertical_prior = _vertical_prior(settings)
+    vertical_rejected = False
     if vertical_prior is not None and settings.weighted and have_cov:
         conditioned = vertical_conditioned(advance, cov_adv, *vertical_prior)
         if conditioned is not None:
@@ -745,10 +746,18 @@ def estimate_advance(before: list[Located], after: list[Located],
             # grouped across heights with another (off in y and z together) than a floor step: nothing else
             # says which, as with two plates that disagree.
             consistent = False
+        else:
+            vertical_rejected = True
     looks_used, phase_check = 0, 0
     if settings.carrier_phase and settings.weighted and have_cov:
         advance, cov_adv, looks_used, phase_check, coupling = _with_phases(
             advance, cov_adv, phase_looks(before, after, pairs), phase_tested_only)
+    if vertical_rejected and phase_check < 0:
+        # M5c: the plates' vertical is far from the rig's vertical motion and the carrier phases do not
+        # agree with their estimate either: a floor step would move every plate alike and the phases would
+        # hold; plates pulled along their dilution direction (looks shared with a neighbour, off in y and z
+        # together) do neither, and their creep is off with their vertical
+        consistent = False
         # M8b: the phases hold the line of sight, so the competitors' retreat terms move creep and vertical
         unknown_var[1:] += coupling**2 * unknown_var[0]
         rival_var[1:] += coupling**2 * rival_var[0]
