@@ -81,6 +81,12 @@ def test_without_a_file_the_defaults_apply():
     ("[site]\nheight_tolerance_m = 1e9\n", "site.height_tolerance_m"),
     ("[association]\ntolerance_m = [1e300, 0.1, 0.1]\n", "association.tolerance_m"),
     ("[association]\nmax_bridge_cycles = 9223372036854775807\n", "association.max_bridge_cycles"),
+    # finite and > 0, yet they broke the maths (an independent tester: tracebacks, or every pass failed)
+    ("[association]\nrange_sigma_m = 1e-300\n", "association.range_sigma_m"),
+    ("[detection]\nseparation_m = 1e-300\n", "detection.separation_m"),
+    ("[detection]\nseparation_m = 1000.0\n", "detection.separation_m"),
+    ("[detection]\nmin_snr_db = 1e308\n", "detection.min_snr_db"),
+    ("[detection]\ncfar_db = 1e308\n", "detection.cfar_db"),
     ("[site\n", ""),  # the file itself: no key
     ("web_depth_m = 0.9\n", "web_depth_m"),  # a key outside any table
 ])

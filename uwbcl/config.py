@@ -226,33 +226,55 @@ def _positive(v) -> bool:
     return all(math.isfinite(x) and x > 0 for x in (v if isinstance(v, tuple) else (v,)))
 
 
+# The smallest length a positive length setting may be: a micrometre is below any precision, gate or
+# tolerance the method uses, and 1e-300 m divided by itself overflowed (an independent tester).
+MIN_LENGTH_M = 1e-6
+# The non-maximum-suppression semi-axes at most this: beyond a plate spacing they suppress plates, and
+# beyond the image no row was searched at all.
+MAX_SEPARATION_M = 1.0
+MAX_DB = 200.0  # decibel settings within +-this: 10^(1e308 / 10) overflowed
+
+
+def _length(lo_m: float, hi_m: float | None = None):
+    """(check, what the value must be) for a length setting (one value or a tuple) in [lo_m, hi_m]."""
+    def check(v) -> bool:
+        return all(math.isfinite(x) and lo_m <= x and (hi_m is None or x <= hi_m)
+                   for x in (v if isinstance(v, tuple) else (v,)))
+    return check, f"finite and between {lo_m:g} and {hi_m:g} m" if hi_m else f"finite and >= {lo_m:g} m"
+
+
+def _decibels(lo_db: float, hi_db: float):
+    return (lambda v: math.isfinite(v) and lo_db <= v <= hi_db), f"finite and between {lo_db:g} and {hi_db:g}"
+
+
 # Values of the effective settings that would make the maths singular, an index negative or a loop unbounded:
 # "section.key" -> (check, what the value must be). Every other number must at least be finite.
 _RANGES = {
-    "association.tolerance_m": (_positive, "finite and > 0 on every axis"),
-    "association.prior_window_m": (_positive, "finite and > 0 on every axis"),
+    "association.tolerance_m": _length(MIN_LENGTH_M),
+    "association.prior_window_m": _length(MIN_LENGTH_M),
     "association.min_targets": (lambda v: v >= 1, ">= 1"),
     "association.min_confident_targets": (lambda v: v >= 1, ">= 1"),
-    "association.range_sigma_m": (_positive, "finite and > 0"),
+    "association.range_sigma_m": _length(MIN_LENGTH_M, 1.0),
     "association.outlier_chi2": (_positive, "finite and > 0"),
     "association.vertical_step_sigma_m": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0 (0: off)"),
     "association.vertical_trend_sigma_m": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0"),
-    "detection.separation_m": (_positive, "finite and > 0"),
-    "detection.range_separation_m": (_positive, "finite and > 0"),
+    "detection.separation_m": _length(1e-3, MAX_SEPARATION_M),
+    "detection.range_separation_m": _length(1e-3, MAX_SEPARATION_M),
+    "detection.min_snr_db": _decibels(-MAX_DB, MAX_DB),
     "detection.max_targets": (lambda v: 1 <= v <= 4096, "between 1 and 4096"),
-    "detection.relative_floor_db": (lambda v: math.isfinite(v) and v <= 0, "finite and <= 0"),
+    "detection.relative_floor_db": _decibels(-MAX_DB, 0.0),
     "detection.neighbour_cancellation_passes": (lambda v: 0 <= v <= 16, "between 0 and 16"),
-    "detection.neighbour_cancellation_tol_m": (_positive, "finite and > 0"),
+    "detection.neighbour_cancellation_tol_m": _length(MIN_LENGTH_M),
     "detection.neighbour_gain_degree": (lambda v: 0 <= v <= 32, "between 0 and 32"),
     "detection.min_range_m": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0"),
     "detection.max_range_m": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0 (0: no upper bound)"),
-    "detection.cfar_db": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0 (0: off)"),
+    "detection.cfar_db": _decibels(0.0, MAX_DB),
     "detection.cancel_max_targets": (lambda v: 0 <= v <= 4096, "between 0 (all) and 4096"),
     "detection.cancel_time_budget_s": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0 (0: none)"),
     "detection.synthesis_passes": (lambda v: 0 <= v <= 16, "between 0 and 16"),
-    "detection.synthesis_tol_m": (_positive, "finite and > 0"),
-    "detection.cross_height_x_tol_m": (_positive, "finite and > 0"),
-    "detection.cross_height_rc_tol_m": (_positive, "finite and > 0"),
+    "detection.synthesis_tol_m": _length(MIN_LENGTH_M),
+    "detection.cross_height_x_tol_m": _length(MIN_LENGTH_M),
+    "detection.cross_height_rc_tol_m": _length(MIN_LENGTH_M),
     "detection.short_track_m": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0 (0: never short)"),
     "detection.cross_height_wall_tol_m": (lambda v: math.isfinite(v) and v >= 0, "finite and >= 0 (0: off)"),
     **{f"limits.{f.name}": (lambda v: v >= 1, ">= 1") for f in dataclasses.fields(ReadLimits)},

@@ -194,6 +194,8 @@ def nlcs_peaks(products: nlcs.NlcsProducts, s: DetectionSettings,
         u = grid.t_azimuth_s * grid.speed_m_s
         searched = np.flatnonzero((u >= lo_m) & (u <= hi_m))
         searched = searched[(searched >= reach) & (searched < grid.n_azimuth - reach)]
+    if searched.size == 0:  # no row holds the footprint clear of the image's ends: nothing to find
+        return np.zeros((0, 2), dtype=int), 0.0
     top, bottom = max(searched[0] - reach, 0), min(searched[-1] + reach + 1, grid.n_azimuth)
     mag = np.abs(products.image[top:bottom])
     valid = np.zeros(mag.shape, dtype=bool)
