@@ -58,6 +58,7 @@ def _run(scan_file, out, *flags):
     ([*TRACK, "--pass-start-time", "yesterday"],
      "--pass-start-time: not an ISO 8601 date-time: 'yesterday'"),
     ([*TRACK, "--cycle", "-3"], "--cycle: must be >= 0, got -3"),
+    ([*TRACK, "--cycle", "99999999999999999999"], "--cycle: must be at most 9223372036854775807"),
     ([*TRACK, "--range-delay-s", "1"],
      f"--range-delay-s: must be within +-{config.MAX_RANGE_DELAY_S:g} s"),
     ([*TRACK, "--range-delay-s", "12.3"],

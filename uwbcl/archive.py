@@ -607,6 +607,7 @@ def _check_size(path: Any, echo: h5py.Dataset, time_ds: h5py.Dataset, position_d
                                "(limits.max_pulses)")
 
 
+MAX_CYCLE = 2**63 - 1  # the /@cycle attribute is an int64
 # The largest chunk a dataset may have beyond its own size (uncompressed bytes): write_pass's are ~1 MiB.
 MAX_CHUNK_BYTES = 64 << 20
 # HDF5 keeps a few kB of bookkeeping per chunk a read touches: a 455 kB file whose echo was declared in
@@ -749,8 +750,8 @@ def _check_root_attrs(h: dict[str, Any], fail: Callable[[str, str], NoReturn]) -
         parse_utc(h["pass_start_time"])
     except ValueError as e:
         fail("/@pass_start_time", str(e))
-    if h["cycle"] < 0:
-        fail("/@cycle", f"must be >= 0, got {h['cycle']}")
+    if not 0 <= h["cycle"] <= MAX_CYCLE:
+        fail("/@cycle", f"must be between 0 and {MAX_CYCLE} (int64), got {h['cycle']}")
 
 
 def _check_radar_attrs(h: dict[str, Any], fail: Callable[[str, str], NoReturn]) -> None:

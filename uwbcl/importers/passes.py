@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..archive import MAX_RAIL_DEVIATION_M
+from ..archive import MAX_CYCLE, MAX_RAIL_DEVIATION_M
 from ..config import MAX_LENGTH_M, MAX_RANGE_DELAY_S, beyond_max_length
 from ..geometry import LONG_RAIL_M
 from ..model import MIN_WINDOW_RANGE_M, SPEED_OF_LIGHT_M_S, PassGeometry, RadarParameters, RawRF, ScanPass
@@ -733,6 +733,8 @@ def _check_identity(options: ImportOptions) -> None:
     """OptionError for a pass identity the archive would refuse after the whole conversion."""
     if options.cycle < 0:
         raise OptionError("cycle", f"must be >= 0, got {options.cycle}")
+    if options.cycle > MAX_CYCLE:
+        raise OptionError("cycle", f"must be at most {MAX_CYCLE} (the archive's int64), got {options.cycle}")
     if not options.rig_id.strip():
         raise OptionError("rig_id", "must not be empty")
     if options.pass_start_time is not None:
