@@ -482,6 +482,9 @@ def test_failed_fsync_leaves_no_file_behind(tmp_path, scan, monkeypatch):
             {"geometry": PassGeometry(0.15, 30.0, (0.0, -2.4, 0.3), boresight_y_sign=2)},
             "/geometry@boresight_y_sign",
         ),
+        # a scene centre on the rail's own line (a tester: a ZeroDivisionError in the focusing)
+        ({"geometry": PassGeometry(0.15, 30.0, (0.0, 0.0, 0.15))}, "/geometry@reference_point_m"),
+        ({"cycle": 2**63}, "/@cycle"),
     ],
 )
 def test_writer_refuses_a_pass_the_reader_would_reject(tmp_path, changes, field):

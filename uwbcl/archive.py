@@ -608,6 +608,7 @@ def _check_size(path: Any, echo: h5py.Dataset, time_ds: h5py.Dataset, position_d
 
 
 MAX_CYCLE = 2**63 - 1  # the /@cycle attribute is an int64
+MIN_REFERENCE_RANGE_M = 1e-3  # the reference point's least distance from the rail's line
 # The largest chunk a dataset may have beyond its own size (uncompressed bytes): write_pass's are ~1 MiB.
 MAX_CHUNK_BYTES = 64 << 20
 # HDF5 keeps a few kB of bookkeeping per chunk a read touches: a 455 kB file whose echo was declared in
@@ -781,6 +782,12 @@ def _check_geometry_attrs(h: dict[str, Any], fail: Callable[[str, str], NoReturn
         fail("/geometry@rotation_table_angle_deg", f"must be finite and within (-90, 90), got {angle}")
     if len(h["reference_point_m"]) != 3 or not all(math.isfinite(v) for v in h["reference_point_m"]):
         fail("/geometry@reference_point_m", f"must be 3 finite values, got {h['reference_point_m']}")
+    _, y, z = h["reference_point_m"]
+    if math.isfinite(h["height_m"]) and not math.hypot(y, z - h["height_m"]) >= MIN_REFERENCE_RANGE_M:
+        # the scene centre sets the processing squint: one on the rail's own line sets none (a tester's
+        # (0, 0, h) divided by zero in the focusing)
+        fail("/geometry@reference_point_m", f"must lie at least {MIN_REFERENCE_RANGE_M:g} m from the rail's "
+             f"line (Y, Z - height_m), got {h['reference_point_m']}")
     if h["boresight_y_sign"] not in (-1, 1):
         fail("/geometry@boresight_y_sign", f"must be -1 or +1, got {h['boresight_y_sign']}")
 
