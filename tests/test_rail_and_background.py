@@ -162,3 +162,25 @@ def test_a_plotted_pass_is_focused_as_process_focused_it_with_the_site_delay_and
     raw = pipeline.focus_only(scan, dataclasses.replace(settings, range_delay_s=None,
                                                         detection=DetectionSettings()))
     assert raw.image.shape != plotted.image.shape or not np.allclose(raw.image, plotted.image)
+
+
+def test_a_reference_point_far_below_the_plates_of_a_bent_rail_is_warned_about_and_one_at_their_height_not():
+    """An independent judge's bow of +-4 mm with the reference point at each pass's own height, 13-22 deg
+    below its plates at 4.2 m: the compensation towards it (C14) left the retreat drifting 1 mm a row; with
+    the reference point at the plates' height the drift was a straight rail's. The straight rail: no word."""
+    from uwbcl import batch
+    from uwbcl.records import CycleResult, Located, PassRecord
+
+    plates = [Located(position_m=np.array([x, 4.2, z]), residual_m=0.0, n_passes=4, amplitude=1.0)
+              for x, z in ((0.3, 1.25), (1.2, 1.85), (2.0, 2.35))]
+    cycle = [CycleResult("rig-B", 0, "2026-11-02T06:00:00Z", (0.14, 0.88), plates)]
+
+    def record(reference_z_m: float, deviation_m: float, height_m: float = 0.14) -> PassRecord:
+        return PassRecord("rig-B/p.h5", "0", "rig-B", 0, height_m, "p", "2026-11-02T06:00:00Z",
+                          {"reference_point_m": (1.7, 4.2, reference_z_m)}, (), rail_deviation_m=deviation_m)
+
+    (warning,) = batch.deviation_reference_warnings([record(0.14, 0.0045)], cycle)
+    assert warning.kind == "deviation_reference" and warning.file == "rig rig-B"
+    assert "up to 4.5 mm" in warning.reason and "(about 1.85 m)" in warning.reason
+    assert batch.deviation_reference_warnings([record(1.85, 0.0045)], cycle) == []
+    assert batch.deviation_reference_warnings([record(0.14, 0.0)], cycle) == []

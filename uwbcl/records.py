@@ -374,6 +374,7 @@ class PassRecord:
     pass_start_time: str
     parameters: dict
     detections: tuple[Detection, ...]
+    rail_deviation_m: float = 0.0  # the antenna's largest deviation from the straight rail (archive 1.2), m
 
 
 @dataclasses.dataclass
