@@ -27,6 +27,7 @@ from test_acquisition import (  # noqa: F401
     settings_for,
 )
 
+from uwbcl import archive
 from uwbcl.acquisition import client as client_module
 from uwbcl.acquisition import registers as R
 from uwbcl.acquisition.client import AcquisitionSession
@@ -418,6 +419,36 @@ def test_a_controller_that_refuses_every_client_heartbeat_still_gets_every_pass_
     assert report.faults.heartbeats_unwritten >= 1
     said = [r for r in caplog.records if "CLIENT_HEARTBEAT (HR 12) not written" in r.getMessage()]
     assert len(said) == 1  # once a minute at most
+
+
+class _ForeignAck(RigController):
+    """Acknowledges the first SET_TABLE_ANGLE with another command's code, DONE, without running it (as if
+    another client's MOVE_HEIGHT had used the same CMD_SEQ)."""
+
+    fooled = False
+
+    def command(self, now, regs):
+        c = R.COMMAND.decode(regs)
+        if c["CMD_CODE"] == R.Command.SET_TABLE_ANGLE and not self.fooled:
+            self.fooled = True
+            self.cmd_ack_seq, self.cmd_ack_code = c["CMD_SEQ"], int(R.Command.MOVE_HEIGHT)
+            self.cmd_result = R.CommandResult.DONE
+            return
+        super().command(now, regs)
+
+
+def test_a_command_acknowledged_with_another_commands_code_is_written_again_under_a_new_number(tmp_path):
+    # indepZw F3: the client took the acknowledgement of its CMD_SEQ for its own command; the angle was never
+    # set and the pass was archived at the rig's old angle, which `uwbcl check` then refused with its cycle
+    device = _ForeignAck(dataclasses.replace(FAST_DEVICE, cycle_interval_s=1e6))
+    with RigServer(device, LOOPBACK, 0) as server:
+        settings = settings_for(server, tmp_path, heights_m=(0.15, 0.3))
+        report = run_session(settings)
+    assert device.fooled and report.ok and len(report.passes_written) == 2, report
+    assert report.faults.foreign_acks == 1
+    for path in archive.find_pass_files(tmp_path):
+        assert archive.read_pass(path).geometry.rotation_table_angle_deg == pytest.approx(
+            settings.rotation_table_angle_deg)
 
 
 def test_the_client_heartbeat_goes_on_while_the_last_cycle_is_processed_at_the_end_of_the_session(tmp_path):

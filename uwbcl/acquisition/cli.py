@@ -267,7 +267,8 @@ def _print_summary(report, out) -> None:
           f"{f.description_changes} IDENTITY/RADAR changes under a pass, "
           f"{f.rig_id_changes} RIG_ID changes, {f.no_progress} watchdog aborts, {f.counter_decreases} "
           f"cycle-counter decreases, {f.names_taken} archives under a unique name, {f.rate_limited} requests "
-          f"delayed by the rate bound, {f.heartbeats_unwritten} CLIENT_HEARTBEAT writes not done")
+          f"delayed by the rate bound, {f.heartbeats_unwritten} CLIENT_HEARTBEAT writes not done, "
+          f"{f.foreign_acks} acknowledgements of another command")
     for line in report.passes_failed:
         print(f"  failed: {line}", file=sys.stderr)
     if report.error:

@@ -220,6 +220,7 @@ class FaultCounts:
     rate_limited: int = 0  # requests delayed by the request-rate bound
     incompatible_replies: int = 0  # IDENTITY replies of another MAGIC or MAP_MAJOR (read again, map 4.1)
     heartbeats_unwritten: int = 0  # CLIENT_HEARTBEAT writes refused or unanswered (best effort, map 5.2)
+    foreign_acks: int = 0  # a command's CMD_SEQ acknowledged with another CMD_ACK_CODE (written again, map 7)
 
     def total(self) -> int:
         return self.no_reply + self.disconnects + self.exceptions + self.corrupt + self.reboots + self.stalls
@@ -1220,6 +1221,21 @@ class AcquisitionSession:
                     self.link.write_block(R.COMMAND, values)
                     resend_s = min(2.0 * resend_s, COMMAND_RESEND_MAX_S)
                     next_resend = time.monotonic() + resend_s
+                continue
+            if st["CMD_ACK_CODE"] != int(code):
+                # its CMD_SEQ acknowledged for another command: another client's with the same number (this
+                # one's was then taken for a retransmission and never run) or a controller off the map; a new
+                # number runs it (indepZw F3: an angle never set, its pass archived at the rig's old one)
+                if now > deadline:
+                    raise PassIncomplete(f"{code.name}: CMD_SEQ {seq} acknowledged for command "
+                                         f"{st['CMD_ACK_CODE']} only")
+                self.link.counts.foreign_acks += 1
+                log.warning("fault: %s: CMD_SEQ %d acknowledged for command %d, not %d (another client, or "
+                            "a controller off the map); writing it again under a new CMD_SEQ", code.name, seq,
+                            st["CMD_ACK_CODE"], int(code))
+                seq = values["CMD_SEQ"] = self._next_cmd_seq()
+                self.link.sleep(self.settings.poll_s)
+                self.link.write_block(R.COMMAND, values)
                 continue
             rejected = result is not None and result.name.startswith("REJECTED")
             if result is R.CommandResult.FAILED:
