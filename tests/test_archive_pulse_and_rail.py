@@ -4,6 +4,7 @@ deviations, written, read back and validated like the rest of the format."""
 from __future__ import annotations
 
 import dataclasses
+import logging
 
 import h5py
 import numpy as np
@@ -135,3 +136,15 @@ def test_the_writer_refuses_deviations_the_reader_would_reject(tmp_path):
 
 def test_the_reader_knows_minor_version_2():
     assert archive.FORMAT_MINOR_VERSION == 2
+
+
+def test_the_additions_of_1_2_in_a_file_that_declares_1_0_are_used_with_a_warning(bent_file, caplog):
+    # an independent tester: such a file's deviations doubled a row's creep without a word (both readings of
+    # the version rule are defensible: the data are used, and the reader says so)
+    with h5py.File(bent_file, "r+") as f:
+        del f.attrs["format_minor_version"]
+    with caplog.at_level(logging.WARNING, logger="uwbcl"):
+        got = read_pass(bent_file)
+    np.testing.assert_array_equal(got.antenna_y_m, bent_scan().antenna_y_m)
+    assert "/pulses/antenna_y_m, /pulses/antenna_z_m, /radar/pulse_frequency_hz" in caplog.text
+    assert "in a file that declares format 1.0: used as 1.2 defines them" in caplog.text

@@ -1092,6 +1092,12 @@ def _check_pulse_additions(f: h5py.File, path: Any, h: dict[str, Any]) -> None:
             raise ArchiveError(path, name, f"expected real numbers of shape ({h['n_pulses']},) (one per echo "
                                f"row), got {ds.dtype} {ds.shape}")
         h["rail_deviations"].append(name)
+    additions = h["rail_deviations"] + (list(_PULSE_DATASETS) if h["pulse_shape"] == "measured" else [])
+    if additions and h["format_minor_version"] < 2:
+        # a writer that forgot the minor version: the data are the 1.2 additions' all the same, and used
+        _warn_once("%s: %s (format 1.2) in a file that declares format 1.%d: used as 1.2 defines them; a "
+                   "writer sets format_minor_version = 2", path, ", ".join(additions),
+                   h["format_minor_version"])
 
 
 def _check_measured_pulse(path: Any, f_hz: np.ndarray, spectrum: np.ndarray, sample_rate_hz: float) -> None:
