@@ -637,15 +637,26 @@ def test_a_cycle_the_face_moves_on_from_mid_scan_is_abandoned_and_the_new_one_sc
 
 
 class _FutureMapController(RigController):
+    major = 2
+
     def input_low(self, now):
         regs = super().input_low(now)
-        return R.IDENTITY.encode({**R.IDENTITY.decode(regs[:32]), "MAP_MAJOR": 2}) + regs[32:]
+        return R.IDENTITY.encode({**R.IDENTITY.decode(regs[:32]), "MAP_MAJOR": self.major}) + regs[32:]
+
+
+class _PastMapController(_FutureMapController):
+    major = 0
 
 
 def test_a_controller_with_an_unknown_map_version_or_out_of_range_heights_is_refused(tmp_path):
     with RigServer(_FutureMapController(FAST_DEVICE), LOOPBACK, 0) as server:
         report = run_session(settings_for(server, tmp_path), timeout_s=10.0)
     assert "register map 2." in report.error and not report.ok and not report.passes_written
+    assert "upgrade uwbcl" in report.error
+    # an older map is the controller's to update (indepZw F5: "upgrade uwbcl" was the advice for 0.x too)
+    with RigServer(_PastMapController(FAST_DEVICE), LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path), timeout_s=10.0)
+    assert "register map 0." in report.error and "update its firmware" in report.error
     with RigServer(RigController(FAST_DEVICE), LOOPBACK, 0) as server:
         report = run_session(settings_for(server, tmp_path, heights_m=(0.15, 3.0)), timeout_s=10.0)
     assert "MOVE_HEIGHT 3000000: outside the rig's range" in report.error and not report.ok

@@ -511,8 +511,10 @@ def _incompatible(identity: dict) -> str:
     if identity["MAGIC"] != R.MAP_MAGIC:
         return f"IDENTITY.MAGIC = 0x{identity['MAGIC']:04X}: not a uwbcl rig controller"
     if identity["MAP_MAJOR"] != R.MAP_VERSION[0]:
+        newer = identity["MAP_MAJOR"] > R.MAP_VERSION[0]
         return (f"register map {identity['MAP_MAJOR']}.{identity['MAP_MINOR']}: this client speaks "
-                f"{R.MAP_VERSION[0]}.x; upgrade uwbcl")
+                f"{R.MAP_VERSION[0]}.x; " + ("upgrade uwbcl" if newer else
+                                              "the controller's map is older: update its firmware"))
     return ""
 
 
