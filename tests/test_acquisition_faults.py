@@ -378,6 +378,20 @@ def test_every_pass_of_a_cycle_scanned_again_after_the_counter_went_back_is_name
     assert all(re.search(r"_b[0-9A-F]{8}_p\d+\.h5$", n) for n in rescan), rescan
 
 
+def test_a_cycle_the_counter_jumped_over_and_came_back_to_is_named_as_usual(tmp_path, caplog):
+    # indepZw F2: 1001 -> 1003 (1002 never scanned) -> 1002: 1002's passes were named apart and logged as
+    # "scanned before in this session", which it never was
+    device = RigController(dataclasses.replace(FAST_DEVICE, cycle_interval_s=1e9))
+    caplog.set_level(logging.WARNING, logger="uwbcl.acquire")
+    with RigServer(device, LOOPBACK, 0) as server:
+        _set_counter_after(server, ((2, 1003), (4, 1002)))
+        report = run_session(settings_for(server, tmp_path, cycles=3))
+    assert report.ok and len(report.passes_written) == 6, report
+    names = [Path(p).name for p in report.passes_written if archive.read_pass_header(p)["cycle"] == 1002]
+    assert len(names) == 2 and not any(re.search(r"_b[0-9A-F]{8}_p\d+\.h5$", n) for n in names), names
+    assert not any("scanned before" in r.getMessage() for r in caplog.records)
+
+
 class _ShortPassOnce(RigController):
     """The first pass announces 7000 pulses, produces its 61 and reports COMPLETE (a controller
     that stops early)."""

@@ -595,7 +595,7 @@ class AcquisitionSession:
         self._published_at = -math.inf  # time.monotonic() of the last RESULT written
         # (name, scan, pass id, unique, plain name allowed)
         self._unwritten: collections.deque[tuple] = collections.deque()
-        self._highest_cycle: int | None = None  # the highest cycle number scanned in this session
+        self._scanned_cycles: set[int] = set()  # the cycle numbers scanned in this session
         self._rescan = False  # the cycle being scanned has a number scanned before (a counter that went back)
         self._unwritten_tried_at = -math.inf
         self._late: set[str] = set()  # passes of _unwritten whose write failed at least once
@@ -830,11 +830,11 @@ class AcquisitionSession:
                                 "(its archives are named so that they cannot replace earlier ones)", last,
                                 cycle, cycle)
                 last = cycle
-                # a number at or below the highest scanned (modulo 2^32): every pass of this scan is named
-                # apart from the first scan's, so one scan's files can be moved out whole (map section 12.1)
-                self._rescan = self._highest_cycle is not None and R.seq_diff(cycle, self._highest_cycle) <= 0
-                if not self._rescan:
-                    self._highest_cycle = cycle
+                # a number scanned before in this session: every pass of this scan is named apart from the
+                # first scan's, so one scan's files can be moved out whole (map section 12.1); a number the
+                # counter jumped over and came back to was never scanned, and is named as usual
+                self._rescan = cycle in self._scanned_cycles
+                self._scanned_cycles.add(cycle)
                 try:
                     pending = self._scan_cycle(cycle)
                 except Interrupted:  # stopped mid-cycle: the report says this cycle was not completed
