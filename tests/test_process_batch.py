@@ -734,6 +734,13 @@ def test_an_archive_directory_that_yields_no_pass_keeps_the_published_set_and_ex
     assert main(["process", str(empty), "--out", str(fresh), "--backend", "numpy", "--no-progress"]) == 1
     assert [(r["file"], r["kind"]) for r in rows(fresh / "errors.csv")] == [(".", "no_archives")]
     assert rows(fresh / "displacements.csv") == []
+    # the archives under the output directory itself (indepZv F7: "no archive" although six lay there)
+    inside = tmp_path / "tree"
+    shutil.copytree(archive_dir, inside)
+    rig_dir = next(p for p in inside.iterdir() if p.is_dir())
+    assert main(["process", str(inside), "--out", str(rig_dir), "--backend", "numpy", "--no-progress"]) == 1
+    reason = rows(rig_dir / "errors.csv")[0]["reason"]
+    assert f"outside the output directory {rig_dir} (never searched)" in reason
 
 
 def test_a_published_set_that_cannot_be_read_back_is_logged_and_the_run_goes_on(

@@ -1069,8 +1069,11 @@ def process_directory(in_dir: Path, out_dir: Path, settings: ProcessingSettings 
             log.warning("%s: %s: %s", w.kind, w.file, w.reason)
             warnings.append(w)
         if not files and not problems:  # (a problem of the walk already says why nothing was found)
-            problems.append(Problem(".", "no_archives", f"no archive (*.h5, *.hdf5) under {in_dir}"))
-            log.error("%s: no archive (*.h5, *.hdf5) found", in_dir)
+            # an output directory inside the input tree is not searched: say so, it may hold the archives
+            outside = (f" outside the output directory {out_dir} (never searched)"
+                       if out_dir.resolve().is_relative_to(in_dir.resolve()) else "")
+            problems.append(Problem(".", "no_archives", f"no archive (*.h5, *.hdf5) under {in_dir}{outside}"))
+            log.error("%s: no archive (*.h5, *.hdf5) found%s", in_dir, outside)
         if not records and published:
             problems.sort(key=lambda p: (p.file, p.kind, p.reason))
             raise NothingRead(f"{in_dir}: no archive could be read; nothing published, the previous "
