@@ -308,6 +308,9 @@ def test_a_positions_csv_error_names_the_file_and_line(tmp_path):
     path.write_text("t,x\n0,1\n")
     with pytest.raises(RecordingError, match=r"line 1: no column 'time_s'"):
         passes.read_positions_csv(path)
+    path.write_text("time_s,x_m\n0.0,1.0\n0.1,1e308\n")  # a tester: it named an archive never written
+    with pytest.raises(RecordingError, match=r"pos.csv: line 3: x_m: 1e\+308 m is beyond \+-1000 m"):
+        passes.read_positions_csv(path)
 
 
 # ----------------------------------------------------------------------------------------------- round trip

@@ -521,8 +521,7 @@ def _check_import_flags(args: argparse.Namespace, options: passes.ImportOptions)
     """OptionError for flags that contradict or lack each other, or a bad value (before the file is read)."""
     passes.check_options(options)
     if args.speed_m_s is not None:
-        if not (math.isfinite(args.speed_m_s) and args.speed_m_s != 0):
-            raise OptionError("speed_m_s", f"must be finite and non-zero, got {args.speed_m_s}")
+        passes.check_speed(args.speed_m_s)
         if options.height_m is None:
             raise OptionError("height_m", "required with --speed-m-s (a constant-speed track has no z_m to "
                                           "take the rail height from)")

@@ -37,6 +37,7 @@ log = logging.getLogger("uwbcl")
 
 DEFAULT_REFERENCE_RANGE_M = 3.0  # the scene centre's range when the recording's window holds it
 MOTION_THRESHOLD_M = 0.002  # a position this far from the first one has moved (about where the echo shows it)
+MAX_SPEED_M_S = 10.0  # --speed-m-s beyond this is no rail carriage (1e308 overflowed the track to NaN)
 BANDWIDTH_WARN_FRACTION = 0.2  # a given bandwidth this far off the measured one is warned about
 # a given carrier this far (of the measured -10 dB width) from the measured centre is warned about: 0.2 of the
 # width (3.7 GHz for a 4.01 GHz centre) split one plate into two 14 mm apart on an independent tester's pass
@@ -137,6 +138,9 @@ def read_positions_csv(path: str | os.PathLike[str]) -> Positions:
                 ) from None
             if not math.isfinite(v):
                 raise RecordingError(path, None, f"line {line}: {name}: not finite")
+            if name != "time_s" and beyond_max_length(v):
+                raise RecordingError(path, None, f"line {line}: {name}: {v!r} m is beyond "
+                                     f"+-{MAX_LENGTH_M:g} m (is it in metres?)")
             values[name].append(v)
     t = np.asarray(values["time_s"])
     if t.size < 2:
@@ -377,10 +381,16 @@ def track_from_positions(
     )
 
 
+def check_speed(speed_m_s: float) -> None:
+    """OptionError for a constant-speed track's speed (m/s, sign: direction) no rail carriage has."""
+    if not (math.isfinite(speed_m_s) and 0 < abs(speed_m_s) <= MAX_SPEED_M_S):
+        raise OptionError("speed_m_s", f"must be finite, non-zero and within +-{MAX_SPEED_M_S:g} m/s (a "
+                          f"rail carriage), got {speed_m_s}")
+
+
 def constant_speed_track(recording: RawRecording, speed_m_s: float) -> Track:
     """Every scan on a straight track at ``speed_m_s`` (sign: direction), centred on x = 0."""
-    if not (math.isfinite(speed_m_s) and speed_m_s != 0):
-        raise OptionError("speed_m_s", f"must be finite and non-zero, got {speed_m_s}")
+    check_speed(speed_m_s)
     t = recording.scan_time_s
     x = speed_m_s * (t - 0.5 * (t[0] + t[-1]))
     return Track(scans=np.arange(recording.n_scans), x_m=x, time_offset_s=None)
