@@ -140,6 +140,13 @@ def test_phases_that_disagree_with_the_plates_leave_the_plates_estimate(noisy_pa
     np.testing.assert_array_equal(d.bound_m, plain.bound_m)
 
 
+def _lowered(p):
+    """The plate and its looks 0.1 m lower: the row's vertical +0.1 m."""
+    q = p.position_m - [0, 0, 0.1]
+    return dataclasses.replace(p, position_m=q, looks=tuple(
+        (h, dataclasses.replace(d, rc_m=float(closest_approach_range_m(q, h)))) for h, d in p.looks))
+
+
 def test_plates_whose_vertical_the_rig_cannot_have_and_whose_phases_disagree_are_withheld(noisy_pairs):
     """Eq. M5c. An independent tester's dense grid from three heights: five plates, three of them located
     through looks shared with a neighbour, all pulled along their dilution direction (y and z together): the
@@ -147,13 +154,7 @@ def test_plates_whose_vertical_the_rig_cannot_have_and_whose_phases_disagree_are
     `ok`.
     A floor step moves every plate alike and its phases hold; plates pulled off do neither."""
     a, b = noisy_pairs[0]
-
-    def lift(p):  # the plate and its looks 0.1 m lower: the row's vertical +0.1 m
-        q = p.position_m - [0, 0, 0.1]
-        return dataclasses.replace(p, position_m=q, looks=tuple(
-            (h, dataclasses.replace(d, rc_m=float(closest_approach_range_m(q, h)))) for h, d in p.looks))
-
-    lifted = dataclasses.replace(b, plates=[lift(p) for p in b.plates])
+    lifted = dataclasses.replace(b, plates=[_lowered(p) for p in b.plates])
     scrambled = with_random_phases(lifted, np.random.default_rng(5))
 
     def row(after, vertical_prior_m, phases=True):
@@ -170,6 +171,43 @@ def test_plates_whose_vertical_the_rig_cannot_have_and_whose_phases_disagree_are
     assert row(scrambled, (0.0, 0.005), phases=False).status == "ok"
     step = row(lifted, (0.0, 0.005))  # a floor step: every plate and look moved alike, the phases hold
     assert step.phase_check == 1 and step.status == "ok" and step.advance_m[2] > 0.09
+
+
+def test_on_a_rig_whose_phases_have_not_held_a_failed_phase_test_withholds_no_floor_step(noisy_pairs):
+    # a review: M5c withheld a uniform floor step whose phases failed for another reason on a rig whose
+    # phases had never held; it acts once they have (RigChain's phase_tested_only False)
+    a, b = noisy_pairs[0]
+    lifted = dataclasses.replace(b, plates=[_lowered(p) for p in b.plates])
+    scrambled = with_random_phases(lifted, np.random.default_rng(5))
+    s = dataclasses.replace(SETTINGS, vertical_prior_m=(0.0, 0.005))
+    d = estimate_advance(a.plates, scrambled.plates, s, phase_tested_only=True,
+                         before_cov_m2=0.04 * chain.plate_covariances(a, s.range_sigma_m),
+                         after_cov_m2=0.04 * chain.plate_covariances(scrambled, s.range_sigma_m))
+    assert d.phase_check == -1 and d.status != "inconsistent"
+
+
+def test_the_phases_coupling_carries_a_retreat_competitor_into_the_creep_bound(noisy_pairs, monkeypatch):
+    # eq. M8b wired into the bound (a review found it moved, by mistake, under M5c's condition)
+    from uwbcl import displacement
+
+    a, b = noisy_pairs[0]
+    plain = advance(a, b, True)
+    real = displacement._with_phases
+
+    def coupled(*args):
+        adv, cov, looks, check, _ = real(*args)
+        return adv, cov, looks, check, np.array([2.0, 0.0])
+
+    real_competitors = displacement._competitors
+
+    def rival(best, rivals, settings):
+        margin, unknown, rival_var = real_competitors(best, rivals, settings)
+        return margin, unknown + np.array([1e-4, 0.0, 0.0]), rival_var
+
+    monkeypatch.setattr(displacement, "_with_phases", coupled)
+    monkeypatch.setattr(displacement, "_competitors", rival)
+    d = advance(a, b, True)
+    assert d.bound_m[1] ** 2 == pytest.approx(plain.bound_m[1] ** 2 + 4.0 * 1e-4, rel=1e-6)
 
 
 def test_a_look_whose_fringe_the_plates_cannot_fix_is_not_used(noisy_pairs):

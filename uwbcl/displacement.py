@@ -752,15 +752,15 @@ def estimate_advance(before: list[Located], after: list[Located],
     if settings.carrier_phase and settings.weighted and have_cov:
         advance, cov_adv, looks_used, phase_check, coupling = _with_phases(
             advance, cov_adv, phase_looks(before, after, pairs), phase_tested_only)
-    if vertical_rejected and phase_check < 0:
-        # M5c: the plates' vertical is far from the rig's vertical motion and the carrier phases do not
-        # agree with their estimate either: a floor step would move every plate alike and the phases would
-        # hold; plates pulled along their dilution direction (looks shared with a neighbour, off in y and z
-        # together) do neither, and their creep is off with their vertical
-        consistent = False
         # M8b: the phases hold the line of sight, so the competitors' retreat terms move creep and vertical
         unknown_var[1:] += coupling**2 * unknown_var[0]
         rival_var[1:] += coupling**2 * rival_var[0]
+    if vertical_rejected and phase_check < 0 and not phase_tested_only:
+        # M5c: the plates' vertical is far from the rig's vertical motion and the carrier phases, on a rig
+        # whose phases have held, do not agree with their estimate either: a floor step would move every plate
+        # alike and the phases would hold; plates pulled along their dilution direction (looks shared with a
+        # neighbour, off in y and z together) do neither, and their creep is off with their vertical
+        consistent = False
     bound = np.sqrt(np.diag(cov_adv) + unknown_var + rival_var)  # eqs. M3, M3a, M8b
     rotated = False
     if turn is not None and turn[2] > ROTATION_CHI2:  # eq. M9: how far the turn moves the kept plates' fit
