@@ -30,8 +30,9 @@ CROSS_HEIGHT_WALL_TOL_M = DetectionSettings.cross_height_wall_tol_m
 # wrong grouping could set it),
 WALL_MIN_PLATES = 3
 # and a rib rougher than the gate: the gate widens to this many robust standard deviations (1.4826 x MAD) of
-# those plates' wall distances about W (an undulating rib, +-0.3 m over a few metres, is ordinary in a gate
-# road: with the 0.15 m gate it lost every plate more than 0.2 m off the median wall)
+# the wall distances about W of those plates whose pairing was unambiguous (an undulating rib, +-0.3 m over a
+# few metres, is ordinary in a gate road: with the 0.15 m gate it lost every plate more than 0.2 m off the
+# median wall; a bolting ring's phantoms, most of a first grouping at times, must not widen it)
 WALL_SPREAD_SIGMAS = 3.0
 _GATED = 1e6  # the assignment cost of a pair outside either gate: never chosen over a gated-in pair
 # Eq. L1 (`shared_look`): a neighbour predicted within this many of the detector's non-maximum-suppression
@@ -183,29 +184,38 @@ def _wall_m(located: list[tuple[dict[float, Detection], Located]], tol_m: float 
     such copies 0.3 m behind the rib as there were plates, the median of all of them among the copies, and
     the rib gate then kept the copies and set the plates aside; noise or a reflector in front of the rib, a
     stepped rib and a rail a little off parallel to it cast no shadows, and their median is what it was."""
-    return _wall_and_spread_m(located, tol_m, x_tol_m)[0]
-
-
-def _wall_and_spread_m(located: list[tuple[dict[float, Detection], Located]],
-                       tol_m: float = CROSS_HEIGHT_WALL_TOL_M, x_tol_m: float = CROSS_HEIGHT_X_TOL_M
-                       ) -> tuple[float, float]:
-    """`_wall_m` and the robust standard deviation (1.4826 x MAD, m) of the plates' wall distances about it
-    (the same plates: shadows left out)."""
     w = np.array([abs(p.position_m[1]) for _, p in located])
     x = np.array([p.position_m[0] for _, p in located])
     shadow = np.any((np.abs(x[:, None] - x[None, :]) <= x_tol_m) & (w[None, :] < w[:, None] - tol_m), axis=1)
-    kept = w[~shadow] if tol_m > 0 and not shadow.all() else w
-    wall = float(np.median(kept))
-    return wall, 1.4826 * float(np.median(np.abs(kept - wall)))
+    return float(np.median(w[~shadow] if tol_m > 0 and not shadow.all() else w))
 
 
 def wall_gate_m(located: list[tuple[dict[float, Detection], Located]], tol_m: float = CROSS_HEIGHT_WALL_TOL_M,
-                x_tol_m: float = CROSS_HEIGHT_X_TOL_M) -> tuple[float, float]:
-    """Eq. L2's wall distance W (m) and gate (m) from a first grouping's plates: the gate is `tol_m`, widened
-    to WALL_SPREAD_SIGMAS robust standard deviations of the plates' wall distances about W where the rib is
-    rougher than `tol_m` covers (eq. L2b)."""
-    wall, spread = _wall_and_spread_m(located, tol_m, x_tol_m)
-    return wall, max(tol_m, WALL_SPREAD_SIGMAS * spread)
+                clear: list[bool] | None = None, x_tol_m: float = CROSS_HEIGHT_X_TOL_M
+                ) -> tuple[float, float]:
+    """Eq. L2's wall distance W (m, `_wall_m`) and gate (m) from a first grouping's plates: `tol_m`, widened
+    to WALL_SPREAD_SIGMAS robust standard deviations (1.4826 x MAD) of the wall distances about W of the
+    plates whose grouping was `clear` (each look had one candidate at the group's other heights: a pairing
+    of two plates of a bolting ring, a phantom, is not) where at least WALL_MIN_PLATES are (eq. L2b)."""
+    wall = _wall_m(located, tol_m, x_tol_m)
+    kept = [p for (_, p), c in zip(located, clear if clear is not None else [True] * len(located)) if c]
+    if len(kept) < WALL_MIN_PLATES:
+        return wall, tol_m
+    w = np.array([abs(p.position_m[1]) for p in kept])
+    return wall, max(tol_m, WALL_SPREAD_SIGMAS * 1.4826 * float(np.median(np.abs(w - wall))))
+
+
+def _clear(group: dict[float, Detection], detections_by_height: dict[float, list[Detection]], x_tol_m: float,
+           rc_tol_m: float) -> bool:
+    """Whether each look of a cross-height group had exactly one candidate within the grouping's gates at each
+    of the group's other heights (`associate_across_heights`): no other pairing was possible."""
+    for h_a, a in group.items():
+        for h_b in group:
+            reach_m = abs(h_b - h_a) + rc_tol_m
+            if h_b != h_a and sum(abs(e.x_m - a.x_m) <= x_tol_m and abs(e.rc_m - a.rc_m) <= reach_m
+                                  for e in detections_by_height[h_b]) != 1:
+                return False
+    return True
 
 
 def _located_group(group: dict[float, Detection], boresight_y_sign: int) -> Located | None:
@@ -279,7 +289,8 @@ def locate_plates(detections_by_height: dict[float, list[Detection]], boresight_
     groups = associate_across_heights(detections_by_height, x_tol_m, rc_tol_m)
     located = [(g, p) for g in groups if (p := _located_group(g, boresight_y_sign)) is not None]
     if wall_tol_m > 0 and len(located) >= WALL_MIN_PLATES:
-        wall_m, gate_m = wall_gate_m(located, wall_tol_m)
+        clear = [_clear(g, detections_by_height, x_tol_m, rc_tol_m) for g, _ in located]
+        wall_m, gate_m = wall_gate_m(located, wall_tol_m, clear, x_tol_m)
         groups = associate_across_heights(detections_by_height, x_tol_m, rc_tol_m, wall_m, gate_m,
                                           range_sigma_m)
         located = [(g, p) for g in groups if (p := _located_group(g, boresight_y_sign)) is not None]
