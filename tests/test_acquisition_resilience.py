@@ -451,6 +451,29 @@ def test_a_command_acknowledged_with_another_commands_code_is_written_again_unde
             settings.rotation_table_angle_deg)
 
 
+class _NeverTheCode(RigController):
+    """Runs every command but leaves CMD_ACK_CODE at 0 (a controller off the map)."""
+
+    runs = 0
+
+    def command(self, now, regs):
+        before = self.cmd_ack_seq
+        super().command(now, regs)
+        if self.cmd_ack_seq != before:
+            self.runs += 1
+        self.cmd_ack_code = 0
+
+
+def test_a_controller_that_never_shows_the_commands_code_is_not_sent_it_again_and_again(tmp_path):
+    # a review: the resend under a new number ran MOVE_HEIGHT 710 times in 16 s with 710 warnings
+    device = _NeverTheCode(dataclasses.replace(FAST_DEVICE, cycle_interval_s=1e6))
+    with RigServer(device, LOOPBACK, 0) as server:
+        report = run_session(settings_for(server, tmp_path, heights_m=(0.15, 0.3), max_attempts=1))
+    assert not report.passes_written and report.passes_failed
+    assert device.runs <= 2 * (client_module.FOREIGN_ACK_RETRIES + 1) + 2, device.runs
+    assert "CMD_ACK_CODE 0, not" in " ".join(report.passes_incomplete)
+
+
 def test_the_client_heartbeat_goes_on_while_the_last_cycle_is_processed_at_the_end_of_the_session(tmp_path):
     # a review: the session waited in the processor's close (up to a minute) connected and silent, then
     # published a result: a reader that sees the heartbeat still for 2 s knows no result will come (map 5.3)

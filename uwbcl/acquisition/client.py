@@ -87,6 +87,8 @@ FINAL_PUBLISH_S = 15.0
 UNNAMED_RIG_ID = "rig"  # the archives' rig id when neither the settings nor IDENTITY.RIG_ID name one (warned)
 HEARTBEAT_POLL_S = 0.2  # how often the side thread of _off_the_link looks whether CLIENT_HEARTBEAT is due
 HEARTBEAT_WARN_S = 60.0  # at most one warning this often about CLIENT_HEARTBEAT writes not done
+SCANNED_CYCLES_KEPT = 100_000  # cycle numbers remembered as scanned (a rescan's files are named apart)
+FOREIGN_ACK_RETRIES = 2  # a command acknowledged with another CMD_ACK_CODE is written again this often
 TABLE_ANGLE_WARN_DEG = 0.1  # a table this far from the commanded angle is said (a fifth of process's 0.5 deg)
 UNWRITTEN_RETRY_S = 10.0
 
@@ -595,7 +597,8 @@ class AcquisitionSession:
         self._published_at = -math.inf  # time.monotonic() of the last RESULT written
         # (name, scan, pass id, unique, plain name allowed)
         self._unwritten: collections.deque[tuple] = collections.deque()
-        self._scanned_cycles: set[int] = set()  # the cycle numbers scanned in this session
+        # the cycle numbers scanned in this session, the last SCANNED_CYCLES_KEPT (insertion order)
+        self._scanned_cycles: dict[int, None] = {}
         self._rescan = False  # the cycle being scanned has a number scanned before (a counter that went back)
         self._unwritten_tried_at = -math.inf
         self._late: set[str] = set()  # passes of _unwritten whose write failed at least once
@@ -772,8 +775,9 @@ class AcquisitionSession:
                 if now - self._heartbeat_warned_t >= HEARTBEAT_WARN_S:
                     self._heartbeat_warned_t = now
                     log.warning("fault: CLIENT_HEARTBEAT (HR 12) not written (%d times so far): the "
-                                "controller refused it or did not answer; acquisition goes on, but a face "
-                                "automation system watching HR 12 may take this client for dead",
+                                "controller refused it, did not answer or the connection was down; "
+                                "acquisition goes on, but a face automation system watching HR 12 may take "
+                                "this client for dead",
                                 self.link.counts.heartbeats_unwritten)
 
     @contextlib.contextmanager
@@ -834,7 +838,9 @@ class AcquisitionSession:
                 # first scan's, so one scan's files can be moved out whole (map section 12.1); a number the
                 # counter jumped over and came back to was never scanned, and is named as usual
                 self._rescan = cycle in self._scanned_cycles
-                self._scanned_cycles.add(cycle)
+                self._scanned_cycles[cycle] = None
+                if len(self._scanned_cycles) > SCANNED_CYCLES_KEPT:  # years of cycles: memory stays bounded
+                    del self._scanned_cycles[next(iter(self._scanned_cycles))]
                 try:
                     pending = self._scan_cycle(cycle)
                 except Interrupted:  # stopped mid-cycle: the report says this cycle was not completed
@@ -1201,7 +1207,7 @@ class AcquisitionSession:
         values = {"CMD_CODE": int(code), "CMD_SEQ": seq, "ARG0": arg}
         start = time.monotonic()
         deadline = start + self.settings.command_timeout_s
-        resend_s, next_resend, told = self.settings.poll_s, start + self.settings.poll_s, False
+        resend_s, next_resend, told, foreign = self.settings.poll_s, start + self.settings.poll_s, False, 0
         self.link.write_block(R.COMMAND, values)
         while True:
             st = self._status()
@@ -1227,10 +1233,12 @@ class AcquisitionSession:
             if st["CMD_ACK_CODE"] != int(code):
                 # its CMD_SEQ acknowledged for another command: another client's with the same number (this
                 # one's was then taken for a retransmission and never run) or a controller off the map; a new
-                # number runs it (indepZw F3: an angle never set, its pass archived at the rig's old one)
-                if now > deadline:
-                    raise PassIncomplete(f"{code.name}: CMD_SEQ {seq} acknowledged for command "
-                                         f"{st['CMD_ACK_CODE']} only")
+                # number runs it (indepZw F3: an angle never set, its pass archived at the rig's old one), a
+                # few times: a controller that never shows the code would have it run again and again
+                foreign += 1
+                if foreign > FOREIGN_ACK_RETRIES or now > deadline:
+                    raise PassIncomplete(f"{code.name}: CMD_SEQ {seq} acknowledged with CMD_ACK_CODE "
+                                         f"{st['CMD_ACK_CODE']}, not {int(code)}, {foreign} times")
                 self.link.counts.foreign_acks += 1
                 log.warning("fault: %s: CMD_SEQ %d acknowledged for command %d, not %d (another client, or "
                             "a controller off the map); writing it again under a new CMD_SEQ", code.name, seq,
