@@ -350,15 +350,22 @@ def _set_counter_after(server, schedule) -> None:
     threading.Thread(target=longwall, daemon=True).start()
 
 
-def test_a_decreasing_cycle_counter_is_logged_and_its_passes_written_beside_the_earlier_ones(
-        tmp_path, caplog):
+def _three_cycles(tmp_path, schedule):
+    """A session of three cycles on a controller whose counter follows `schedule` (`_set_counter_after`); the
+    report (six passes written) and the server."""
     device = RigController(dataclasses.replace(FAST_DEVICE, cycle_interval_s=1e9))
-    caplog.set_level(logging.WARNING, logger="uwbcl.acquire")
     with RigServer(device, LOOPBACK, 0) as server:
-        # 1001 -> 1002 -> back to 1001 (a reset of the longwall control system)
-        _set_counter_after(server, ((2, 1002), (4, 1001)))
+        _set_counter_after(server, schedule)
         report = run_session(settings_for(server, tmp_path, cycles=3))
     assert report.ok and len(report.passes_written) == 6, report
+    return report, server
+
+
+def test_a_decreasing_cycle_counter_is_logged_and_its_passes_written_beside_the_earlier_ones(
+        tmp_path, caplog):
+    caplog.set_level(logging.WARNING, logger="uwbcl.acquire")
+    # 1001 -> 1002 -> back to 1001 (a reset of the longwall control system)
+    report, server = _three_cycles(tmp_path, ((2, 1002), (4, 1001)))
     assert len(set(report.passes_written)) == 6 and len(archive.find_pass_files(tmp_path)) == 6
     assert report.faults.counter_decreases == 1
     assert any("decreased" in r.getMessage() and "1002" in r.getMessage() and "1001" in r.getMessage()
@@ -381,12 +388,8 @@ def test_every_pass_of_a_cycle_scanned_again_after_the_counter_went_back_is_name
 def test_a_cycle_the_counter_jumped_over_and_came_back_to_is_named_as_usual(tmp_path, caplog):
     # indepZw F2: 1001 -> 1003 (1002 never scanned) -> 1002: 1002's passes were named apart and logged as
     # "scanned before in this session", which it never was
-    device = RigController(dataclasses.replace(FAST_DEVICE, cycle_interval_s=1e9))
     caplog.set_level(logging.WARNING, logger="uwbcl.acquire")
-    with RigServer(device, LOOPBACK, 0) as server:
-        _set_counter_after(server, ((2, 1003), (4, 1002)))
-        report = run_session(settings_for(server, tmp_path, cycles=3))
-    assert report.ok and len(report.passes_written) == 6, report
+    report, _ = _three_cycles(tmp_path, ((2, 1003), (4, 1002)))
     names = [Path(p).name for p in report.passes_written if archive.read_pass_header(p)["cycle"] == 1002]
     assert len(names) == 2 and not any(re.search(r"_b[0-9A-F]{8}_p\d+\.h5$", n) for n in names), names
     assert not any("scanned before" in r.getMessage() for r in caplog.records)

@@ -93,37 +93,32 @@ def test_check_finds_passes_too_small_to_focus_or_beyond_the_limits_as_process_d
     assert names[files[2].relative_to(src).as_posix()][0] == "exceeds_limits"
 
 
-def test_check_warns_about_a_pass_whose_rail_is_longer_than_any_face_end_rail_as_positions_in_millimetres(
-        archive_dir, tmp_path, capsys):
-    # an imported recording paired with a log in mm: the import warned, but nothing later said so (indepZs F2)
+def _one_warning(archive_dir, tmp_path, capsys, index: int, positions, kind: str):
+    """The tree with pass `index`'s positions replaced by positions(its own), checked: its one `kind` warning,
+    which names the pass and is printed by `uwbcl check`."""
     src = tmp_path / "in"
     shutil.copytree(archive_dir, src)
     files = pass_files(src)
-    scan = archive.read_pass(files[1])
-    _rewrite(files[1], pulse_position_m=scan.pulse_position_m * 1e3)
-    report = check.check_directory(src, SETTINGS, options())
-    (long,) = [w for w in report.warnings if w.kind == "long_rail"]
-    assert long.file == files[1].relative_to(src).as_posix()
-    assert "more than any face-end rail (20 m): are its positions in metres?" in long.reason
+    _rewrite(files[index], pulse_position_m=positions(archive.read_pass(files[index]).pulse_position_m))
+    (warning,) = [w for w in check.check_directory(src, SETTINGS, options()).warnings if w.kind == kind]
+    assert warning.file == files[index].relative_to(src).as_posix()
     main(["check", str(src)])
-    assert f"long_rail: {long.file}: the pass travels" in capsys.readouterr().out
+    assert f"{kind}: {warning.file}: the pass travels" in capsys.readouterr().out
+    return warning
+
+
+def test_check_warns_about_a_pass_whose_rail_is_longer_than_any_face_end_rail_as_positions_in_millimetres(
+        archive_dir, tmp_path, capsys):
+    # an imported recording paired with a log in mm: the import warned, but nothing later said so (indepZs F2)
+    long = _one_warning(archive_dir, tmp_path, capsys, 1, lambda x: x * 1e3, "long_rail")
+    assert "more than any face-end rail (20 m): are its positions in metres?" in long.reason
 
 
 def test_check_warns_about_a_pass_that_travels_less_than_its_rigs_other_passes(archive_dir, tmp_path, capsys):
     # a recording imported with the positions log of a slower pass: it imported silently and its cycle came
     # out `prior_conflict` with nothing naming the pass (indepZs F4)
-    src = tmp_path / "in"
-    shutil.copytree(archive_dir, src)
-    files = pass_files(src)
-    scan = archive.read_pass(files[2])
-    start = scan.pulse_position_m[0]
-    _rewrite(files[2], pulse_position_m=start + 0.8 * (scan.pulse_position_m - start))
-    report = check.check_directory(src, SETTINGS, options())
-    (short,) = [w for w in report.warnings if w.kind == "rail_travel"]
-    assert short.file == files[2].relative_to(src).as_posix()
+    short = _one_warning(archive_dir, tmp_path, capsys, 2, lambda x: x[0] + 0.8 * (x - x[0]), "rail_travel")
     assert "a pass cut short, or positions from another pass or at another speed?" in short.reason
-    main(["check", str(src)])
-    assert f"rail_travel: {short.file}: the pass travels" in capsys.readouterr().out
     assert not [w for w in check.check_directory(archive_dir, SETTINGS, options()).warnings
                 if w.kind == "rail_travel"]
 
