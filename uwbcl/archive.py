@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import errno
+import itertools
 import logging
 import math
 import os
@@ -701,12 +702,12 @@ def _read_values(f: h5py.File, path: Any, name: str) -> np.ndarray:
             return ds[()]
         out = np.empty(ds.shape, ds.dtype)  # its size is within the limits checked before
         grid = _chunk_grid(ds)
-        rows = ds.chunks[0] * max(1, CHUNKS_PER_READ // math.prod(grid[1:]))
-        cols = (ds.chunks[1] * max(1, CHUNKS_PER_READ // math.prod(grid[2:])) if ds.ndim > 1 else 1)
-        for r in range(0, ds.shape[0], rows):
-            for c in range(0, ds.shape[1] if ds.ndim > 1 else 1, cols):
-                block = np.s_[r:r + rows, c:c + cols] if ds.ndim > 1 else np.s_[r:r + rows]
-                ds.read_direct(out, block, block)
+        # blocks of whole chunks along the first two axes, each spanning at most CHUNKS_PER_READ chunks
+        steps = [ds.chunks[k] * max(1, CHUNKS_PER_READ // math.prod(grid[k + 1:]))
+                 for k in range(min(2, ds.ndim))]
+        for starts in itertools.product(*(range(0, n, step) for n, step in zip(ds.shape, steps))):
+            block = tuple(slice(a, a + step) for a, step in zip(starts, steps))
+            ds.read_direct(out, block, block)
         return out
     except ArchiveError:
         raise

@@ -631,12 +631,14 @@ def deviation_reference_warnings(records: list[PassRecord], cycles: list[CycleRe
     plates: dict[str, list[np.ndarray]] = defaultdict(list)
     for c in cycles:
         plates[c.rig_id] += [np.asarray(p.position_m, dtype=float) for p in c.plates]
+    # each rig's plates once: their median wall distance and height (m)
+    median = {rig: (float(np.median(np.abs(xyz[:, 1]))), float(np.median(xyz[:, 2])))
+              for rig, xyz in ((rig, np.array(ps)) for rig, ps in plates.items() if ps)}
     worst: dict[str, tuple[float, float, float, float]] = {}
     for r in records:
-        if r.rail_deviation_m <= 0 or not plates.get(r.rig_id):
+        if r.rail_deviation_m <= 0 or r.rig_id not in median:
             continue
-        xyz = np.array(plates[r.rig_id])
-        wall, z_m = float(np.median(np.abs(xyz[:, 1]))), float(np.median(xyz[:, 2]))
+        wall, z_m = median[r.rig_id]
         _, ref_y, ref_z = r.parameters["reference_point_m"]
         e_ref = math.atan2(ref_z - r.height_m, abs(ref_y))
         e_plates = math.atan2(z_m - r.height_m, wall)

@@ -130,6 +130,16 @@ def two_look_wall_m(h_a, rc_a, sigma_a, h_b, rc_b, sigma_b) -> tuple[np.ndarray,
     return wall, np.hypot(dw_a * sigma_a, dw_b * sigma_b)
 
 
+def _gate_terms(a_dets: list[Detection], h_a: float, b_dets: list[Detection], h_b: float, x_tol_m: float,
+                rc_tol_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The cross-height grouping's gate terms of every pair of looks of two heights, (n_a, n_b) each:
+    |dx| / x_tol and |dR_c| / (|dh| + rc_tol); a pair is inside the gates where both are <= 1."""
+    dx = np.abs(np.subtract.outer([a.x_m for a in a_dets], [b.x_m for b in b_dets])) / x_tol_m
+    dr = np.abs(np.subtract.outer([a.rc_m for a in a_dets], [b.rc_m for b in b_dets])) / (abs(h_b - h_a)
+                                                                                          + rc_tol_m)
+    return dx, dr
+
+
 def associate_across_heights(detections_by_height: dict[float, list[Detection]],
                              x_tol_m: float = CROSS_HEIGHT_X_TOL_M, rc_tol_m: float = CROSS_HEIGHT_RC_TOL_M,
                              wall_m: float | None = None, wall_tol_m: float = CROSS_HEIGHT_WALL_TOL_M,
@@ -157,8 +167,7 @@ def associate_across_heights(detections_by_height: dict[float, list[Detection]],
         other = detections_by_height[h]
         if h == ref_h or not other or not ref:
             continue
-        dx = np.array([[abs(a.x_m - b.x_m) for b in other] for a in ref]) / x_tol_m
-        dr = np.array([[abs(a.rc_m - b.rc_m) for b in other] for a in ref]) / (abs(h - ref_h) + rc_tol_m)
+        dx, dr = _gate_terms(ref, ref_h, other, h, x_tol_m, rc_tol_m)
         cost = dx**2 + dr**2
         inside = (dx <= 1) & (dr <= 1)
         if wall_m is not None and wall_tol_m > 0:
@@ -211,10 +220,10 @@ def _clear(group: dict[float, Detection], detections_by_height: dict[float, list
     of the group's other heights (`associate_across_heights`): no other pairing was possible."""
     for h_a, a in group.items():
         for h_b in group:
-            reach_m = abs(h_b - h_a) + rc_tol_m
-            if h_b != h_a and sum(abs(e.x_m - a.x_m) <= x_tol_m and abs(e.rc_m - a.rc_m) <= reach_m
-                                  for e in detections_by_height[h_b]) != 1:
-                return False
+            if h_b != h_a:
+                dx, dr = _gate_terms([a], h_a, detections_by_height[h_b], h_b, x_tol_m, rc_tol_m)
+                if np.count_nonzero((dx <= 1) & (dr <= 1)) != 1:
+                    return False
     return True
 
 

@@ -71,6 +71,7 @@ def locate(cells: list[cancel.Cell], model: cancel.NlcsModel, passes: int, tol_m
     at = np.array([(a, b) for a, b, _ in cells], dtype=float).reshape(-1, 2)
     t_f, r_image, t_n_image = calibration.peak_track_times(products, at[:, 0], at[:, 1], model.focuser)
     r, t_n = r_image.copy(), t_n_image.copy()
+    alone = isolated(model, at)  # the image peaks do not move between the passes
     for _ in range(passes if len(cells) else 0):
         u = grid.speed_m_s * t_n
         models = cancel.fitted_models(model, u, r, degree, real_gains)
@@ -80,7 +81,6 @@ def locate(cells: list[cancel.Cell], model: cancel.NlcsModel, passes: int, tol_m
             break
         _, r_model, t_n_model = calibration.peak_track_times(products, peak[found, 0], peak[found, 1],
                                                              model.focuser)
-        alone = isolated(model, at)
         seen = np.array([matched_peak(model, models, j, peak[j], at[j])
                          if found[j] and alone[j] and j not in split else at[j] for j in range(len(cells))])
         _, r_seen, t_n_seen = calibration.peak_track_times(products, seen[found, 0], seen[found, 1],
